@@ -1,0 +1,60 @@
+"""Shared fixtures: one real Dask LocalCluster for the session, and tiny search configurations.
+
+numba would compile ribs' CMA-ES code in every process that runs a search (5-8 s each);
+NUMBA_DISABLE_JIT gives bitwise-identical results, so the tests (and the processes they start)
+run with it.
+"""
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent
+SCRIPT = ROOT / "lunar_lander.py"
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """A real local cluster of two single-threaded worker processes, as `--workers 2` starts."""
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None, silence_logs=logging.ERROR) as cluster:
+        yield cluster
+
+
+@pytest.fixture(scope="session")
+def dask_client(dask_cluster):
+    from dask.distributed import Client
+
+    with Client(dask_cluster) as client:
+        yield client
+
+
+@pytest.fixture
+def tiny_config(dask_cluster):
+    """Keyword arguments of `search` for a seconds-long run on the session cluster."""
+    return dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
+                sigma0=1.0, batch_size=6, log_every=2,
+                scheduler_address=dask_cluster.scheduler_address)
+
+
+@pytest.fixture
+def run_cli(tmp_path):
+    """Run the script as a user would; returns the CompletedProcess."""
+    import subprocess
+
+    def run(*args, timeout=300):
+        return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=timeout)
+    return run
+
+
+def pytest_configure(config):
+    # Box2D's SWIG bindings warn on import under Python 3.11+; the warning is theirs, not ours.
+    config.addinivalue_line("filterwarnings", "ignore:builtin type .* has no __module__:DeprecationWarning")

@@ -1,0 +1,621 @@
+#!/usr/bin/env python
+"""Search Gymnasium's Lunar Lander for many different good landings with CMA-ME (pyribs), on Dask.
+
+The problem, the algorithm and the results follow the pyribs tutorial "Using CMA-ME to Land a Lunar
+Lander Like a Space Shuttle"; this script adds what a research run needs around them: a Dask
+evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a CLI.
+
+    python lunar_lander.py --iterations 300 --workers 2      # search; writes outputs/<run>/
+    python lunar_lander.py resume outputs/RUN                 # continue a run from its checkpoint
+    python lunar_lander.py --help                             # every flag
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import importlib
+import json
+import logging
+import os
+import pickle
+import platform
+import secrets
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import gymnasium as gym
+import numpy as np
+
+# Plots are written to files, never shown: no display is needed (set before matplotlib loads).
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+# Dask spawns worker processes that re-import this script, so the heavy libraries that only the
+# main process needs (ribs, matplotlib, dask itself) are imported inside the functions using them.
+
+
+class UsageError(Exception):
+    """Bad input from the user: reported as one line on stderr with a non-zero exit."""
+
+
+# ================================================================================================
+# The problem: a linear policy flying Lunar Lander on a fixed terrain
+# ================================================================================================
+
+ENV_ID = "LunarLander-v3"
+ACTION_DIM, OBS_DIM = 4, 8  # discrete actions; observation (x, y, vx, vy, angle, spin, leg1, leg2)
+SOLUTION_DIM = ACTION_DIM * OBS_DIM
+
+
+def rollout(solution: np.ndarray, env_seed: int, env: gym.Env) -> tuple[float, float, float]:
+    """Fly the policy action = argmax(W @ obs) for one episode on the terrain of `env_seed`.
+
+    Returns (objective, impact x-position, impact y-velocity): the objective is the episode's total
+    reward; the measures are taken when either leg first touches the ground, or, if the lander never
+    touches it, they are the last x-position and the fastest descent (minimum y-velocity).
+    """
+    weights = np.asarray(solution, dtype=np.float64).reshape(ACTION_DIM, OBS_DIM)
+    obs, _ = env.reset(seed=env_seed)
+    total_reward, impact, min_y_velocity = 0.0, None, np.inf
+    done = False
+    while not done:
+        obs, reward, terminated, truncated, _ = env.step(int(np.argmax(weights @ obs)))
+        done = terminated or truncated
+        total_reward += reward
+        min_y_velocity = min(min_y_velocity, float(obs[3]))
+        if impact is None and (obs[6] or obs[7]):
+            impact = (float(obs[0]), float(obs[3]))
+    if impact is None:
+        impact = (float(obs[0]), min_y_velocity)
+    return float(total_reward), impact[0], impact[1]
+
+
+# ================================================================================================
+# The algorithm: an archive of elites, emitters that propose solutions, a scheduler tying them
+# ================================================================================================
+
+GRID_DIMS = (50, 50)
+MEASURE_RANGES = ((-1.0, 1.0), (-3.0, 0.0))  # impact x-position, impact y-velocity
+MEASURE_LABELS = ("Impact x-position", "Impact y-velocity")
+QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
+
+# One row per algorithm, in the spirit of pyribs' examples/sphere.py: what the archive and the
+# emitters are built with. CMA-ME is the tutorial's setup.
+ALGORITHMS: dict[str, dict[str, Any]] = {
+    "cma_me": {
+        "archive": {},
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": {"ranker": "2imp"},
+    },
+}
+
+
+def derive_seeds(seed: int, count: int) -> list[int]:
+    """Independent seeds for the archive and each emitter, all fixed by the one run seed."""
+    return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
+
+
+def build_scheduler(config: dict[str, Any]):
+    """The archive, emitters and scheduler of `config["algorithm"]`, seeded from `config["seed"]`."""
+    from ribs.archives import GridArchive
+    from ribs import emitters as ribs_emitters
+    from ribs.schedulers import Scheduler
+
+    spec = ALGORITHMS[config["algorithm"]]
+    archive_seed, *emitter_seeds = derive_seeds(config["seed"], config["n_emitters"] + 1)
+    archive = GridArchive(
+        solution_dim=SOLUTION_DIM,
+        dims=GRID_DIMS,
+        ranges=MEASURE_RANGES,
+        qd_score_offset=QD_SCORE_OFFSET,
+        seed=archive_seed,
+        **spec["archive"],
+    )
+    emitter_class = getattr(ribs_emitters, spec["emitter"])
+    emitters = [
+        emitter_class(
+            archive,
+            x0=np.zeros(SOLUTION_DIM),
+            sigma0=config["sigma0"],
+            batch_size=config["batch_size"],
+            seed=emitter_seed,
+            **spec["emitter_kwargs"],
+        )
+        for emitter_seed in emitter_seeds
+    ]
+    return Scheduler(archive, emitters)
+
+
+# ================================================================================================
+# The evaluation engine: batches of rollouts on a Dask cluster
+# ================================================================================================
+
+_WORKER_ENVS: dict[str, gym.Env] = {}  # one environment per worker process, reused across tasks
+
+
+def evaluate_chunk(solutions: np.ndarray, env_seed: int) -> np.ndarray:
+    """Runs on a worker: roll out a chunk of solutions; rows of (objective, x, y-velocity).
+
+    A chunk of solutions per task (not one task per solution) keeps the scheduler's per-task cost
+    small next to the rollouts, and the environment is kept between tasks: reset(seed) gives the
+    same episode bit for bit as a fresh environment, without paying for gym.make each time.
+    """
+    env = _WORKER_ENVS.get(ENV_ID)
+    if env is None:
+        env = _WORKER_ENVS[ENV_ID] = gym.make(ENV_ID)
+    return np.array([rollout(solution, env_seed, env) for solution in solutions]).reshape(-1, 3)
+
+
+CHUNKS_PER_WORKER = 4  # enough chunks to even out episodes of 60 to 1000 steps across workers
+
+
+def by_reference(function: Callable) -> Callable:
+    """The same function, reached through this script's import name instead of `__main__`.
+
+    Dask pickles functions of `__main__` by value into every task; through the module name they
+    travel as a short reference that workers resolve by importing this script.
+    """
+    if function.__module__ != "__main__":
+        return function
+    return getattr(importlib.import_module(Path(__file__).stem), function.__name__)
+
+
+def evaluate(client, solutions: np.ndarray, env_seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Objectives and measures of `solutions`, in their order, evaluated on the Dask cluster.
+
+    Results come back in the order of the solutions whatever the number of workers, so a fixed
+    seed gives the same archive on 1 or 100 workers. Tasks of a worker that dies are retried.
+    """
+    workers = max(1, sum(client.nthreads().values()))
+    chunks = np.array_split(solutions, min(len(solutions), CHUNKS_PER_WORKER * workers))
+    futures = client.map(
+        by_reference(evaluate_chunk), chunks, env_seed=env_seed, pure=False, retries=3
+    )
+    results = np.concatenate(client.gather(futures))
+    return results[:, 0], results[:, 1:]
+
+
+@contextlib.contextmanager
+def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
+    """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
+    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit).
+
+    A local cluster listens on localhost only: it runs whatever code it is sent.
+    """
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler_address:
+        with Client(scheduler_address, timeout="30s") as client:
+            # Workers elsewhere have the libraries but not this script: ship it to them.
+            client.upload_file(str(Path(__file__).resolve()))
+            log.info(f"Dask cluster at {scheduler_address}: {len(client.nthreads())} worker(s); "
+                     f"dashboard {client.dashboard_link}")
+            yield client
+        return
+    with LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:8787",
+        silence_logs=logging.ERROR,
+    ) as cluster, Client(cluster) as client:
+        log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
+        yield client
+
+
+# ================================================================================================
+# The run loop: ask -> evaluate -> tell, with metrics and checkpoints
+# ================================================================================================
+
+CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
+UMASK = os.umask(0o022)
+os.umask(UMASK)
+
+
+def atomic_write(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
+    """Write `path` via a temporary file and os.replace, so a crash never leaves half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.chmod(tmp, 0o666 & ~UMASK)  # mkstemp makes files private; outputs are ordinary files
+        with os.fdopen(fd, mode) as file:
+            write(file)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def write_json(path: Path, data: Any) -> None:
+    atomic_write(path, lambda f: json.dump(data, f, indent=2), mode="w")
+
+
+def write_pickle(path: Path, obj: Any) -> None:
+    atomic_write(path, lambda f: pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def iteration_metrics(archive, iteration: int, evaluations: int, elapsed: float) -> dict:
+    """One row of metrics.json: the archive's state after `iteration` iterations."""
+    stats = archive.stats
+    return {
+        "iteration": iteration,
+        "evaluations": evaluations,
+        "coverage": float(stats.coverage),
+        "num_elites": int(stats.num_elites),
+        "qd_score": float(stats.qd_score),
+        "best_objective": float(stats.obj_max) if stats.num_elites else None,
+        "mean_objective": float(stats.obj_mean) if stats.num_elites else None,
+        "elapsed_s": round(elapsed, 3),
+    }
+
+
+def make_checkpoint(scheduler_bytes: bytes, metrics: list[dict], config: dict) -> dict:
+    """Everything needed to continue a run. The scheduler is pickled as one object: its emitters
+    share its archive, and CMA-ES state and RNGs come along, so a resumed run asks the same."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "scheduler": pickle.loads(scheduler_bytes),
+        "metrics": list(metrics),
+        "iteration": metrics[-1]["iteration"] if metrics else 0,
+        "config": config,
+    }
+
+
+def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logging.Logger) -> dict:
+    """Iterate ask -> evaluate -> tell up to `iterations`, refreshing outputs every log_every.
+
+    After each tell the scheduler is snapshotted in memory (pickled, ~1 ms), so an interrupt at any
+    moment can still write a checkpoint of the last completed iteration: the iteration in flight is
+    abandoned, never half-recorded.
+    """
+    from tqdm import tqdm
+
+    config, scheduler, metrics = checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"]
+    snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+    start = checkpoint["iteration"]
+    elapsed = metrics[-1]["elapsed_s"] if metrics else 0.0
+    evaluations = metrics[-1]["evaluations"] if metrics else 0
+    bar = tqdm(range(start + 1, iterations + 1), initial=start, total=iterations, unit="it",
+               desc="search", dynamic_ncols=True)
+    try:
+        for iteration in bar:
+            tic = time.perf_counter()
+            solutions = scheduler.ask()
+            objectives, measures = evaluate(client, solutions, config["env_seed"])
+            scheduler.tell(objectives, measures)
+            elapsed += time.perf_counter() - tic
+            evaluations += len(solutions)
+            snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+            row = iteration_metrics(scheduler.result_archive, iteration, evaluations, elapsed)
+            metrics.append(row)
+            bar.set_postfix(coverage=f"{row['coverage']:.3f}", qd=f"{row['qd_score']:.4g}",
+                            best=f"{row['best_objective'] or float('nan'):.1f}", refresh=False)
+            if iteration % config["log_every"] == 0 and iteration < iterations:
+                log.info(describe_progress(row, iterations))
+                save_outputs(run_dir, make_checkpoint(snapshot, metrics, config))
+    except BaseException:
+        bar.close()
+        if len(metrics) > start:  # some iterations finished since the last checkpoint
+            write_pickle(run_dir / "checkpoint.pkl", make_checkpoint(snapshot, metrics, config))
+        raise
+    bar.close()
+    return make_checkpoint(snapshot, metrics, config)
+
+
+def describe_progress(row: dict, iterations: int) -> str:
+    best = row["best_objective"]
+    return (f"iteration {row['iteration']}/{iterations}: {row['evaluations']} evaluations, "
+            f"coverage {row['coverage']:.3f}, QD score {row['qd_score']:.0f}, "
+            f"best {best if best is None else round(best, 1)}, "
+            f"{row['elapsed_s'] / max(row['iteration'], 1):.2f} s/iteration")
+
+
+# ================================================================================================
+# The outputs: archive files, heatmaps and progress plots in the run folder
+# ================================================================================================
+
+HEATMAP_RANGE = (-300, 300)
+
+
+def save_heatmap(archive, path: Path, title: str) -> None:
+    """The tutorial's heatmap: objective per cell, faster impacts at the bottom."""
+    import matplotlib.pyplot as plt
+    from ribs.visualize import grid_archive_heatmap
+
+    fig, ax = plt.subplots(figsize=(8, 6))
+    grid_archive_heatmap(archive, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
+    ax.invert_yaxis()
+    ax.set_xlabel(MEASURE_LABELS[0])
+    ax.set_ylabel(MEASURE_LABELS[1])
+    ax.set_title(title)
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    plt.close(fig)
+
+
+def save_progress_plot(metrics: list[dict], path: Path) -> None:
+    """QD score, coverage and best objective over iterations, side by side."""
+    import matplotlib.pyplot as plt
+
+    iterations = [row["iteration"] for row in metrics]
+    panels = [("qd_score", "QD score"), ("coverage", "Coverage"), ("best_objective", "Best objective")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(15, 4))
+    for ax, (key, label) in zip(axes, panels):
+        ax.plot(iterations, [np.nan if row[key] is None else row[key] for row in metrics])
+        ax.set_xlabel("Iteration")
+        ax.set_title(label)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    plt.close(fig)
+
+
+def save_outputs(run_dir: Path, checkpoint: dict) -> None:
+    """Refresh every file of the run folder from a checkpoint; the checkpoint goes first."""
+    write_pickle(run_dir / "checkpoint.pkl", checkpoint)
+    write_json(run_dir / "metrics.json", checkpoint["metrics"])
+    archive = checkpoint["scheduler"].result_archive
+    iteration = checkpoint["iteration"]
+    write_pickle(run_dir / "archive.pkl", archive)
+    table = archive.data(return_type="pandas")
+    atomic_write(run_dir / "archive.csv", lambda f: table.to_csv(f, index=False), mode="w")
+    title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
+    save_heatmap(archive, run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png", title)
+    save_heatmap(archive, run_dir / "heatmap.png", title)
+    save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
+
+
+# ================================================================================================
+# The commands
+# ================================================================================================
+
+
+def library_versions() -> dict[str, str]:
+    from importlib.metadata import version
+
+    packages = ["ribs", "gymnasium", "box2d", "dask", "distributed", "numpy"]
+    return {"python": platform.python_version(), **{name: version(name) for name in packages}}
+
+
+def positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise UsageError(f"--{name} must be a positive whole number, got {value!r}")
+    return value
+
+
+def non_negative_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise UsageError(f"--{name} must be a whole number >= 0, got {value!r}")
+    return value
+
+
+def positive_float(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise UsageError(f"--{name} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def one_of(choices: dict) -> Callable[[str, Any], str]:
+    def check(name: str, value: Any) -> str:
+        if value not in choices:
+            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {value!r}")
+        return value
+    return check
+
+
+# How each search flag is checked; None (a drawn seed, a default folder) passes unchecked.
+FLAG_CHECKS: dict[str, Callable[[str, Any], Any]] = {
+    "iterations": positive_int,
+    "workers": positive_int,
+    "seed": non_negative_int,
+    "env_seed": non_negative_int,
+    "algorithm": one_of(ALGORITHMS),
+    "n_emitters": positive_int,
+    "sigma0": positive_float,
+    "batch_size": positive_int,
+    "log_every": positive_int,
+}
+
+
+def check_flags(flags: dict[str, Any]) -> dict[str, Any]:
+    return {name: value if value is None or name not in FLAG_CHECKS
+            else FLAG_CHECKS[name](name, value) for name, value in flags.items()}
+
+
+def prepare_run_dir(outdir: str | None, seed: int) -> Path:
+    """A new, empty, writable run folder: an existing run is never written over."""
+    if outdir is None:
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        run_dir = Path("outputs") / f"{stamp}_seed{seed}"
+        run_dir = next(p for p in [run_dir, *(Path(f"{run_dir}_{i}") for i in range(2, 1000))]
+                       if not p.exists())
+    else:
+        run_dir = Path(outdir)
+    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+        raise UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
+                         f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write(run_dir / ".write_test", lambda f: f.write(b""))
+        os.unlink(run_dir / ".write_test")
+    except OSError as error:
+        raise UsageError(f"cannot write the run folder {run_dir}: {error.strerror or error}") from None
+    return run_dir
+
+
+def make_logger(run_dir: Path) -> logging.Logger:
+    """Messages go to the console and, appended, to the run folder's run.log."""
+    log = logging.getLogger("lunar_lander")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    for handler in list(log.handlers):
+        log.removeHandler(handler)
+        handler.close()
+    console = logging.StreamHandler(sys.stdout)
+    logfile = logging.FileHandler(run_dir / "run.log", encoding="utf-8")
+    logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+    for handler in (console, logfile):
+        log.addHandler(handler)
+    return log
+
+
+def execute(run_dir: Path, checkpoint: dict, iterations: int, workers: int,
+            scheduler_address: str | None) -> dict:
+    """Run the loop on a fresh Dask cluster and write the final outputs."""
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    log = make_logger(run_dir)
+    with logging_redirect_tqdm(loggers=[log]):
+        log.info(f"Run folder: {run_dir}")
+        try:
+            with dask_client(workers, scheduler_address, log) as client:
+                checkpoint = run_loop(run_dir, checkpoint, client, iterations, log)
+        except KeyboardInterrupt:
+            log.info(f"Interrupted: the checkpoint holds the last completed iteration; continue "
+                     f"with: python lunar_lander.py resume {run_dir}")
+            raise
+        save_outputs(run_dir, checkpoint)
+        last = checkpoint["metrics"][-1] if checkpoint["metrics"] else None
+        if last:
+            log.info("Done. " + describe_progress(last, iterations))
+    return checkpoint
+
+
+def search(
+    iterations: int = 300,
+    workers: int = 2,
+    seed: int | None = None,
+    env_seed: int = 52,
+    algorithm: str = "cma_me",
+    n_emitters: int = 5,
+    sigma0: float = 1.0,
+    batch_size: int = 30,
+    log_every: int = 25,
+    outdir: str | None = None,
+    scheduler_address: str | None = None,
+) -> None:
+    """Search Lunar Lander landings with a QD algorithm and write a run folder.
+
+    Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
+    the results back. Every log_every iterations (and at the end) the run folder is refreshed:
+    checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
+    config.json and run.log.
+
+    Args:
+        iterations: Number of ask-evaluate-tell iterations.
+        workers: Number of Dask worker processes (one thread each) evaluating rollouts.
+        seed: Seed of the archive and emitters; drawn and recorded in config.json if omitted.
+            The same seed gives the same archive whatever the number of workers.
+        env_seed: Seed of the Lunar Lander terrain every policy is flown on.
+        algorithm: Which QD algorithm (cma_me: the tutorial's CMA-ME).
+        n_emitters: Number of emitters.
+        sigma0: Initial step size of each emitter (CMA-ES sigma).
+        batch_size: Solutions each emitter proposes per iteration.
+        log_every: Log a line and refresh the run folder every this many iterations.
+        outdir: Run folder; default outputs/<timestamp>_seed<seed>. Must be new or empty.
+        scheduler_address: Address of a running Dask scheduler (tcp://HOST:PORT) to evaluate on
+            instead of starting a local cluster; --workers is then ignored.
+    """
+    flags = check_flags(dict(locals()))
+    if flags["seed"] is None:
+        flags["seed"] = secrets.randbelow(2**31)
+    run_dir = prepare_run_dir(flags["outdir"], flags["seed"])
+    config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
+              "command": sys.argv, "versions": library_versions()}
+    write_json(run_dir / "config.json", config)
+    checkpoint = {"format": CHECKPOINT_FORMAT, "scheduler": build_scheduler(config), "metrics": [],
+                  "iteration": 0, "config": config}
+    execute(run_dir, checkpoint, config["iterations"], config["workers"], scheduler_address)
+
+
+def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
+           scheduler_address: str | None = None) -> None:
+    """Continue the run in run_dir from its checkpoint.
+
+    Args:
+        run_dir: A run folder written by this script.
+        iterations: Total iterations to reach; default: those the run was started with. A larger
+            number extends a finished run.
+        workers: Number of Dask worker processes; default: as the run was started.
+        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
+    """
+    path = Path(run_dir)
+    checkpoint = load_checkpoint(path / "checkpoint.pkl")
+    config = checkpoint["config"]
+    iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)
+    workers = positive_int("workers", config["workers"] if workers is None else workers)
+    if iterations < checkpoint["iteration"]:
+        raise UsageError(f"{path} is already at iteration {checkpoint['iteration']}; "
+                         f"--iterations must be at least that")
+    config = {**config, "iterations": max(iterations, config["iterations"]),
+              "resumed": [*config.get("resumed", []), {
+                  "at": datetime.datetime.now().isoformat(), "from_iteration": checkpoint["iteration"],
+                  "to_iteration": iterations, "workers": workers}]}
+    write_json(path / "config.json", config)
+    execute(path, {**checkpoint, "config": config}, iterations, workers, scheduler_address)
+
+
+def load_checkpoint(path: Path) -> dict:
+    """A checkpoint written by this script, or a UsageError that says what is wrong with the file."""
+    if not path.is_file():
+        raise UsageError(f"{path}: no checkpoint there (is this a run folder of lunar_lander.py?)")
+    try:
+        with open(path, "rb") as file:
+            checkpoint = pickle.load(file)
+    except Exception as error:  # truncated, corrupt or not a pickle at all
+        raise UsageError(f"{path}: not a readable checkpoint ({type(error).__name__}: {error})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
+    return checkpoint
+
+
+# ================================================================================================
+# Command-line entry point
+# ================================================================================================
+
+COMMANDS: dict[str, Callable] = {"search": search, "resume": resume}
+
+
+def reject_unknown_flags(command: Callable, args: list[str]) -> None:
+    """Fire would print a page of usage for a mistyped flag; one line naming it is clearer."""
+    import inspect
+
+    known = set(inspect.signature(command).parameters)
+    for arg in args:
+        if arg.startswith("--") and arg not in ("--help", "--"):
+            name = arg[2:].split("=", 1)[0].replace("-", "_")
+            if name not in known:
+                raise UsageError(f"unknown flag --{name}; valid flags: "
+                                 + ", ".join(f"--{flag}" for flag in known))
+
+
+def main(argv: list[str]) -> int:
+    import fire
+
+    name = argv[0] if argv and not argv[0].startswith("-") else "search"
+    args = argv[1:] if argv and not argv[0].startswith("-") else argv
+    interrupted = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGTERM, interrupted)  # SIGTERM stops a run as cleanly as Ctrl-C
+    try:
+        if name not in COMMANDS:
+            raise UsageError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
+        reject_unknown_flags(COMMANDS[name], args)
+        fire.Fire(COMMANDS[name], command=args, name="lunar_lander.py" if name == "search" else name)
+    except UsageError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

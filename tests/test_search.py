@@ -1,0 +1,97 @@
+"""The runner: a tiny search writes a complete, valid run folder; seeds make runs repeatable."""
+
+import json
+import pickle
+
+import numpy as np
+import pandas as pd
+from matplotlib.image import imread
+from ribs.archives import GridArchive
+from ribs.schedulers import Scheduler
+
+import lunar_lander as ll
+
+RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
+             "heatmap.png", "progress.png", "run.log"]
+
+
+def load_pickle(path):
+    with open(path, "rb") as file:
+        return pickle.load(file)
+
+
+def archive_table(archive) -> pd.DataFrame:
+    return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
+
+
+def test_tiny_search_writes_a_complete_run_folder(tmp_path, tiny_config):
+    run_dir = tmp_path / "run"
+    ll.search(**tiny_config, outdir=str(run_dir))
+
+    for name in RUN_FILES:
+        assert (run_dir / name).is_file(), name
+    assert sorted(p.name for p in (run_dir / "heatmaps").iterdir()) == [
+        "heatmap_00002.png", "heatmap_00003.png"]
+    assert not [p for p in run_dir.rglob(".*.tmp")]  # no temporary files left behind
+
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["seed"] == 7 and config["iterations"] == 3 and config["batch_size"] == 6
+    assert set(config["versions"]) >= {"python", "ribs", "gymnasium", "dask", "numpy"}
+
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert [row["iteration"] for row in metrics] == [1, 2, 3]
+    assert [row["evaluations"] for row in metrics] == [12, 24, 36]
+    for row in metrics:
+        assert set(row) == {"iteration", "evaluations", "coverage", "num_elites", "qd_score",
+                            "best_objective", "mean_objective", "elapsed_s"}
+    assert 0 < metrics[-1]["coverage"] <= 1
+    assert metrics[-1]["num_elites"] == round(metrics[-1]["coverage"] * 2500)
+
+    archive = load_pickle(run_dir / "archive.pkl")
+    assert isinstance(archive, GridArchive)
+    assert len(archive) == metrics[-1]["num_elites"]
+    assert archive.stats.qd_score == metrics[-1]["qd_score"]
+    assert archive.best_elite["objective"] == metrics[-1]["best_objective"]
+
+    table = pd.read_csv(run_dir / "archive.csv")
+    assert len(table) == len(archive)
+    assert np.allclose(table.sort_values("index")["objective"], archive_table(archive)["objective"])
+
+    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    assert checkpoint["iteration"] == 3 and checkpoint["metrics"] == metrics
+    assert isinstance(checkpoint["scheduler"], Scheduler)
+    assert archive_table(checkpoint["scheduler"].archive).equals(archive_table(archive))
+
+    for name in ["heatmap.png", "progress.png", "heatmaps/heatmap_00002.png"]:
+        image = imread(run_dir / name)
+        assert image.ndim == 3 and image.shape[0] > 300 and image.shape[1] > 400
+    log = (run_dir / "run.log").read_text()
+    assert "iteration 2/3" in log and "Done." in log
+
+
+def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_config, run_cli):
+    ll.search(**tiny_config, outdir=str(tmp_path / "two"))  # the session's 2-worker cluster
+    flags = {k: v for k, v in tiny_config.items() if k != "scheduler_address"}
+    result = run_cli(*[f"--{k}={v}" for k, v in {**flags, "workers": 1}.items()],
+                     f"--outdir={tmp_path / 'one'}")
+    assert result.returncode == 0, result.stderr
+
+    two = archive_table(load_pickle(tmp_path / "two" / "archive.pkl"))
+    one = archive_table(load_pickle(tmp_path / "one" / "archive.pkl"))
+    assert len(one) > 0 and one.equals(two)
+    metrics = [json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("one", "two")]
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "elapsed_s"} for r in rows]
+    assert strip(metrics[0]) == strip(metrics[1])
+
+
+def test_another_seed_gives_another_archive(tmp_path, tiny_config):
+    ll.search(**tiny_config, outdir=str(tmp_path / "a"))
+    ll.search(**{**tiny_config, "seed": 8}, outdir=str(tmp_path / "b"))
+    a, b = (archive_table(load_pickle(tmp_path / d / "archive.pkl")) for d in "ab")
+    assert not a.equals(b)
+
+
+def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, tiny_config):
+    ll.search(**{**tiny_config, "seed": None, "iterations": 1}, outdir=str(tmp_path / "r"))
+    config = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert isinstance(config["seed"], int) and config["seed"] >= 0
