@@ -25,6 +25,7 @@ import signal
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -36,6 +37,10 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 # Dask spawns worker processes that re-import this script, so the heavy libraries that only the
 # main process needs (ribs, matplotlib, dask itself) are imported inside the functions using them.
+if __name__ == "__mp_main__":
+    # A local worker: Ctrl-C in a terminal reaches the whole process group, but stopping is the
+    # main process's job (it abandons the iteration and closes the cluster), so workers ignore it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class UsageError(Exception):
@@ -99,8 +104,11 @@ def derive_seeds(seed: int, count: int) -> list[int]:
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
 
 
-def build_scheduler(config: dict[str, Any]):
-    """The archive, emitters and scheduler of `config["algorithm"]`, seeded from `config["seed"]`."""
+def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
+    """The archive, emitters and scheduler of `config["algorithm"]`, seeded from `config["seed"]`.
+
+    The emitters start from `x0` (default: zeros, as in the tutorial).
+    """
     from ribs.archives import GridArchive
     from ribs import emitters as ribs_emitters
     from ribs.schedulers import Scheduler
@@ -119,7 +127,7 @@ def build_scheduler(config: dict[str, Any]):
     emitters = [
         emitter_class(
             archive,
-            x0=np.zeros(SOLUTION_DIM),
+            x0=np.zeros(SOLUTION_DIM) if x0 is None else x0,
             sigma0=config["sigma0"],
             batch_size=config["batch_size"],
             seed=emitter_seed,
@@ -187,15 +195,19 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     A local cluster listens on localhost only: it runs whatever code it is sent.
     """
     from dask.distributed import Client, LocalCluster
+    from distributed.diagnostics.plugin import UploadFile
 
     if scheduler_address:
         with Client(scheduler_address, timeout="30s") as client:
-            # Workers elsewhere have the libraries but not this script: ship it to them.
-            client.upload_file(str(Path(__file__).resolve()))
+            # Workers elsewhere have the libraries but not this script (or an older copy): ship
+            # this one to every worker, including those that join later. Only workers run it.
+            client.register_plugin(UploadFile(str(Path(__file__).resolve())))
             log.info(f"Dask cluster at {scheduler_address}: {len(client.nthreads())} worker(s); "
                      f"dashboard {client.dashboard_link}")
             yield client
         return
+    # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
+    warnings.filterwarnings("ignore", message="Port 8787 is already in use")
     with LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
@@ -212,6 +224,43 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
 # The run loop: ask -> evaluate -> tell, with metrics and checkpoints
 # ================================================================================================
 
+class StopRequests:
+    """Ctrl-C and SIGTERM, acted on only where stopping is safe.
+
+    A signal only records the request, except inside `interruptible()` (waiting for the cluster's
+    results), where it stops the wait at once. So a stop never cuts a checkpoint write, an import
+    or a tell in half: the iteration in flight is abandoned and the last completed one is kept.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._raise_now = False
+
+    def install(self) -> None:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.requested = True
+        if self._raise_now:
+            self._raise_now = False
+            raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def interruptible(self) -> Iterator[None]:
+        self.check()
+        self._raise_now = True
+        try:
+            yield
+        finally:
+            self._raise_now = False
+
+
+STOP = StopRequests()
 CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
 UMASK = os.umask(0o022)
 os.umask(UMASK)
@@ -264,7 +313,7 @@ def make_checkpoint(scheduler_bytes: bytes, metrics: list[dict], config: dict) -
         "format": CHECKPOINT_FORMAT,
         "scheduler": pickle.loads(scheduler_bytes),
         "metrics": list(metrics),
-        "iteration": metrics[-1]["iteration"] if metrics else 0,
+        "iteration": metrics[-1]["iteration"] if metrics else 0,  # metrics may start at iteration 0
         "config": config,
     }
 
@@ -272,9 +321,9 @@ def make_checkpoint(scheduler_bytes: bytes, metrics: list[dict], config: dict) -
 def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logging.Logger) -> dict:
     """Iterate ask -> evaluate -> tell up to `iterations`, refreshing outputs every log_every.
 
-    After each tell the scheduler is snapshotted in memory (pickled, ~1 ms), so an interrupt at any
-    moment can still write a checkpoint of the last completed iteration: the iteration in flight is
-    abandoned, never half-recorded.
+    After each tell the scheduler is snapshotted in memory (pickled, ~1 ms): a stop while the cluster
+    evaluates (ask has already moved the emitters on) or any error still writes a checkpoint of the
+    last completed iteration. The iteration in flight is abandoned, never half-recorded.
     """
     from tqdm import tqdm
 
@@ -287,9 +336,11 @@ def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logg
                desc="search", dynamic_ncols=True)
     try:
         for iteration in bar:
+            STOP.check()
             tic = time.perf_counter()
             solutions = scheduler.ask()
-            objectives, measures = evaluate(client, solutions, config["env_seed"])
+            with STOP.interruptible():
+                objectives, measures = evaluate(client, solutions, config["env_seed"])
             scheduler.tell(objectives, measures)
             elapsed += time.perf_counter() - tic
             evaluations += len(solutions)
@@ -303,7 +354,7 @@ def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logg
                 save_outputs(run_dir, make_checkpoint(snapshot, metrics, config))
     except BaseException:
         bar.close()
-        if len(metrics) > start:  # some iterations finished since the last checkpoint
+        if metrics and metrics[-1]["iteration"] > start:  # iterations done since the last save
             write_pickle(run_dir / "checkpoint.pkl", make_checkpoint(snapshot, metrics, config))
         raise
     bar.close()
@@ -466,9 +517,10 @@ def make_logger(run_dir: Path) -> logging.Logger:
     return log
 
 
-def execute(run_dir: Path, checkpoint: dict, iterations: int, workers: int,
-            scheduler_address: str | None) -> dict:
-    """Run the loop on a fresh Dask cluster and write the final outputs."""
+def execute(run_dir: Path, iterations: int, workers: int, scheduler_address: str | None,
+            begin: Callable[[Any, logging.Logger], dict]) -> dict:
+    """Start (or join) a Dask cluster, get the starting checkpoint from `begin`, run the loop and
+    write the final outputs. The cluster is shut down however this ends."""
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     log = make_logger(run_dir)
@@ -476,15 +528,38 @@ def execute(run_dir: Path, checkpoint: dict, iterations: int, workers: int,
         log.info(f"Run folder: {run_dir}")
         try:
             with dask_client(workers, scheduler_address, log) as client:
+                checkpoint = begin(client, log)
                 checkpoint = run_loop(run_dir, checkpoint, client, iterations, log)
         except KeyboardInterrupt:
-            log.info(f"Interrupted: the checkpoint holds the last completed iteration; continue "
-                     f"with: python lunar_lander.py resume {run_dir}")
+            log.info(f"Stopped. The checkpoint holds the last completed iteration; continue with: "
+                     f"python lunar_lander.py resume {run_dir}")
             raise
         save_outputs(run_dir, checkpoint)
-        last = checkpoint["metrics"][-1] if checkpoint["metrics"] else None
-        if last:
-            log.info("Done. " + describe_progress(last, iterations))
+        if checkpoint["metrics"]:
+            log.info("Done. " + describe_progress(checkpoint["metrics"][-1], iterations))
+    return checkpoint
+
+
+def fresh_checkpoint(config: dict, client, log: logging.Logger, seed_archive=None) -> dict:
+    """Iteration 0 of a new run, written at once so the folder always holds a checkpoint.
+
+    With `seed_archive` (a warm start), its elites are first flown again in this run's setting
+    (another terrain, say) and inserted, and the emitters start from the best of them.
+    """
+    metrics, x0, scheduler = [], None, None
+    if seed_archive is not None:
+        elites = seed_archive.data(["solution"])["solution"]
+        objectives, measures = evaluate(client, elites, config["env_seed"])
+        x0 = elites[int(np.argmax(objectives))]
+        scheduler = build_scheduler(config, x0=x0)
+        for archive in {id(a): a for a in (scheduler.archive, scheduler.result_archive)}.values():
+            archive.add(elites, objectives, measures)
+        metrics.append(iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0))
+        log.info(f"Warm start: {len(elites)} elites re-evaluated, {metrics[0]['num_elites']} kept; "
+                 f"emitters start from the best (objective {objectives.max():.1f})")
+    checkpoint = {"format": CHECKPOINT_FORMAT, "scheduler": scheduler or build_scheduler(config),
+                  "metrics": metrics, "iteration": 0, "config": config}
+    write_pickle(Path(config["outdir"]) / "checkpoint.pkl", checkpoint)
     return checkpoint
 
 
@@ -500,13 +575,14 @@ def search(
     log_every: int = 25,
     outdir: str | None = None,
     scheduler_address: str | None = None,
+    from_archive: str | None = None,
 ) -> None:
     """Search Lunar Lander landings with a QD algorithm and write a run folder.
 
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:
     checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
-    config.json and run.log.
+    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help).
 
     Args:
         iterations: Number of ask-evaluate-tell iterations.
@@ -522,22 +598,26 @@ def search(
         outdir: Run folder; default outputs/<timestamp>_seed<seed>. Must be new or empty.
         scheduler_address: Address of a running Dask scheduler (tcp://HOST:PORT) to evaluate on
             instead of starting a local cluster; --workers is then ignored.
+        from_archive: Warm start: an archive.pkl of an earlier run whose elites are re-evaluated
+            in this run's setting to fill the archive first; the emitters start from the best.
     """
     flags = check_flags(dict(locals()))
+    seed_archive = load_archive(Path(from_archive)) if from_archive else None
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
     run_dir = prepare_run_dir(flags["outdir"], flags["seed"])
     config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
               "command": sys.argv, "versions": library_versions()}
+    if from_archive:
+        config["from_archive"] = str(Path(from_archive).resolve())
     write_json(run_dir / "config.json", config)
-    checkpoint = {"format": CHECKPOINT_FORMAT, "scheduler": build_scheduler(config), "metrics": [],
-                  "iteration": 0, "config": config}
-    execute(run_dir, checkpoint, config["iterations"], config["workers"], scheduler_address)
+    execute(run_dir, config["iterations"], config["workers"], scheduler_address,
+            lambda client, log: fresh_checkpoint(config, client, log, seed_archive))
 
 
 def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
            scheduler_address: str | None = None) -> None:
-    """Continue the run in run_dir from its checkpoint.
+    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped.
 
     Args:
         run_dir: A run folder written by this script.
@@ -559,20 +639,65 @@ def resume(run_dir: str, iterations: int | None = None, workers: int | None = No
                   "at": datetime.datetime.now().isoformat(), "from_iteration": checkpoint["iteration"],
                   "to_iteration": iterations, "workers": workers}]}
     write_json(path / "config.json", config)
-    execute(path, {**checkpoint, "config": config}, iterations, workers, scheduler_address)
+    execute(path, iterations, workers, scheduler_address,
+            lambda client, log: {**checkpoint, "config": config})
+
+
+def read_pickle(path: Path, what: str) -> Any:
+    """Unpickle a file of ours, or raise a UsageError that names the file and what is wrong.
+
+    Pickles can run code when loaded: only load files you trust (archive.csv is for sharing).
+    """
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (expected {what})")
+    try:
+        with open(path, "rb") as file:
+            return pickle.load(file)
+    except Exception as error:  # truncated, corrupt, or not a pickle at all
+        raise UsageError(f"{path}: not a readable {what} ({type(error).__name__}: {error})") from None
+
+
+def check_archive(archive: Any, path: Path) -> None:
+    """The archive must be a grid of this problem: same solution size, grid and measure ranges."""
+    from ribs.archives import GridArchive
+
+    if not isinstance(archive, GridArchive):
+        raise UsageError(f"{path}: holds a {type(archive).__name__}, not a GridArchive")
+    shape = (archive.solution_dim, tuple(archive.dims), np.round(archive.lower_bounds, 9).tolist(),
+             np.round(archive.upper_bounds, 9).tolist())
+    expected = (SOLUTION_DIM, GRID_DIMS, [lo for lo, _ in MEASURE_RANGES], [hi for _, hi in MEASURE_RANGES])
+    if shape != expected:
+        raise UsageError(f"{path}: archive of another shape (solution size, grid, lower and upper "
+                         f"bounds {shape}; this problem needs {expected})")
+
+
+def load_archive(path: Path):
+    archive = read_pickle(path, "archive pickle")
+    check_archive(archive, path)
+    if len(archive) == 0:
+        raise UsageError(f"{path}: the archive is empty; nothing to start from")
+    return archive
 
 
 def load_checkpoint(path: Path) -> dict:
-    """A checkpoint written by this script, or a UsageError that says what is wrong with the file."""
+    """A checkpoint written by this script and consistent with this script's problem."""
     if not path.is_file():
-        raise UsageError(f"{path}: no checkpoint there (is this a run folder of lunar_lander.py?)")
-    try:
-        with open(path, "rb") as file:
-            checkpoint = pickle.load(file)
-    except Exception as error:  # truncated, corrupt or not a pickle at all
-        raise UsageError(f"{path}: not a readable checkpoint ({type(error).__name__}: {error})") from None
+        raise UsageError(f"{path}: no checkpoint there (is {path.parent} a run folder of lunar_lander.py?)")
+    checkpoint = read_pickle(path, "checkpoint")
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
+    from ribs.schedulers import Scheduler
+
+    try:
+        config, metrics, iteration = checkpoint["config"], checkpoint["metrics"], checkpoint["iteration"]
+        check_flags({name: config[name] for name in FLAG_CHECKS})
+        if not isinstance(checkpoint["scheduler"], Scheduler):
+            raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
+    except (KeyError, TypeError, UsageError) as error:
+        raise UsageError(f"{path}: checkpoint of an incompatible config ({error})") from None
+    if [row["iteration"] for row in metrics if row["iteration"] > 0] != list(range(1, iteration + 1)):
+        raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
+    check_archive(checkpoint["scheduler"].archive, path)
     return checkpoint
 
 
@@ -601,8 +726,7 @@ def main(argv: list[str]) -> int:
 
     name = argv[0] if argv and not argv[0].startswith("-") else "search"
     args = argv[1:] if argv and not argv[0].startswith("-") else argv
-    interrupted = signal.getsignal(signal.SIGINT)
-    signal.signal(signal.SIGTERM, interrupted)  # SIGTERM stops a run as cleanly as Ctrl-C
+    STOP.install()
     try:
         if name not in COMMANDS:
             raise UsageError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")

@@ -1,7 +1,6 @@
 """The runner: a tiny search writes a complete, valid run folder; seeds make runs repeatable."""
 
 import json
-import pickle
 
 import numpy as np
 import pandas as pd
@@ -10,18 +9,10 @@ from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
 import lunar_lander as ll
+from util import archive_table, load_pickle, run_archive, run_metrics
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"]
-
-
-def load_pickle(path):
-    with open(path, "rb") as file:
-        return pickle.load(file)
-
-
-def archive_table(archive) -> pd.DataFrame:
-    return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
 
 
 def test_tiny_search_writes_a_complete_run_folder(tmp_path, tiny_config):
@@ -76,19 +67,15 @@ def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_config, r
                      f"--outdir={tmp_path / 'one'}")
     assert result.returncode == 0, result.stderr
 
-    two = archive_table(load_pickle(tmp_path / "two" / "archive.pkl"))
-    one = archive_table(load_pickle(tmp_path / "one" / "archive.pkl"))
+    one, two = run_archive(tmp_path / "one"), run_archive(tmp_path / "two")
     assert len(one) > 0 and one.equals(two)
-    metrics = [json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("one", "two")]
-    strip = lambda rows: [{k: v for k, v in r.items() if k != "elapsed_s"} for r in rows]
-    assert strip(metrics[0]) == strip(metrics[1])
+    assert run_metrics(tmp_path / "one") == run_metrics(tmp_path / "two")
 
 
 def test_another_seed_gives_another_archive(tmp_path, tiny_config):
     ll.search(**tiny_config, outdir=str(tmp_path / "a"))
     ll.search(**{**tiny_config, "seed": 8}, outdir=str(tmp_path / "b"))
-    a, b = (archive_table(load_pickle(tmp_path / d / "archive.pkl")) for d in "ab")
-    assert not a.equals(b)
+    assert not run_archive(tmp_path / "a").equals(run_archive(tmp_path / "b"))
 
 
 def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, tiny_config):

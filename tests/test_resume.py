@@ -1,0 +1,225 @@
+"""Reruns: exact resume, crash safety (Ctrl-C, SIGTERM, kill -9, lost workers) and warm starts."""
+
+import json
+import logging
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from ribs.archives import GridArchive
+
+import lunar_lander as ll
+from conftest import SCRIPT
+from util import folder_state, load_pickle, run_archive, run_metrics
+
+ITERATIONS = 30  # long enough for a process to be stopped part-way, a few seconds in all
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, dask_cluster):
+    """The uninterrupted run every stopped-and-resumed run must equal."""
+    run_dir = tmp_path_factory.mktemp("reference") / "run"
+    ll.search(**run_flags(dask_cluster), outdir=str(run_dir))
+    return run_dir
+
+
+def run_flags(dask_cluster, **overrides):
+    return dict(dict(iterations=ITERATIONS, workers=2, seed=7, env_seed=52, algorithm="cma_me",
+                     n_emitters=2, sigma0=1.0, batch_size=6, log_every=3,
+                     scheduler_address=dask_cluster.scheduler_address), **overrides)
+
+
+def assert_same_run(run_dir, reference):
+    """Same archive, same metrics, and the emitters' next proposals are the same too."""
+    assert run_archive(run_dir).equals(run_archive(reference))
+    assert run_metrics(run_dir) == run_metrics(reference)
+    assert [row["iteration"] for row in run_metrics(run_dir)] == list(range(1, ITERATIONS + 1))
+    schedulers = [load_pickle(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
+    assert np.array_equal(schedulers[0].ask(), schedulers[1].ask())
+
+
+@pytest.mark.parametrize("stop_at", [1, 4])
+def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, reference, stop_at):
+    run_dir = tmp_path / "run"
+    ll.search(**run_flags(dask_cluster, iterations=stop_at), outdir=str(run_dir))
+    ll.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
+
+    assert_same_run(run_dir, reference)
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["iterations"] == ITERATIONS
+    assert config["resumed"][0]["from_iteration"] == stop_at
+
+
+def launch(run_dir, dask_cluster):
+    flags = {k: v for k, v in run_flags(dask_cluster).items() if k != "scheduler_address"}
+    return subprocess.Popen([sys.executable, str(SCRIPT), *[f"--{k}={v}" for k, v in flags.items()],
+                             f"--outdir={run_dir}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+
+
+def wait_for_checkpoint(run_dir, process, at_least, timeout=120):
+    """Block until the running search has saved a checkpoint past iteration `at_least`."""
+    deadline = time.time() + timeout
+    while time.time() < deadline and process.poll() is None:
+        try:
+            if load_pickle(run_dir / "checkpoint.pkl")["iteration"] >= at_least:
+                return
+        except (OSError, EOFError, pickle.UnpicklingError):
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"no checkpoint past {at_least}: {process.communicate()}")
+
+
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])
+def test_interrupt_keeps_a_checkpoint_and_resume_completes(tmp_path, dask_cluster, reference,
+                                                            stop_signal):
+    run_dir = tmp_path / "run"
+    process = launch(run_dir, dask_cluster)
+    wait_for_checkpoint(run_dir, process, at_least=3)
+    process.send_signal(stop_signal)
+    out, err = process.communicate(timeout=60)
+
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and f"resume {run_dir}" in out
+    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    assert 3 <= checkpoint["iteration"] < ITERATIONS
+    assert [r["iteration"] for r in checkpoint["metrics"]] == list(range(1, checkpoint["iteration"] + 1))
+
+    ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    assert_same_run(run_dir, reference)
+
+
+def test_kill_9_leaves_a_loadable_checkpoint(tmp_path, dask_cluster, reference):
+    run_dir = tmp_path / "run"
+    process = launch(run_dir, dask_cluster)
+    wait_for_checkpoint(run_dir, process, at_least=6)
+    os.killpg(process.pid, signal.SIGKILL)  # the search and its Dask workers, at once
+    process.communicate(timeout=60)
+
+    assert load_pickle(run_dir / "checkpoint.pkl")["iteration"] >= 6
+    ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    assert_same_run(run_dir, reference)
+
+
+def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, reference):
+    from dask.distributed import Client, LocalCluster
+
+    killed = []
+
+    def kill_a_busy_worker(client, stop):
+        pids = client.run(os.getpid)
+        while not stop.is_set():
+            busy = [address for address, tasks in client.processing().items() if tasks]
+            if busy:
+                os.kill(pids[busy[0]], signal.SIGKILL)
+                killed.append(pids[busy[0]])
+                return
+            time.sleep(0.001)
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                      silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+        stop = threading.Event()
+        killer = threading.Thread(target=kill_a_busy_worker, args=(client, stop))
+        killer.start()
+        try:
+            ll.search(**run_flags(cluster), outdir=str(tmp_path / "run"))
+        finally:
+            stop.set()
+            killer.join()
+        client.wait_for_workers(2, timeout=60)  # the nanny brought the worker back
+        assert killed and killed[0] not in client.run(os.getpid).values()
+    assert_same_run(tmp_path / "run", reference)
+
+
+def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, reference):
+    source = load_pickle(reference / "archive.pkl")
+    run_dir = tmp_path / "warm"
+    ll.search(**run_flags(dask_cluster, iterations=2, env_seed=7, seed=11),
+              outdir=str(run_dir), from_archive=str(reference / "archive.pkl"))
+
+    elites = source.data(["solution"])["solution"]
+    env = gym.make("LunarLander-v3")
+    flown = np.array([ll.rollout(solution, 7, env) for solution in elites])
+    expected = GridArchive(solution_dim=32, dims=(50, 50), ranges=ll.MEASURE_RANGES)
+    expected.add(elites, flown[:, 0], flown[:, 1:])
+
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert [row["iteration"] for row in metrics] == [0, 1, 2]
+    assert metrics[0]["evaluations"] == len(elites)
+    assert metrics[0]["num_elites"] == len(expected)
+    assert metrics[0]["best_objective"] == flown[:, 0].max()
+    assert metrics[2]["evaluations"] == len(elites) + 2 * 12
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["from_archive"] == str((reference / "archive.pkl").resolve())
+    for emitter in load_pickle(run_dir / "checkpoint.pkl")["scheduler"].emitters:
+        assert np.array_equal(emitter.x0, elites[np.argmax(flown[:, 0])])
+
+
+def write_pickle(path, obj):
+    path.write_bytes(pickle.dumps(obj))
+
+
+def bad_checkpoints(reference):
+    """(name, writer of a checkpoint.pkl that must be refused, words the error must contain)."""
+    good = load_pickle(reference / "checkpoint.pkl")
+    small = GridArchive(solution_dim=32, dims=(10, 10), ranges=ll.MEASURE_RANGES)
+    other_scheduler = ll.build_scheduler({**good["config"]})
+    other_scheduler._archive = small
+    return [
+        ("truncated", lambda p: p.write_bytes((reference / "checkpoint.pkl").read_bytes()[:5000]),
+         "not a readable checkpoint"),
+        ("garbage", lambda p: p.write_bytes(b"this is not a pickle"), "not a readable checkpoint"),
+        ("plain dict", lambda p: write_pickle(p, {"iteration": 3}), "not a lunar_lander checkpoint"),
+        ("incompatible config", lambda p: write_pickle(p, {**good, "config": {**good["config"],
+                                                        "batch_size": 0}}), "incompatible config"),
+        ("other archive shape", lambda p: write_pickle(p, {**good, "scheduler": other_scheduler}),
+         "another shape"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_bad_checkpoint_is_refused_and_the_folder_untouched(tmp_path, reference, run_cli, case):
+    name, write, words = bad_checkpoints(reference)[case]
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "metrics.json").write_text("[]")
+    write(run_dir / "checkpoint.pkl")
+    before = folder_state(run_dir)
+
+    result = run_cli("resume", run_dir)
+
+    assert result.returncode == 2, name
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert words in result.stderr and "checkpoint.pkl" in result.stderr, result.stderr
+    assert folder_state(run_dir) == before
+
+
+def test_resume_of_a_folder_without_checkpoint(tmp_path, run_cli):
+    result = run_cli("resume", tmp_path)
+    assert result.returncode == 2 and "no checkpoint there" in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("content, words", [
+    (None, "no such file"),
+    (b"\x80\x05garbage", "not a readable"),
+    ({"a": 1}, "holds a dict"),
+    (GridArchive(solution_dim=32, dims=(10, 10), ranges=ll.MEASURE_RANGES), "another shape"),
+    (GridArchive(solution_dim=32, dims=(50, 50), ranges=ll.MEASURE_RANGES), "empty"),
+])
+def test_bad_warm_start_archive(tmp_path, run_cli, content, words):
+    path = tmp_path / "archive.pkl"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        write_pickle(path, content)
+    result = run_cli("--iterations", 1, "--from_archive", path, "--outdir", tmp_path / "run")
+    assert result.returncode == 2 and words in result.stderr and result.stderr.count("\n") == 1
+    assert not (tmp_path / "run").exists()

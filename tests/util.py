@@ -1,0 +1,32 @@
+"""Helpers shared by the tests."""
+
+import json
+import pickle
+from pathlib import Path
+
+import pandas as pd
+
+
+def load_pickle(path):
+    with open(path, "rb") as file:
+        return pickle.load(file)
+
+
+def archive_table(archive) -> pd.DataFrame:
+    """An archive's contents in a fixed row order, for exact comparisons."""
+    return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
+
+
+def run_archive(run_dir: Path) -> pd.DataFrame:
+    return archive_table(load_pickle(Path(run_dir) / "archive.pkl"))
+
+
+def run_metrics(run_dir: Path) -> list[dict]:
+    """metrics.json without the timings, which differ between any two runs."""
+    rows = json.loads((Path(run_dir) / "metrics.json").read_text())
+    return [{k: v for k, v in row.items() if k != "elapsed_s"} for row in rows]
+
+
+def folder_state(path: Path) -> dict:
+    """Every file below `path` with its bytes: to check that a failed command touched nothing."""
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
