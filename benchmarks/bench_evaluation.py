@@ -1,0 +1,196 @@
+#!/usr/bin/env python
+"""How fast does a search evaluate its rollouts? One seeded search, three ways, same results.
+
+    python benchmarks/bench_evaluation.py [--iterations 20] [--workers "[1, 2]"] [--out FILE]
+
+Runs the same seeded CMA-ME search (the tutorial's 5 emitters x 30) for a fixed number of
+iterations:
+- serial: rollouts in this process, once with the tutorial's rollout on gym.make's env and once
+  with the project's rollout on the streamlined env: the serial rollout times and per-step costs;
+- baseline: the tutorial's Dask evaluation, one task per solution, gym.make per rollout,
+  client.map + gather, on a local cluster of N workers;
+- engine: the project's `evaluate` (chunks, env kept per worker, streamlined env) on N workers.
+
+It prints a table and writes JSON with seconds per iteration, rollouts per second, parallel
+efficiency (serial rollout time / (workers x search time)), the main process's CPU share of the
+search's wall time, and whether every variant produced the same archive. Cluster start-up is not
+timed (each cluster first runs one warm-up task per worker); the search loop is.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import fire
+import gymnasium as gym
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import lunar_lander as ll  # noqa: E402  (the product, imported by name so workers import it too)
+
+CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30)
+
+
+def tutorial_simulate(model: np.ndarray, seed: int) -> tuple[float, float, float]:
+    """The tutorial's evaluation, as written there (gym.make per call, v3 for gymnasium 1.x)."""
+    env = gym.make("LunarLander-v3")
+    model = model.reshape((env.action_space.n, env.observation_space.shape[0]))
+    total_reward, impact_x_pos, impact_y_vel, all_y_vels = 0.0, None, None, []
+    obs, _ = env.reset(seed=seed)
+    done = False
+    while not done:
+        action = np.argmax(model @ obs)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        done = terminated or truncated
+        total_reward += reward
+        x_pos, y_vel = obs[0], obs[3]
+        all_y_vels.append(y_vel)
+        if impact_x_pos is None and (bool(obs[6]) or bool(obs[7])):
+            impact_x_pos, impact_y_vel = x_pos, y_vel
+    if impact_x_pos is None:
+        impact_x_pos, impact_y_vel = x_pos, min(all_y_vels)
+    env.close()
+    return float(total_reward), float(impact_x_pos), float(impact_y_vel)
+
+
+def tutorial_evaluate(client, solutions: np.ndarray, env_seed: int):
+    """One Dask task per solution, as in the tutorial's Dask version."""
+    futures = client.map(lambda model: tutorial_simulate(model, env_seed), solutions)
+    results = np.array(client.gather(futures))
+    return results[:, 0], results[:, 1:]
+
+
+def serial_evaluate(rollout: Callable) -> Callable:
+    def evaluate(_client, solutions: np.ndarray, env_seed: int):
+        results = np.array([rollout(solution, env_seed) for solution in solutions])
+        return results[:, 0], results[:, 1:]
+    return evaluate
+
+
+def run_search(evaluate: Callable, client, iterations: int) -> dict:
+    """The search loop, timed: wall time, this process's CPU time (all its threads, the Dask
+    scheduler's included), and time spent inside `evaluate`."""
+    scheduler = ll.build_scheduler(CONFIG)
+    wall, cpu, evaluating = time.perf_counter(), time.process_time(), 0.0
+    for _ in range(iterations):
+        solutions = scheduler.ask()
+        tic = time.perf_counter()
+        objectives, measures = evaluate(client, solutions, 52)
+        evaluating += time.perf_counter() - tic
+        scheduler.tell(objectives, measures)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    return {"archive": scheduler.archive, "wall_s": wall, "main_cpu_s": cpu, "evaluate_s": evaluating}
+
+
+def count_steps(iterations: int) -> int:
+    """Environment steps the benchmark's search takes (counted once, untimed)."""
+    scheduler, env, steps = ll.build_scheduler(CONFIG), ll.FastLunarLander(), 0
+    for _ in range(iterations):
+        solutions, results = scheduler.ask(), []
+        for solution in solutions:
+            path: list = []
+            results.append(ll.rollout(solution, 52, env, trajectory=path))
+            steps += len(path)
+        results = np.array(results)
+        scheduler.tell(results[:, 0], results[:, 1:])
+    return steps
+
+
+def local_client(workers: int):
+    from dask.distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+    client = Client(cluster)
+    client.wait_for_workers(workers)
+    # Warm-up, untimed: every worker imports the product and gymnasium once.
+    client.gather(client.map(ll.by_reference(ll.evaluate_chunk), [np.zeros((1, 32))] * workers,
+                             env_seed=52, pure=False))
+    return cluster, client
+
+
+def archive_table(archive):
+    return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
+
+
+def main(iterations: int = 20, workers: tuple = (1, 2), out: str = "benchmarks/results.json") -> None:
+    steps = count_steps(iterations)
+    rollouts = iterations * CONFIG["n_emitters"] * CONFIG["batch_size"]
+    runs = {
+        "serial tutorial rollout, gym.make env": run_search(
+            serial_evaluate(tutorial_simulate), None, iterations),
+        "serial project rollout, streamlined env": run_search(
+            serial_evaluate(lambda s, seed, env=ll.FastLunarLander(): ll.rollout(s, seed, env)),
+            None, iterations),
+    }
+    serial_baseline = runs["serial tutorial rollout, gym.make env"]["evaluate_s"]
+    serial_engine = runs["serial project rollout, streamlined env"]["evaluate_s"]
+    rows = []
+    for name, serial in runs.items():
+        rows.append({"variant": name, "workers": 0, "serial_rollout_s": serial["evaluate_s"]})
+    for n in workers:
+        for name, evaluate, serial_time in [
+            ("baseline: task per solution (tutorial)", tutorial_evaluate, serial_baseline),
+            ("engine: lunar_lander.evaluate", ll.evaluate, serial_engine),
+        ]:
+            cluster, client = local_client(n)
+            try:
+                runs[f"{name} x{n}"] = result = run_search(evaluate, client, iterations)
+            finally:
+                client.close()
+                cluster.close()
+            rows.append({"variant": name, "workers": n, "serial_rollout_s": serial_time,
+                         "efficiency": serial_time / (n * result["wall_s"])})
+    for row, result in zip(rows, runs.values()):
+        row.update({
+            "search_s": round(result["wall_s"], 2),
+            "s_per_iteration": round(result["wall_s"] / iterations, 3),
+            "rollouts_per_s": round(rollouts / result["wall_s"], 1),
+            "main_cpu_share": round(result["main_cpu_s"] / result["wall_s"], 3),
+        })
+        row["serial_rollout_s"] = round(row["serial_rollout_s"], 2)
+        if "efficiency" in row:
+            row["efficiency"] = round(row["efficiency"], 3)
+    tables = [archive_table(result["archive"]) for result in runs.values()]
+    identical = all(table.equals(tables[0]) for table in tables[1:])
+    engine_x2 = next((r for r in rows if r["variant"].startswith("engine") and r["workers"] == 2), None)
+    base_x2 = next((r for r in rows if r["variant"].startswith("baseline") and r["workers"] == 2), None)
+    summary = {
+        "iterations": iterations, "rollouts": rollouts, "steps": steps,
+        "us_per_step_tutorial_gym_make": round(serial_baseline / steps * 1e6, 2),
+        "us_per_step_streamlined": round(serial_engine / steps * 1e6, 2),
+        "per_step_ratio": round(serial_engine / serial_baseline, 3),
+        "engine_speedup_vs_baseline_at_2_workers":
+            round(base_x2["search_s"] / engine_x2["search_s"], 2) if engine_x2 and base_x2 else None,
+        "identical_archives": identical,
+        "machine": {"python": platform.python_version(), "cpus": __import__("os").cpu_count()},
+    }
+    print_table(rows, summary)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    ll.write_json(Path(out), {"summary": summary, "rows": rows})
+    print(f"written: {out}")
+
+
+def print_table(rows: list[dict], summary: dict) -> None:
+    print(f"{summary['iterations']} iterations, {summary['rollouts']} rollouts, {summary['steps']} steps")
+    header = ("variant", "workers", "search s", "s/iter", "rollouts/s", "efficiency", "main CPU")
+    print("| " + " | ".join(header) + " |\n|" + "---|" * len(header))
+    for r in rows:
+        print(f"| {r['variant']} | {r['workers'] or 'in-process'} | {r['search_s']} | "
+              f"{r['s_per_iteration']} | {r['rollouts_per_s']} | {r.get('efficiency', '')} | "
+              f"{r['main_cpu_share']:.1%} |")
+    print(f"per step: tutorial on gym.make {summary['us_per_step_tutorial_gym_make']} us, "
+          f"streamlined {summary['us_per_step_streamlined']} us "
+          f"(ratio {summary['per_step_ratio']}); engine vs baseline at 2 workers: "
+          f"{summary['engine_speedup_vs_baseline_at_2_workers']}x; "
+          f"identical archives: {summary['identical_archives']}")
+
+
+if __name__ == "__main__":
+    fire.Fire(main)

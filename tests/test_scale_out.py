@@ -1,0 +1,77 @@
+"""Joining an existing Dask cluster: `dask scheduler` and two `dask worker` processes on loopback,
+started where the script is not, as on other machines that have the packages but not the script."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+import lunar_lander as ll
+from util import run_archive, run_metrics
+
+
+
+@pytest.fixture
+def external_cluster(tmp_path):
+    """A scheduler and two single-threaded workers, each in a folder without lunar_lander.py."""
+    from dask.distributed import Client
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    scheduler_file = elsewhere / "scheduler.json"
+    processes = [subprocess.Popen(
+        ["dask", "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+         "--scheduler-file", str(scheduler_file)], cwd=elsewhere,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.time() + 60
+        while not scheduler_file.exists() and time.time() < deadline:
+            time.sleep(0.1)
+        for i in range(2):
+            processes.append(subprocess.Popen(
+                ["dask", "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1",
+                 "--nworkers", "1", "--no-dashboard", "--local-directory", str(elsewhere / f"w{i}")],
+                cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
+            client.wait_for_workers(2, timeout=60)
+            yield client
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+        for process in processes:
+            process.wait(timeout=60)
+
+
+def can_import_the_script(client) -> list[bool]:
+    import importlib.util
+
+    return list(client.run(lambda: importlib.util.find_spec("lunar_lander") is not None).values())
+
+
+def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_config, run_cli,
+                                                           external_cluster):
+    assert can_import_the_script(external_cluster) == [False, False]
+    address = external_cluster.scheduler.address
+    flags = {k: v for k, v in tiny_config.items() if k != "scheduler_address"}
+
+    result = run_cli(*[f"--{k}={v}" for k, v in flags.items()], f"--scheduler_address={address}",
+                     f"--outdir={tmp_path / 'remote'}")
+    assert result.returncode == 0, result.stderr
+    assert f"Dask cluster at {address}: 2 worker(s)" in result.stdout
+
+    ll.search(**tiny_config, outdir=str(tmp_path / "local"))  # the session's local cluster
+    remote, local = run_archive(tmp_path / "remote"), run_archive(tmp_path / "local")
+    assert len(remote) > 0 and remote.equals(local)
+    assert run_metrics(tmp_path / "remote") == run_metrics(tmp_path / "local")
+
+    # The cluster is not ours to shut down: still there, and the script was shipped to it.
+    assert len(external_cluster.nthreads()) == 2
+    assert can_import_the_script(external_cluster) == [True, True]
+
+
+def test_unreachable_scheduler_is_a_one_line_error(run_cli, tmp_path):
+    result = run_cli("--iterations", 1, "--scheduler_address", "tcp://127.0.0.1:9",
+                     "--outdir", tmp_path / "run")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "127.0.0.1:9" in result.stderr
