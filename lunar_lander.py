@@ -17,8 +17,8 @@ import datetime
 import functools
 import importlib
 import json
-import math
 import logging
+import math
 import os
 import pickle
 import platform
@@ -609,12 +609,12 @@ def save_progress_plot(metrics: list[dict], path: Path) -> None:
     iterations = [row["iteration"] for row in metrics]
     panels = [("qd_score", "QD score"), ("coverage", "Coverage"), ("best_objective", "Best objective")]
     fig, axes = plt.subplots(1, len(panels), figsize=(15, 4))
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)  # fixed: cheap
     for ax, (key, label) in zip(axes, panels):
         ax.plot(iterations, [np.nan if row[key] is None else row[key] for row in metrics])
         ax.set_xlabel("Iteration")
         ax.set_title(label)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
     plt.close(fig)
 
@@ -629,8 +629,9 @@ def save_outputs(run_dir: Path, checkpoint: dict) -> None:
     table = archive.data(return_type="pandas")
     atomic_write(run_dir / "archive.csv", lambda f: table.to_csv(f, index=False), mode="w")
     title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
-    save_heatmap(archive, run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png", title)
-    save_heatmap(archive, run_dir / "heatmap.png", title)
+    snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
+    save_heatmap(archive, snapshot, title)
+    atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
     save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
 
 
