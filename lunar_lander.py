@@ -1025,20 +1025,56 @@ def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None
     return chosen
 
 
-def record_video(solution: np.ndarray, env_seed: int, path: Path) -> tuple[float, float, float]:
-    """Fly a policy on the plain env under gymnasium's RecordVideo (one frame for the reset and
-    one per step, at the env's 50 fps); the mp4 is written aside and moved into place whole."""
-    from gymnasium.wrappers import RecordVideo
+class Mp4Recorder(gym.Wrapper):
+    """Streams the frame after reset and after every step into an mp4 at the env's 50 fps, with
+    imageio-ffmpeg. Not gymnasium's RecordVideo: it keeps every frame in memory, and its moviepy
+    2.2 writer drops the last frame (the landing) whenever 1/fps summed over the frames falls
+    short of their count (212 frames -> 4.2399999 s -> 211 written)."""
 
+    def __init__(self, env: gym.Env, path: Path) -> None:
+        super().__init__(env)
+        self.path, self.frames, self._writer = path, 0, None
+
+    def reset(self, **kwargs):
+        result = self.env.reset(**kwargs)
+        self._write_frame()
+        return result
+
+    def step(self, action):
+        result = self.env.step(action)
+        self._write_frame()
+        return result
+
+    def _write_frame(self) -> None:
+        import imageio_ffmpeg
+
+        frame = self.env.render()
+        if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
+            self._writer = imageio_ffmpeg.write_frames(
+                str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
+                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8)
+            self._writer.send(None)
+        self._writer.send(np.ascontiguousarray(frame))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        super().close()
+
+
+def record_video(solution: np.ndarray, env_seed: int, path: Path) -> tuple[float, float, float]:
+    """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
+    + 1 frames (the reset's frame first); written aside and moved into place whole."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
-        env = RecordVideo(make_env(fast=False, render_mode="rgb_array"), str(Path(tmp) / "mp4"),
-                          episode_trigger=lambda episode: True, name_prefix="flight")
+        env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
         try:
             result = rollout(solution, env_seed, env)
         finally:
-            env.close()  # writes the video
-        os.replace(Path(tmp) / "mp4" / "flight-episode-0.mp4", path)
+            env.close()
+        os.replace(env.path, path)
     return result
 
 
