@@ -1064,6 +1064,12 @@ class Mp4Recorder(gym.Wrapper):
         super().close()
 
 
+def load_chosen_elites(run_dir: Any, *selection: Any) -> tuple[dict, list[dict]]:
+    """The run's config and the elites `selection` (select_elites' flags) picks from its archive."""
+    archive, config = load_run(run_dir)
+    return config, select_elites(archive, *selection)
+
+
 def record_video(solution: np.ndarray, env_seed: int, path: Path) -> tuple[float, float, float]:
     """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
     + 1 frames (the reset's frame first); written aside and moved into place whole."""
@@ -1100,10 +1106,10 @@ def video(run_dir: str, cells: Any = None, best: bool = False, top: int | None =
     """
     import pandas as pd
 
-    archive, config = load_run(run_dir)
-    chosen = select_elites(archive, cells, best, top, index, nearest)
+    config, chosen = load_chosen_elites(run_dir, cells, best, top, index, nearest)
     folder, rows = Path(str(run_dir)) / "videos", []
     for elite in chosen:
+        STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
         path = folder / f"{elite['name']}.mp4"
         objective, *measures = record_video(elite["solution"], config["env_seed"], path)
         print(f"{path}: {describe_elite(elite)}")
@@ -1160,6 +1166,7 @@ def fly_paths(chosen: list[dict], env_seed: int) -> list[np.ndarray]:
     """Each elite's (x, y) per step, and the step of its impact (the measures' step)."""
     env, paths = make_env(), []
     for elite in chosen:
+        STOP.check()
         path: list = []
         rollout(elite["solution"], env_seed, env, path)
         paths.append(np.array(path))
@@ -1209,16 +1216,17 @@ def trajectories(run_dir: str, cells: Any = None, best: bool = False, top: int |
                  index: Any = None, nearest: bool = False) -> None:
     """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
 
+    The elites are chosen as for the video command (see: lunar_lander.py video --help).
+
     Args:
         run_dir: A run folder written by this script.
-        cells: Measure points "[(x, y-velocity), ...]": the elite of each point's cell.
-        best: The elite with the highest objective.
-        top: The K elites with the highest objectives.
-        index: Archive cell indices (the cell_index column of the elites command).
-        nearest: For an empty cell, use the nearest occupied cell instead of stopping.
+        cells: Points "[(x, y-velocity), ...]", one elite per point's cell.
+        best: Add the best elite.
+        top: Add the K best elites.
+        index: Add these cells' elites.
+        nearest: Replace an empty cell by the nearest occupied one.
     """
-    archive, config = load_run(run_dir)
-    chosen = select_elites(archive, cells, best, top, index, nearest)
+    config, chosen = load_chosen_elites(run_dir, cells, best, top, index, nearest)
     path = Path(str(run_dir)) / "trajectories.png"
     save_trajectory_plot(chosen, fly_paths(chosen, config["env_seed"]), config["env_seed"], path)
     for elite in chosen:
