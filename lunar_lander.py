@@ -945,10 +945,436 @@ def load_checkpoint(path: Path) -> dict:
 
 
 # ================================================================================================
+# Looking at the results: videos of chosen cells, elite tables, trajectories, robustness
+# ================================================================================================
+
+LANDED = 200.0  # the episode reward Gymnasium calls solved: a good landing
+ELITE_COLUMNS = {"objective": "objective", "measures_0": "impact_x",
+                 "measures_1": "impact_y_velocity", "index": "cell_index"}
+
+
+def load_run(run_dir: Any) -> tuple[Any, dict]:
+    """A run folder's archive (validated) and config: the results are shown on the run's terrain."""
+    path = Path(str(run_dir))
+    if not path.is_dir():
+        raise UsageError(f"{path}: no such run folder")
+    archive = load_archive(path / "archive.pkl")
+    try:
+        config = json.loads((path / "config.json").read_text())
+        config["env_seed"] = non_negative_int("env_seed", config["env_seed"])
+    except (OSError, ValueError, KeyError, TypeError, UsageError) as error:
+        raise UsageError(f"{path / 'config.json'}: no readable run config with an env_seed "
+                         f"({type(error).__name__}: {error})") from None
+    return archive, config
+
+
+def is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def parse_cells(cells: Any) -> list[tuple[float, float]]:
+    """--cells as measure points. Fire hands over what it could parse (a list of tuples, or one
+    tuple) and the raw text otherwise, so both are accepted."""
+    import ast
+
+    points = cells
+    if isinstance(points, str):
+        with contextlib.suppress(ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+            points = ast.literal_eval(points)
+    if isinstance(points, (tuple, list)) and len(points) == 2 and all(map(is_number, points)):
+        points = [points]
+    if not (isinstance(points, (tuple, list)) and points and all(
+            isinstance(p, (tuple, list)) and len(p) == 2 and all(map(is_number, p)) for p in points)):
+        raise UsageError(f'--cells takes (impact x, impact y-velocity) points such as '
+                         f'"[(-0.4, -0.1), (0.6, -0.1)]", got {cells!r}')
+    return [(float(x), float(v)) for x, v in points]
+
+
+def parse_indices(index: Any, archive) -> list[int]:
+    """--index as one archive cell index or several (the cell_index column of `elites`)."""
+    values = list(index) if isinstance(index, (tuple, list)) else [index]
+    cells = int(np.prod(archive.dims))
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
+            raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
+                             f"command's cell_index), got {index!r}")
+    return values
+
+
+def check_in_archive(archive, point: tuple[float, float]) -> None:
+    ranges = ", ".join(f"{label.lower()} in [{lo:g}, {hi:g}]" for label, lo, hi in
+                       zip(MEASURE_LABELS, archive.lower_bounds, archive.upper_bounds))
+    if not all(lo <= p <= hi for p, lo, hi in zip(point, archive.lower_bounds, archive.upper_bounds)):
+        raise UsageError(f"cell ({point[0]:g}, {point[1]:g}) is outside the archive: {ranges}")
+
+
+def elite_rows(archive) -> dict[str, np.ndarray]:
+    """Every elite (solution, objective, measures, index), best first; ties by cell index."""
+    data = archive.data(["solution", "objective", "measures", "index"])
+    order = np.lexsort((data["index"], -data["objective"]))
+    return {field: values[order] for field, values in data.items()}
+
+
+def pick(rows: dict[str, np.ndarray], i: int, name: str) -> dict:
+    return {"name": name, **{field: values[i] for field, values in rows.items()}}
+
+
+def nearest_occupied(archive, point: tuple[float, float]) -> dict:
+    """The elite whose cell is nearest the point's cell, counting in cells (ties: lowest index)."""
+    rows = elite_rows(archive)
+    target = archive.int_to_grid_index([archive.index_of_single(point)])[0]
+    distance = np.linalg.norm(archive.int_to_grid_index(rows["index"]) - target, axis=1)
+    return pick(rows, int(np.lexsort((rows["index"], distance))[0]), "")
+
+
+def describe_elite(elite: dict) -> str:
+    return (f"objective {elite['objective']:.2f}, impact x {elite['measures'][0]:.3f}, "
+            f"impact y-velocity {elite['measures'][1]:.3f} (cell {elite['index']})")
+
+
+def elite_of_cell(archive, point: tuple[float, float], nearest: bool) -> dict:
+    """The elite of the cell holding `point`, as archive.retrieve_single finds it; for an empty
+    cell, the nearest occupied one if asked (else the error names it)."""
+    check_in_archive(archive, point)
+    name = f"cell_x{point[0]:.2f}_v{point[1]:.2f}"
+    occupied, elite = archive.retrieve_single(point)
+    if occupied:
+        return {"name": name, **elite}
+    near = nearest_occupied(archive, point)
+    empty = f"the cell of ({point[0]:g}, {point[1]:g}) (index {archive.index_of_single(point)}) is empty"
+    if not nearest:
+        raise UsageError(f"{empty}; the nearest occupied cell holds {describe_elite(near)}; "
+                         f"add --nearest to use it")
+    print(f"{empty}; using the nearest occupied cell: {describe_elite(near)}")
+    return {**near, "name": f"{name}_nearest{near['index']}"}
+
+
+def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None,
+                  index: Any = None, nearest: Any = False) -> list[dict]:
+    """The elites a results command shows, each named for its file: the --cells points' cells,
+    the --best, the --top K by objective, the --index cells, in that order."""
+    nearest, best = boolean("nearest", nearest), boolean("best", best)
+    if cells is None and not best and top is None and index is None:
+        raise UsageError("choose elites with --cells, --best, --top or --index")
+    rows, chosen = elite_rows(archive), []
+    if cells is not None:
+        chosen += [elite_of_cell(archive, point, nearest) for point in parse_cells(cells)]
+    if best:
+        chosen.append(pick(rows, 0, "best"))
+    if top is not None:
+        chosen += [pick(rows, i, f"top{i + 1:02d}")
+                   for i in range(min(positive_int("top", top), len(rows["index"])))]
+    if index is not None:
+        where = {int(cell): i for i, cell in enumerate(rows["index"])}
+        for cell in parse_indices(index, archive):
+            if cell not in where:
+                raise UsageError(f"cell index {cell} is empty (the elites command lists the occupied ones)")
+            chosen.append(pick(rows, where[cell], f"index{cell}"))
+    for elite in chosen:
+        if not elite["name"].startswith("cell_"):
+            elite["name"] += f"_x{elite['measures'][0]:.2f}_v{elite['measures'][1]:.2f}"
+        elite["name"] += f"_obj{elite['objective']:.0f}"
+    return chosen
+
+
+class Mp4Recorder(gym.Wrapper):
+    """Streams the frame after reset and after every step into an mp4 at the env's 50 fps, with
+    imageio-ffmpeg. Not gymnasium's RecordVideo: it keeps every frame in memory, and its moviepy
+    2.2 writer drops the last frame (the landing) whenever 1/fps summed over the frames falls
+    short of their count (212 frames -> 4.2399999 s -> 211 written)."""
+
+    def __init__(self, env: gym.Env, path: Path) -> None:
+        super().__init__(env)
+        self.path, self.frames, self._writer = path, 0, None
+
+    def reset(self, **kwargs):
+        result = self.env.reset(**kwargs)
+        self._write_frame()
+        return result
+
+    def step(self, action):
+        result = self.env.step(action)
+        self._write_frame()
+        return result
+
+    def _write_frame(self) -> None:
+        import imageio_ffmpeg
+
+        frame = self.env.render()
+        if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
+            self._writer = imageio_ffmpeg.write_frames(
+                str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
+                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8)
+            self._writer.send(None)
+        self._writer.send(np.ascontiguousarray(frame))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        super().close()
+
+
+def load_chosen_elites(run_dir: Any, *selection: Any) -> tuple[dict, list[dict]]:
+    """The run's config and the elites `selection` (select_elites' flags) picks from its archive."""
+    archive, config = load_run(run_dir)
+    return config, select_elites(archive, *selection)
+
+
+def record_video(solution: np.ndarray, env_seed: int, path: Path) -> tuple[float, float, float]:
+    """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
+    + 1 frames (the reset's frame first); written aside and moved into place whole."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
+        env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
+        try:
+            result = rollout(solution, env_seed, env)
+        finally:
+            env.close()
+        os.replace(env.path, path)
+    return result
+
+
+def write_csv(path: Path, table) -> None:
+    atomic_write(path, lambda f: table.to_csv(f, index=False), mode="w")
+
+
+def video(run_dir: str, cells: Any = None, best: bool = False, top: int | None = None,
+          index: Any = None, nearest: bool = False) -> None:
+    """Render an mp4 per chosen elite, flown on the run's terrain, into RUN_DIR/videos/.
+
+    Each elite is flown again and must score exactly its stored objective (a warning says if not).
+    videos/index.csv lists the videos with the elites' objectives and measures.
+
+    Args:
+        run_dir: A run folder written by this script.
+        cells: Measure points "[(x, y-velocity), ...]": the elite of each point's cell
+            (archive.retrieve_single), e.g. "[(-0.4, -0.1), (0.6, -0.1), (0.0, -0.1)]".
+        best: The elite with the highest objective.
+        top: The K elites with the highest objectives.
+        index: Archive cell indices (the cell_index column of the elites command).
+        nearest: For an empty cell, use the nearest occupied cell instead of stopping.
+    """
+    import pandas as pd
+
+    config, chosen = load_chosen_elites(run_dir, cells, best, top, index, nearest)
+    folder, rows = Path(str(run_dir)) / "videos", []
+    for elite in chosen:
+        STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
+        path = folder / f"{elite['name']}.mp4"
+        objective, *measures = record_video(elite["solution"], config["env_seed"], path)
+        print(f"{path}: {describe_elite(elite)}")
+        reproduced = objective == elite["objective"] and measures == list(elite["measures"])
+        if not reproduced:
+            print(f"warning: flown again, {path.name} scored {objective!r} with measures {measures}, "
+                  f"not the stored {elite['objective']!r}, {list(elite['measures'])} "
+                  f"(other library versions?)", file=sys.stderr)
+        rows.append({"video": path.name, "cell_index": int(elite["index"]),
+                     "objective": float(elite["objective"]), "impact_x": float(elite["measures"][0]),
+                     "impact_y_velocity": float(elite["measures"][1]),
+                     "reflown_objective": objective, "reproduced": reproduced})
+    write_csv(folder / "index.csv", pd.DataFrame(rows))
+
+
+def elite_table(archive, min_objective: float | None = None, top: int | None = None):
+    """The archive's elites as a table (archive.data), best first, filtered and cut."""
+    table = archive.data(["objective", "measures", "index"], return_type="pandas")
+    table = table.sort_values(["objective", "index"], ascending=[False, True], ignore_index=True)
+    if min_objective is not None:
+        table = table[table["objective"] >= min_objective]
+    if top is not None:
+        table = table.head(top)
+    return table.rename(columns=ELITE_COLUMNS)[list(ELITE_COLUMNS.values())].reset_index(drop=True)
+
+
+def elites(run_dir: str, min_objective: float | None = None, top: int | None = None) -> None:
+    """Print the run's elites sorted by objective, and write them to RUN_DIR/elites.csv.
+
+    Args:
+        run_dir: A run folder written by this script.
+        min_objective: Only elites scoring at least this (200: good landings).
+        top: Only the K best of those.
+    """
+    archive, _ = load_run(run_dir)
+    if min_objective is not None and not is_number(min_objective):
+        raise UsageError(f"--min_objective must be a number, got {min_objective!r}")
+    table = elite_table(archive, min_objective, None if top is None else positive_int("top", top))
+    path = Path(str(run_dir)) / "elites.csv"
+    write_csv(path, table)
+    print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")
+          if len(table) else "no elites match")
+    print(f"{len(table)} of {len(archive)} elites; written to {path}")
+
+
+def terrain(env_seed: int) -> np.ndarray:
+    """The ground line of a terrain, (x, y) in the observation's units (as trajectories)."""
+    edges, _, _ = _seeded_randoms(env_seed)
+    points = np.array([edges[0][0], *(end for _, end in edges)])
+    return np.column_stack([(points[:, 0] - _HALF_W) / _HALF_W, (points[:, 1] - _PAD_Y) / _HALF_H])
+
+
+def fly_paths(chosen: list[dict], env_seed: int) -> list[np.ndarray]:
+    """Each elite's (x, y) per step, and the step of its impact (the measures' step)."""
+    env, paths = make_env(), []
+    for elite in chosen:
+        STOP.check()
+        path: list = []
+        rollout(elite["solution"], env_seed, env, path)
+        paths.append(np.array(path))
+    return paths
+
+
+def impact_step(path: np.ndarray, impact_x: float) -> int:
+    """The step whose x is the impact x (rollout records both from the same observation); the last
+    step if none is (a lander that never touched ground has its last x as impact x)."""
+    hits = np.flatnonzero(path[:, 0] == impact_x)
+    return int(hits[0]) if len(hits) else len(path) - 1
+
+
+def save_trajectory_plot(chosen: list[dict], paths: list[np.ndarray], env_seed: int,
+                         path: Path) -> None:
+    """The tutorial's "many ways to land" on one page: flight paths over the terrain, coloured by
+    objective, impacts marked. Equal metres on both axes (x and y are scaled differently)."""
+    import matplotlib.pyplot as plt
+    from matplotlib import cm, colors
+
+    objectives = [float(elite["objective"]) for elite in chosen]
+    norm = colors.Normalize(min(objectives) - 1e-9, max(objectives) + 1e-9)
+    cmap = plt.get_cmap("viridis")
+    ground = terrain(env_seed)
+    fig, ax = plt.subplots(figsize=(11, 7))
+    ax.fill_between(ground[:, 0], ground[:, 1], ground[:, 1].min() - 0.2, color="0.75", zorder=0)
+    ax.plot([-0.2, 0.2], [ground[5, 1]] * 2, color="gold", lw=4, label="helipad", zorder=1)
+    for elite, flight in zip(chosen, paths):
+        colour = cmap(norm(float(elite["objective"])))
+        step = impact_step(flight, float(elite["measures"][0]))
+        ax.plot(flight[:, 0], flight[:, 1], color=colour, lw=1.2, alpha=0.9,
+                label=elite["name"] if len(chosen) <= 12 else None)
+        ax.plot(*flight[step], marker="o", ms=7, mec="black", color=colour, zorder=3)
+    ax.set_aspect(_HALF_H / _HALF_W)
+    ax.set_xlim(-1.05, 1.05)
+    ax.set_ylim(ground[:, 1].min() - 0.2, max(1.5, max(float(f[:, 1].max()) for f in paths) + 0.05))
+    ax.set_xlabel("x (observation units: -1 and 1 are the screen edges)")
+    ax.set_ylabel("y of the lander's centre (0: resting on the helipad)")
+    ax.set_title(f"Flight paths of {len(chosen)} elites on terrain {env_seed} (dots: impact)")
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="Objective", shrink=0.8)
+    ax.legend(fontsize=7, loc="upper left")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    plt.close(fig)
+
+
+def trajectories(run_dir: str, cells: Any = None, best: bool = False, top: int | None = None,
+                 index: Any = None, nearest: bool = False) -> None:
+    """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
+
+    The elites are chosen as for the video command (see: lunar_lander.py video --help).
+
+    Args:
+        run_dir: A run folder written by this script.
+        cells: Points "[(x, y-velocity), ...]", one elite per point's cell.
+        best: Add the best elite.
+        top: Add the K best elites.
+        index: Add these cells' elites.
+        nearest: Replace an empty cell by the nearest occupied one.
+    """
+    config, chosen = load_chosen_elites(run_dir, cells, best, top, index, nearest)
+    path = Path(str(run_dir)) / "trajectories.png"
+    save_trajectory_plot(chosen, fly_paths(chosen, config["env_seed"]), config["env_seed"], path)
+    for elite in chosen:
+        print(f"{elite['name']}: {describe_elite(elite)}")
+    print(f"written to {path}")
+
+
+def parse_env_seeds(value: Any) -> list[int]:
+    """--env_seeds as a range 0-19, a list 3,5,8 or both (0-4,10); Fire may have made a number or a
+    tuple of it already."""
+    import re
+
+    parts = [str(part) for part in value] if isinstance(value, (tuple, list)) else str(value).split(",")
+    seeds: list[int] = []
+    for part in parts:
+        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if isinstance(value, bool) or not match or (match[2] and int(match[2]) < int(match[1])):
+            raise UsageError(f"--env_seeds takes seeds >= 0 such as 0-19, 3,5,8 or 0-4,10; got {value!r}")
+        seeds += range(int(match[1]), int(match[2] or match[1]) + 1)
+    return list(dict.fromkeys(seeds))
+
+
+def console_log() -> logging.Logger:
+    """Messages of commands that only read a run: printed, not appended to its run.log."""
+    log = logging.getLogger("lunar_lander.results")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    if not log.handlers:
+        log.addHandler(logging.StreamHandler(sys.stdout))
+    return log
+
+
+def robustness_table(rows: dict[str, np.ndarray], seeds: list[int], objectives: np.ndarray):
+    """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
+    elites that generalise best first."""
+    import pandas as pd
+
+    table = pd.DataFrame({"cell_index": rows["index"], "objective": rows["objective"],
+                          "impact_x": rows["measures"][:, 0], "impact_y_velocity": rows["measures"][:, 1],
+                          "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
+                          "std_objective": objectives.std(axis=1),
+                          "landed_share": (objectives >= LANDED).mean(axis=1)})
+    table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
+                      axis=1)
+    return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
+
+
+def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None = None,
+                        workers: int = 2, scheduler_address: str | None = None) -> None:
+    """Fly the run's elites on other terrains (on Dask) to see which landing styles generalise.
+
+    Writes RUN_DIR/robustness.csv (per elite: mean, min and standard deviation of its objective over
+    the terrains, share of landings >= 200, and each terrain's objective) and
+    RUN_DIR/robustness_heatmap.png (the archive coloured by the mean objective).
+
+    Args:
+        run_dir: A run folder written by this script.
+        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10.
+        top: Only the K elites with the highest objectives (default: all).
+        workers: Number of Dask worker processes.
+        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
+    """
+    from ribs.archives import GridArchive
+    from tqdm import tqdm
+
+    archive, _ = load_run(run_dir)
+    seeds, workers = parse_env_seeds(env_seeds), positive_int("workers", workers)
+    rows = elite_rows(archive)
+    if top is not None:
+        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
+    with dask_client(workers, scheduler_address, console_log()) as client:
+        columns = []
+        for seed in tqdm(seeds, desc="terrains", unit="terrain", dynamic_ncols=True):
+            with STOP.interruptible():
+                columns.append(evaluate(client, rows["solution"], seed)[0])
+    objectives, run = np.column_stack(columns), Path(str(run_dir))
+    table = robustness_table(rows, seeds, objectives)
+    write_csv(run / "robustness.csv", table)
+    means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
+                        ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+    means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
+    save_heatmap(means, run / "robustness_heatmap.png",
+                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
+    landed = table["landed_share"]
+    print(f"{len(table)} elites on {len(seeds)} terrains: mean objective {table['mean_objective'].mean():.1f}; "
+          f"{(landed == 1).sum()} land (>= {LANDED:g}) on every terrain, {(landed >= 0.5).sum()} on at "
+          f"least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
+    print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")
+
+
+# ================================================================================================
 # Command-line entry point
 # ================================================================================================
 
-COMMANDS: dict[str, Callable] = {"search": search, "resume": resume}
+COMMANDS: dict[str, Callable] = {"search": search, "resume": resume, "video": video, "elites": elites,
+                                  "trajectories": trajectories, "evaluate": evaluate_robustness}
 
 
 def reject_unknown_flags(command: Callable, args: list[str]) -> None:

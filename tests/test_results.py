@@ -1,0 +1,227 @@
+"""Looking at a run: videos of chosen cells, the elite table, trajectories, robustness on new terrains."""
+
+import re
+
+import imageio_ffmpeg
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.image import imread
+
+import lunar_lander as ll
+from test_cli import assert_one_line_error
+from util import folder_state, load_pickle
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory, dask_cluster):
+    """A run folder made by the runner: a tiny search (a few dozen elites, most cells empty)."""
+    run_dir = tmp_path_factory.mktemp("results") / "run"
+    ll.search(iterations=3, workers=2, seed=7, env_seed=52, n_emitters=2, batch_size=8, log_every=3,
+              outdir=str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    return run_dir
+
+
+@pytest.fixture(scope="module")
+def archive(run_dir):
+    return load_pickle(run_dir / "archive.pkl")
+
+
+def read_csv(path):
+    return pd.read_csv(path)  # pandas 3 reads floats back bit for bit (round trip)
+
+
+def grid_distance(archive, cell_a, cell_b):
+    return np.linalg.norm(np.subtract(np.unravel_index(cell_a, archive.dims),
+                                      np.unravel_index(cell_b, archive.dims)))
+
+
+def empty_point_next_to_an_elite(archive):
+    """The measures of an empty cell one column right of an elite's cell."""
+    width = archive.interval_size / np.array(archive.dims)
+    for x, v in archive.data("measures"):
+        point = (x + width[0], v)
+        if point[0] < archive.upper_bounds[0] and not archive.retrieve_single(point)[0]:
+            return point
+    raise AssertionError("every elite has a right neighbour")
+
+
+def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archive, capsys):
+    data = archive.data()
+    lengths = []
+    for solution in data["solution"]:  # the shortest episode makes the quickest video
+        path = []
+        ll.rollout(solution, 52, ll.make_env(), path)
+        lengths.append(len(path))
+    shortest = int(np.argmin(lengths))
+    point = tuple(data["measures"][shortest])
+
+    ll.video(str(run_dir), cells=[point])
+
+    objective = data["objective"][shortest]
+    name = f"cell_x{point[0]:.2f}_v{point[1]:.2f}_obj{objective:.0f}.mp4"
+    video = run_dir / "videos" / name
+    frames, _ = imageio_ffmpeg.count_frames_and_secs(str(video))
+    assert frames == lengths[shortest] + 1  # the reset's frame, then one per step
+    reader = imageio_ffmpeg.read_frames(str(video))
+    meta = next(reader)
+    assert meta["size"] == (600, 400) and meta["fps"] == 50
+    first = np.frombuffer(next(reader), np.uint8).reshape(400, 600, 3)
+    assert first.std() > 10  # a picture (sky, ground, lander), not a blank frame
+    reader.close()
+
+    index = read_csv(run_dir / "videos" / "index.csv")
+    assert index.to_dict("records") == [{
+        "video": name, "cell_index": data["index"][shortest], "objective": objective,
+        "impact_x": point[0], "impact_y_velocity": point[1], "reflown_objective": objective,
+        "reproduced": True}]
+    out, err = capsys.readouterr()
+    assert f"objective {objective:.2f}" in out and "warning" not in err
+    assert not list((run_dir / "videos").glob(".*"))  # no recording folder left behind
+
+
+def test_empty_cell_names_the_nearest_and_nearest_uses_it(archive):
+    point = empty_point_next_to_an_elite(archive)
+    cell = archive.index_of_single(point)
+    occupied = archive.data("index")
+    distances = [grid_distance(archive, cell, other) for other in occupied]
+    assert min(distances) == 1
+    nearest = min(occupied[np.flatnonzero(np.array(distances) == 1)])
+
+    with pytest.raises(ll.UsageError, match=f"is empty; the nearest occupied cell .*cell {nearest}"
+                                            r"\); add --nearest"):
+        ll.select_elites(archive, cells=[point])
+    [elite] = ll.select_elites(archive, cells=[point], nearest=True)
+    assert elite["index"] == nearest
+    assert elite["name"].startswith(f"cell_x{point[0]:.2f}_v{point[1]:.2f}_nearest{nearest}_obj")
+
+
+def test_selection_by_best_top_index_and_cells(archive):
+    ranked = archive.data(return_type="pandas").sort_values("objective", ascending=False)["index"]
+    chosen = ll.select_elites(archive, cells="[(0.0, -0.1)]", best=True, top=3,
+                              index=int(ranked.iloc[-1]), nearest=True)
+    assert chosen[0]["name"].startswith("cell_x0.00_v-0.10_")
+    assert [elite["index"] for elite in chosen[1:]] == ranked.iloc[[0, 0, 1, 2, -1]].tolist()
+    assert [elite["name"].split("_")[0] for elite in chosen[1:]] == [
+        "best", "top01", "top02", "top03", f"index{ranked.iloc[-1]}"]
+    # --cells as Fire hands it over: parsed, one tuple alone, or raw text
+    assert ll.parse_cells("[(-0.4, -0.1), (0.6, -0.1)]") == [(-0.4, -0.1), (0.6, -0.1)]
+    assert ll.parse_cells((0.0, -0.1)) == ll.parse_cells([(0, -0.1)]) == [(0.0, -0.1)]
+
+
+def test_elite_table_is_archive_data_sorted_and_filtered(run_dir, archive, capsys):
+    data = archive.data(return_type="pandas")
+    threshold = float(data["objective"].median())
+    ll.elites(str(run_dir), min_objective=threshold, top=5)
+
+    table = read_csv(run_dir / "elites.csv")
+    expected = data[data["objective"] >= threshold].nlargest(5, "objective")
+    assert list(table.columns) == ["objective", "impact_x", "impact_y_velocity", "cell_index"]
+    assert table["cell_index"].tolist() == expected["index"].tolist()
+    assert np.array_equal(table[["objective", "impact_x", "impact_y_velocity"]].to_numpy(),
+                          expected[["objective", "measures_0", "measures_1"]].to_numpy())
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].split() == ["objective", "impact_x", "impact_y_velocity", "cell_index"]
+    assert f"{len(table)} of {len(data)} elites" in out
+
+
+def test_trajectory_picture_of_the_top_elites(run_dir, archive):
+    before = folder_state(run_dir)
+    ll.trajectories(str(run_dir), top=3)
+
+    image = imread(run_dir / "trajectories.png")
+    assert image.shape[0] > 400 and image.shape[1] > 600 and image.std() > 0.05
+    after = folder_state(run_dir)
+    assert {name: after[name] for name in before if name in after} == before  # nothing else touched
+
+    top = ll.select_elites(archive, top=3)
+    for elite, path in zip(top, ll.fly_paths(top, 52)):  # the drawn paths are the elites' flights
+        step = ll.impact_step(path, float(elite["measures"][0]))
+        assert path[step, 0] == elite["measures"][0]
+
+
+def test_terrain_is_the_envs_ground():
+    env = ll.make_env(fast=False)
+    env.reset(seed=52)
+    lander = env.unwrapped
+    edges = [fixture.shape.vertices for fixture in lander.moon.fixtures[1:]]
+    ground = ll.terrain(52)
+    expected = np.array([edges[0][0], *(end for _, end in edges)])
+    assert np.allclose(ground[:, 0], (expected[:, 0] - ll._HALF_W) / ll._HALF_W)
+    assert np.allclose(ground[:, 1], (expected[:, 1] - ll._PAD_Y) / ll._HALF_H)
+    env.close()
+
+
+def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, dask_cluster, capsys):
+    ll.evaluate_robustness(str(run_dir), env_seeds="3,4", top=4,
+                           scheduler_address=dask_cluster.scheduler_address)
+
+    table = read_csv(run_dir / "robustness.csv")
+    top = archive.data(return_type="pandas").nlargest(4, "objective")
+    assert sorted(table["cell_index"]) == sorted(top["index"])
+    env, data = ll.make_env(fast=False), archive.data()
+    solutions = dict(zip(data["index"], data["solution"]))
+    for row in table.to_dict("records"):
+        direct = np.array([ll.rollout(solutions[row["cell_index"]], seed, env)[0] for seed in (3, 4)])
+        assert [row["objective_seed3"], row["objective_seed4"]] == direct.tolist()
+        assert row["mean_objective"] == pytest.approx(direct.mean(), abs=1e-9)
+        assert row["min_objective"] == direct.min()
+        assert row["std_objective"] == pytest.approx(direct.std(), abs=1e-9)
+        assert row["landed_share"] == np.mean(direct >= 200)
+    assert table["mean_objective"].is_monotonic_decreasing
+    assert imread(run_dir / "robustness_heatmap.png").std() > 0.05
+    assert "4 elites on 2 terrains" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("value, seeds", [
+    ("0-3", [0, 1, 2, 3]), ((3, 5), [3, 5]), (7, [7]), ("0-2,5", [0, 1, 2, 5]), ("4,4", [4])])
+def test_env_seed_ranges(value, seeds):
+    assert ll.parse_env_seeds(value) == seeds
+
+
+@pytest.mark.parametrize("value", ["3-1", "a", -1, True, "1-", ""])
+def test_bad_env_seeds(value):
+    with pytest.raises(ll.UsageError, match="--env_seeds"):
+        ll.parse_env_seeds(value)
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["video", "{run}", "--cells", "[(2.0, -0.1)]"], ["outside the archive", "[-1, 1]", "[-3, 0]"]),
+    (["trajectories", "{run}", "--cells", "[(0.1, -0.1"], ["--cells", "[(0.1, -0.1"]),
+    (["elites", "{missing}"], ["no such run folder"]),
+])
+def test_bad_input_is_one_line_and_touches_nothing(run_cli, run_dir, tmp_path, args, fragments):
+    names = {"run": run_dir, "missing": tmp_path / "missing"}
+    before = folder_state(run_dir)
+    assert_one_line_error(run_cli(*[arg.format(**names) for arg in args]), *fragments)
+    assert folder_state(run_dir) == before
+
+
+@pytest.mark.parametrize("command, kwargs, fragment", [
+    (ll.video, dict(cells="[(a, b)]"), "--cells"),
+    (ll.video, dict(cells=[(0.1, -0.1, 3)]), "--cells"),
+    (ll.video, dict(cells=[(0.0, -3.5)]), "outside the archive"),
+    (ll.video, {}, "--cells, --best, --top or --index"),
+    (ll.video, dict(index=2500), "--index"),
+    (ll.trajectories, dict(top=0), "--top"),
+    (ll.trajectories, dict(best="maybe"), "--best"),
+    (ll.elites, dict(top=-2), "--top"),
+    (ll.elites, dict(min_objective="high"), "--min_objective"),
+    (ll.evaluate_robustness, dict(env_seeds="5-2"), "--env_seeds"),
+    (ll.evaluate_robustness, dict(workers=0), "--workers"),
+])
+def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fragment):
+    before = folder_state(run_dir)
+    with pytest.raises(ll.UsageError, match=re.escape(fragment)):
+        command(str(run_dir), **kwargs)
+    assert folder_state(run_dir) == before
+
+
+def test_commands_and_their_flags_are_registered(tmp_path):
+    assert {"video", "elites", "trajectories", "evaluate"} <= set(ll.COMMANDS)
+    assert ll.COMMANDS["evaluate"] is ll.evaluate_robustness
+    with pytest.raises(ll.UsageError, match="--cell;"):
+        ll.reject_unknown_flags(ll.COMMANDS["video"], ["--cell", "[(0, 0)]"])
+    (tmp_path / "run").mkdir()
+    with pytest.raises(ll.UsageError, match="archive.pkl: no such file"):
+        ll.load_run(tmp_path / "run")
