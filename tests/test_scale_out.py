@@ -21,8 +21,8 @@ def external_cluster(tmp_path):
     elsewhere.mkdir()
     scheduler_file = elsewhere / "scheduler.json"
     processes = [subprocess.Popen(
-        ["dask", "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-         "--scheduler-file", str(scheduler_file)], cwd=elsewhere,
+        [sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+         "--no-dashboard", "--scheduler-file", str(scheduler_file)], cwd=elsewhere,
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     try:
         deadline = time.time() + 60
@@ -30,8 +30,9 @@ def external_cluster(tmp_path):
             time.sleep(0.1)
         for i in range(2):
             processes.append(subprocess.Popen(
-                ["dask", "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1",
-                 "--nworkers", "1", "--no-dashboard", "--local-directory", str(elsewhere / f"w{i}")],
+                [sys.executable, "-m", "dask", "worker", "--scheduler-file", str(scheduler_file),
+                 "--nthreads", "1", "--nworkers", "1", "--no-dashboard",
+                 "--local-directory", str(elsewhere / f"w{i}")],
                 cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
             client.wait_for_workers(2, timeout=60)
