@@ -263,13 +263,39 @@ MEASURE_RANGES = ((-1.0, 1.0), (-3.0, 0.0))  # impact x-position, impact y-veloc
 MEASURE_LABELS = ("Impact x-position", "Impact y-velocity")
 QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
 
-# One row per algorithm, in the spirit of pyribs' examples/sphere.py: what the archive and the
-# emitters are built with. CMA-ME is the tutorial's setup.
+# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
+# whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
+# a small function of the run's config. All rows share the grid, the seeds, x0 and the batch size,
+# so every algorithm asks n_emitters * batch_size solutions per iteration.
+# - cma_me: the tutorial's CMA-ME (EvolutionStrategyEmitter, two-stage improvement ranker).
+# - cma_mae: pyribs' CMA-MAE tutorial and sphere.py's "cma_mae" row: a soft archive with
+#   learning_rate (--learning_rate, 0.01 there) and threshold_min (0 there for objectives in
+#   [0, 100]; here the QD offset -600, below almost every episode's reward), a plain result archive
+#   of the same grid that keeps the best solutions (metrics, heatmaps and archive.pkl come from
+#   it), and emitters with the "imp" ranker, "mu" selection and "basic" restarts.
+# - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
+#   fixed sigma (--sigma0). The policy argmax(W @ obs) ignores W's scale and the search starts
+#   from zeros, so only sigma relative to the elites' weights matters, as for CMA-ES's sigma0.
 ALGORITHMS: dict[str, dict[str, Any]] = {
     "cma_me": {
-        "archive": {},
+        "archive": lambda config: {},
+        "result_archive": False,
         "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": {"ranker": "2imp"},
+        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "2imp"},
+    },
+    "cma_mae": {
+        "archive": lambda config: {"learning_rate": config["learning_rate"],
+                                   "threshold_min": QD_SCORE_OFFSET},
+        "result_archive": True,
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "imp",
+                                          "selection_rule": "mu", "restart_rule": "basic"},
+    },
+    "map_elites": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "GaussianEmitter",
+        "emitter_kwargs": lambda config: {"sigma": config["sigma0"]},
     },
 }
 
@@ -289,28 +315,24 @@ def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
     from ribs.schedulers import Scheduler
 
     spec = ALGORITHMS[config["algorithm"]]
-    archive_seed, *emitter_seeds = derive_seeds(config["seed"], config["n_emitters"] + 1)
-    archive = GridArchive(
-        solution_dim=SOLUTION_DIM,
-        dims=GRID_DIMS,
-        ranges=MEASURE_RANGES,
-        qd_score_offset=QD_SCORE_OFFSET,
-        seed=archive_seed,
-        **spec["archive"],
-    )
+    # A result archive's seed comes last, so the other seeds are those of a run without one.
+    archive_seed, *emitter_seeds, result_seed = derive_seeds(config["seed"], config["n_emitters"] + 2)
+    grid = dict(solution_dim=SOLUTION_DIM, dims=GRID_DIMS, ranges=MEASURE_RANGES,
+                qd_score_offset=QD_SCORE_OFFSET)
+    archive = GridArchive(**grid, seed=archive_seed, **spec["archive"](config))
+    result_archive = GridArchive(**grid, seed=result_seed) if spec["result_archive"] else None
     emitter_class = getattr(ribs_emitters, spec["emitter"])
     emitters = [
         emitter_class(
             archive,
             x0=np.zeros(SOLUTION_DIM) if x0 is None else x0,
-            sigma0=config["sigma0"],
             batch_size=config["batch_size"],
             seed=emitter_seed,
-            **spec["emitter_kwargs"],
+            **spec["emitter_kwargs"](config),
         )
         for emitter_seed in emitter_seeds
     ]
-    return Scheduler(archive, emitters)
+    return Scheduler(archive, emitters, result_archive=result_archive)
 
 
 # ================================================================================================
@@ -630,6 +652,12 @@ def positive_float(name: str, value: Any) -> float:
     return float(value)
 
 
+def fraction(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise UsageError(f"--{name} must be a number in (0, 1], got {value!r}")
+    return float(value)
+
+
 def boolean(name: str, value: Any) -> bool:
     """Fire passes --flag=false as the string 'false' (and --flag alone as True)."""
     words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
@@ -658,6 +686,7 @@ FLAG_CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "n_emitters": positive_int,
     "sigma0": positive_float,
     "batch_size": positive_int,
+    "learning_rate": fraction,
     "log_every": positive_int,
     "fast_env": boolean,
 }
@@ -760,6 +789,7 @@ def search(
     n_emitters: int = 5,
     sigma0: float = 1.0,
     batch_size: int = 30,
+    learning_rate: float = 0.01,
     log_every: int = 25,
     outdir: str | None = None,
     scheduler_address: str | None = None,
@@ -779,10 +809,15 @@ def search(
         seed: Seed of the archive and emitters; drawn and recorded in config.json if omitted.
             The same seed gives the same archive whatever the number of workers.
         env_seed: Seed of the Lunar Lander terrain every policy is flown on.
-        algorithm: Which QD algorithm (cma_me: the tutorial's CMA-ME).
+        algorithm: Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae (CMA-MAE) or
+            map_elites (MAP-Elites with Gaussian mutation); each asks n_emitters * batch_size
+            solutions per iteration.
         n_emitters: Number of emitters.
-        sigma0: Initial step size of each emitter (CMA-ES sigma).
+        sigma0: Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed sigma
+            of its Gaussian mutation.
         batch_size: Solutions each emitter proposes per iteration.
+        learning_rate: cma_mae only: how fast a cell's threshold follows its improvements (0.01:
+            pyribs' CMA-MAE setting; 1 makes the archive CMA-ME's).
         log_every: Log a line and refresh the run folder every this many iterations.
         outdir: Run folder; default outputs/<timestamp>_seed<seed>. Must be new or empty.
         scheduler_address: Address of a running Dask scheduler (tcp://HOST:PORT) to evaluate on
@@ -870,6 +905,12 @@ def load_archive(path: Path):
     return archive
 
 
+def search_defaults() -> dict[str, Any]:
+    import inspect
+
+    return {name: parameter.default for name, parameter in inspect.signature(search).parameters.items()}
+
+
 def load_checkpoint(path: Path) -> dict:
     """A checkpoint written by this script and consistent with this script's problem."""
     if not path.is_file():
@@ -880,7 +921,9 @@ def load_checkpoint(path: Path) -> dict:
     from ribs.schedulers import Scheduler
 
     try:
-        config, metrics, iteration = checkpoint["config"], checkpoint["metrics"], checkpoint["iteration"]
+        # A checkpoint from before a flag existed ran with that flag's default.
+        config = checkpoint["config"] = {**search_defaults(), **checkpoint["config"]}
+        metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
         check_flags({name: config[name] for name in FLAG_CHECKS})
         if not isinstance(checkpoint["scheduler"], Scheduler):
             raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
