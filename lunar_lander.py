@@ -590,18 +590,28 @@ def save_heatmap(archive, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"), ("best_objective", "Best objective"))
+
+
 def save_progress_plot(metrics: list[dict], path: Path) -> None:
     """QD score, coverage and best objective over iterations, side by side."""
+    save_metric_panels({"": metrics}, "iteration", "Iteration", path)
+
+
+def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, path: Path) -> None:
+    """One panel per metric of PROGRESS_PANELS, one line per run (labelled if it has a label)."""
     import matplotlib.pyplot as plt
 
-    iterations = [row["iteration"] for row in metrics]
-    panels = [("qd_score", "QD score"), ("coverage", "Coverage"), ("best_objective", "Best objective")]
-    fig, axes = plt.subplots(1, len(panels), figsize=(15, 4))
-    for ax, (key, label) in zip(axes, panels):
-        ax.plot(iterations, [np.nan if row[key] is None else row[key] for row in metrics])
-        ax.set_xlabel("Iteration")
+    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
+    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
+        for run_label, metrics in runs.items():
+            ax.plot([row[x_key] for row in metrics],
+                    [np.nan if row[key] is None else row[key] for row in metrics], label=run_label or None)
+        ax.set_xlabel(x_label)
         ax.set_title(label)
         ax.grid(alpha=0.3)
+    if any(runs):
+        axes[0].legend(fontsize="small")
     fig.tight_layout()
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
     plt.close(fig)
@@ -936,10 +946,119 @@ def load_checkpoint(path: Path) -> dict:
 
 
 # ================================================================================================
+# Comparing runs: QD score, coverage and best objective against evaluations, and a final table
+# ================================================================================================
+
+COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
+
+
+def read_run_json(run_dir: Path, name: str) -> Any:
+    """A JSON file of a run folder, or a UsageError naming what is missing or wrong."""
+    path = run_dir / name
+    if not run_dir.is_dir():
+        raise UsageError(f"{run_dir}: no such run folder")
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (is {run_dir} a run folder of lunar_lander.py?)")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise UsageError(f"{path}: not readable JSON ({error})") from None
+
+
+def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
+    """A run's config and its metrics rows (at least one, each with every compared field)."""
+    config, metrics = read_run_json(run_dir, "config.json"), read_run_json(run_dir, "metrics.json")
+    if not isinstance(config, dict):
+        raise UsageError(f"{run_dir / 'config.json'}: not a run config")
+    if not (isinstance(metrics, list) and metrics
+            and all(isinstance(row, dict) and set(COMPARED) <= row.keys() for row in metrics)):
+        raise UsageError(f"{run_dir / 'metrics.json'}: no metrics to compare")
+    return config, metrics
+
+
+def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
+    """'algorithm seed N' for each run, or the folders as given when that would be ambiguous."""
+    labels = [f"{config.get('algorithm', '?')} seed {config.get('seed', '?')}" for config in configs]
+    return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
+
+
+def comparison_outputs(out: str | None, overwrite: bool) -> tuple[Path, Path]:
+    """The PNG and the CSV next to it: by default new files under outputs/; never an existing
+    file unless --overwrite."""
+    if out is None:
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        candidates = [Path("outputs") / f"compare_{stamp}{suffix}.png" for suffix in
+                      ["", *(f"_{i}" for i in range(2, 1000))]]
+        png = next(p for p in candidates if not p.exists() and not p.with_suffix(".csv").exists())
+    else:
+        png = Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png")
+    existing = [str(p) for p in (png, png.with_suffix(".csv")) if p.exists()]
+    if existing and not overwrite:
+        raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
+                         f"or pass --overwrite")
+    return png, png.with_suffix(".csv")
+
+
+def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict],
+                     runs: list[list[dict]]):
+    """One row per run: its final metrics, with the algorithm and seed that produced them."""
+    import pandas as pd
+
+    return pd.DataFrame([
+        {"run": label, "folder": str(run_dir), "algorithm": config.get("algorithm"),
+         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
+         **{key: metrics[-1][key] for key in COMPARED}}
+        for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
+    ])
+
+
+def format_table(table) -> str:
+    """The table as aligned text, with as many digits as a reader compares."""
+    formats = {"coverage": "{:.4f}".format, "qd_score": "{:,.0f}".format,
+               "best_objective": "{:.1f}".format, "mean_objective": "{:.1f}".format}
+    shown = table.drop(columns=["folder"], errors="ignore")
+    return shown.to_string(index=False, formatters={k: v for k, v in formats.items() if k in shown})
+
+
+def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
+    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
+    table of their final values (printed, and written as CSV next to the PNG).
+
+    Runs of the same batch, iterations and env seed give an equal-budget comparison.
+
+    Args:
+        run_dirs: Run folders written by this script (each needs config.json and metrics.json).
+        out: The PNG to write (the CSV gets the same name with .csv); default: a new
+            outputs/compare_<timestamp>.png.
+        overwrite: Replace the PNG and CSV if they already exist.
+    """
+    if not run_dirs:
+        raise UsageError("compare needs at least one run folder: python lunar_lander.py compare RUN_A RUN_B ...")
+    overwrite = boolean("overwrite", overwrite)
+    paths = [Path(str(run_dir)) for run_dir in run_dirs]
+    configs, runs = zip(*(load_run_metrics(path) for path in paths))
+    png, csv = comparison_outputs(None if out is None else str(out), overwrite)
+    labels = run_labels(paths, list(configs))
+    table = comparison_table(labels, paths, list(configs), list(runs))
+    try:
+        save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
+        atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
+    except OSError as error:
+        raise UsageError(f"cannot write {png} and {csv}: {error.strerror or error}") from None
+    print(format_table(table))
+    if table["evaluations"].nunique() > 1:
+        print("note: the runs end at different numbers of evaluations; compare at an equal budget")
+    if table["algorithm"].duplicated().any():
+        means = table.groupby("algorithm", sort=False)[list(COMPARED)].mean().reset_index()
+        print("\nmean over the runs of each algorithm:\n" + format_table(means))
+    print(f"wrote {png} and {csv}")
+
+
+# ================================================================================================
 # Command-line entry point
 # ================================================================================================
 
-COMMANDS: dict[str, Callable] = {"search": search, "resume": resume}
+COMMANDS: dict[str, Callable] = {"search": search, "resume": resume, "compare": compare}
 
 
 def reject_unknown_flags(command: Callable, args: list[str]) -> None:
