@@ -7,6 +7,8 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
 
     python lunar_lander.py --iterations 300 --workers 2      # search; writes outputs/<run>/
     python lunar_lander.py resume outputs/RUN                 # continue a run from its checkpoint
+    python lunar_lander.py --algorithm cma_mae                # or map_elites; default cma_me
+    python lunar_lander.py compare outputs/RUN_A outputs/RUN_B  # plot and tabulate runs side by side
     python lunar_lander.py --help                             # every flag
 """
 
@@ -811,7 +813,8 @@ def search(
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:
     checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
-    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help).
+    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help),
+    compare RUN_DIR... (see: lunar_lander.py compare --help).
 
     Args:
         iterations: Number of ask-evaluate-tell iterations.
@@ -950,6 +953,18 @@ def load_checkpoint(path: Path) -> dict:
 # ================================================================================================
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
+SOLVED = 200  # Gymnasium counts an episode reward of 200 or more as solving Lunar Lander
+
+
+def solved_cells(run_dir: Path) -> int | None:
+    """Cells of the final archive holding a landing that solves the task (None without archive.csv):
+    QD score and coverage count crashes too; this counts only the good landings."""
+    import pandas as pd
+
+    try:
+        return int((pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"] >= SOLVED).sum())
+    except (OSError, ValueError):
+        return None
 
 
 def read_run_json(run_dir: Path, name: str) -> Any:
@@ -1004,18 +1019,22 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict
     """One row per run: its final metrics, with the algorithm and seed that produced them."""
     import pandas as pd
 
-    return pd.DataFrame([
+    table = pd.DataFrame([
         {"run": label, "folder": str(run_dir), "algorithm": config.get("algorithm"),
          "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
-         **{key: metrics[-1][key] for key in COMPARED}}
+         **{key: metrics[-1][key] for key in COMPARED}, f"cells_{SOLVED}+": solved_cells(run_dir)}
         for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
     ])
+    table[f"cells_{SOLVED}+"] = pd.to_numeric(table[f"cells_{SOLVED}+"])  # None (no archive.csv): NaN
+    return table
 
 
 def format_table(table) -> str:
     """The table as aligned text, with as many digits as a reader compares."""
-    formats = {"coverage": "{:.4f}".format, "qd_score": "{:,.0f}".format,
-               "best_objective": "{:.1f}".format, "mean_objective": "{:.1f}".format}
+    whole, decimals = "{:.0f}".format, "{:.1f}".format
+    formats = {"evaluations": whole, "num_elites": whole, "coverage": "{:.4f}".format,
+               "qd_score": "{:,.0f}".format, "best_objective": decimals, "mean_objective": decimals,
+               f"cells_{SOLVED}+": whole}
     shown = table.drop(columns=["folder"], errors="ignore")
     return shown.to_string(index=False, formatters={k: v for k, v in formats.items() if k in shown})
 
@@ -1049,7 +1068,8 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> 
     if table["evaluations"].nunique() > 1:
         print("note: the runs end at different numbers of evaluations; compare at an equal budget")
     if table["algorithm"].duplicated().any():
-        means = table.groupby("algorithm", sort=False)[list(COMPARED)].mean().reset_index()
+        numbers = [*COMPARED, f"cells_{SOLVED}+"]
+        means = table.groupby("algorithm", sort=False)[numbers].mean().reset_index()
         print("\nmean over the runs of each algorithm:\n" + format_table(means))
     print(f"wrote {png} and {csv}")
 

@@ -146,6 +146,8 @@ def test_compare_writes_png_and_table(run_cli, tmp_path, tiny_runs):
         assert float(row["qd_score"]) == pytest.approx(final["qd_score"])
         assert float(row["coverage"]) == pytest.approx(final["coverage"])
         assert float(row["best_objective"]) == pytest.approx(final["best_objective"])
+        objectives = load_pickle(run_dir / "archive.pkl").data("objective")
+        assert int(row["cells_200+"]) == int((objectives >= 200).sum())
     assert "cma_me seed 5" in result.stdout and "cma_mae seed 5" in result.stdout
     assert f"{final['qd_score']:,.0f}" in result.stdout
 
