@@ -612,10 +612,10 @@ def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, pa
         ax.set_xlabel(x_label)
         ax.set_title(label)
         ax.grid(alpha=0.3)
-    if any(runs):
-        axes[0].legend(fontsize="small")
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    if any(runs):  # beside the panels, where it hides no curve
+        axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
     plt.close(fig)
 
 
@@ -991,9 +991,21 @@ def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
     return config, metrics
 
 
+SETTING_FLAGS = ("env_seed", "n_emitters", "batch_size", "sigma0", "learning_rate")
+
+
+def run_setting(config: dict) -> str:
+    """The algorithm, and the flags shaping it that differ from their defaults: runs of one
+    setting with different seeds are repeats of one experiment."""
+    defaults = search_defaults()
+    changed = [f"{flag}={config[flag]}" for flag in SETTING_FLAGS
+               if flag in config and config[flag] != defaults[flag]]
+    return " ".join([str(config.get("algorithm", "?")), *changed])
+
+
 def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
-    """'algorithm seed N' for each run, or the folders as given when that would be ambiguous."""
-    labels = [f"{config.get('algorithm', '?')} seed {config.get('seed', '?')}" for config in configs]
+    """'setting seed N' for each run, or the folders as given when that would be ambiguous."""
+    labels = [f"{run_setting(config)} seed {config.get('seed', '?')}" for config in configs]
     return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
 
 
@@ -1020,8 +1032,7 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict
     import pandas as pd
 
     table = pd.DataFrame([
-        {"run": label, "folder": str(run_dir), "algorithm": config.get("algorithm"),
-         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
+        {"run": label, "folder": str(run_dir), "setting": run_setting(config), "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
          **{key: metrics[-1][key] for key in COMPARED}, f"cells_{SOLVED}+": solved_cells(run_dir)}
         for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
     ])
@@ -1064,13 +1075,14 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> 
         atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
     except OSError as error:
         raise UsageError(f"cannot write {png} and {csv}: {error.strerror or error}") from None
-    print(format_table(table))
+    print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
     if table["evaluations"].nunique() > 1:
         print("note: the runs end at different numbers of evaluations; compare at an equal budget")
-    if table["algorithm"].duplicated().any():
+    if table["setting"].duplicated().any():
         numbers = [*COMPARED, f"cells_{SOLVED}+"]
-        means = table.groupby("algorithm", sort=False)[numbers].mean().reset_index()
-        print("\nmean over the runs of each algorithm:\n" + format_table(means))
+        means = table.groupby("setting", sort=False)[numbers].mean().reset_index()
+        print("\nmean over the runs of each setting (the seeds of one algorithm and flags):\n"
+              + format_table(means))
     print(f"wrote {png} and {csv}")
 
 

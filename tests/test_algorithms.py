@@ -139,7 +139,8 @@ def test_compare_writes_png_and_table(run_cli, tmp_path, tiny_runs):
     assert len(pngs) == 1 and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with open(pngs[0].with_suffix(".csv")) as file:
         rows = list(csv.DictReader(file))
-    assert [row["run"] for row in rows] == ["cma_me seed 5", "cma_mae seed 5"]
+    labels = ["cma_me n_emitters=2 batch_size=6 seed 5", "cma_mae n_emitters=2 batch_size=6 seed 5"]
+    assert [row["run"] for row in rows] == labels
     for row, run_dir in zip(rows, runs):
         final = run_metrics(run_dir)[-1]
         assert int(row["evaluations"]) == final["evaluations"] == 24
@@ -148,7 +149,7 @@ def test_compare_writes_png_and_table(run_cli, tmp_path, tiny_runs):
         assert float(row["best_objective"]) == pytest.approx(final["best_objective"])
         objectives = load_pickle(run_dir / "archive.pkl").data("objective")
         assert int(row["cells_200+"]) == int((objectives >= 200).sum())
-    assert "cma_me seed 5" in result.stdout and "cma_mae seed 5" in result.stdout
+    assert labels[0] in result.stdout and labels[1] in result.stdout
     assert f"{final['qd_score']:,.0f}" in result.stdout
 
     before = folder_state(tmp_path / "outputs")
@@ -167,3 +168,11 @@ def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_runs):
         assert_one_line_error(run_cli("compare", tiny_runs["cma_me"], tmp_path / bad), bad, words)
     assert_one_line_error(run_cli("compare"), "at least one run folder")
     assert not (tmp_path / "outputs").exists()
+
+
+def test_runs_are_labelled_by_the_flags_that_shape_them():
+    defaults = ll.search_defaults()
+    assert ll.run_setting({**defaults, "algorithm": "cma_mae"}) == "cma_mae"
+    assert ll.run_setting({**defaults, "algorithm": "cma_mae", "learning_rate": 0.1, "seed": 3,
+                           "iterations": 9}) == "cma_mae learning_rate=0.1"
+    assert ll.run_setting({"algorithm": "cma_me", "seed": 1}) == "cma_me"  # older config.json
