@@ -592,7 +592,8 @@ def save_heatmap(archive, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"), ("best_objective", "Best objective"))
+PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
+                   ("best_objective", "Best objective"))
 
 
 def save_progress_plot(metrics: list[dict], path: Path) -> None:
@@ -607,8 +608,8 @@ def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, pa
     fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
     for ax, (key, label) in zip(axes, PROGRESS_PANELS):
         for run_label, metrics in runs.items():
-            ax.plot([row[x_key] for row in metrics],
-                    [np.nan if row[key] is None else row[key] for row in metrics], label=run_label or None)
+            values = [np.nan if row[key] is None else row[key] for row in metrics]
+            ax.plot([row[x_key] for row in metrics], values, label=run_label or None)
         ax.set_xlabel(x_label)
         ax.set_title(label)
         ax.grid(alpha=0.3)
@@ -962,7 +963,8 @@ def solved_cells(run_dir: Path) -> int | None:
     import pandas as pd
 
     try:
-        return int((pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"] >= SOLVED).sum())
+        objectives = pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"]
+        return int((objectives >= SOLVED).sum())
     except (OSError, ValueError):
         return None
 
@@ -1032,7 +1034,8 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict
     import pandas as pd
 
     table = pd.DataFrame([
-        {"run": label, "folder": str(run_dir), "setting": run_setting(config), "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
+        {"run": label, "folder": str(run_dir), "setting": run_setting(config),
+         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
          **{key: metrics[-1][key] for key in COMPARED}, f"cells_{SOLVED}+": solved_cells(run_dir)}
         for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
     ])
@@ -1063,7 +1066,8 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> 
         overwrite: Replace the PNG and CSV if they already exist.
     """
     if not run_dirs:
-        raise UsageError("compare needs at least one run folder: python lunar_lander.py compare RUN_A RUN_B ...")
+        raise UsageError("compare needs at least one run folder: "
+                         "python lunar_lander.py compare RUN_A RUN_B ...")
     overwrite = boolean("overwrite", overwrite)
     paths = [Path(str(run_dir)) for run_dir in run_dirs]
     configs, runs = zip(*(load_run_metrics(path) for path in paths))

@@ -78,7 +78,8 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 
     assert saved.learning_rate == 1.0  # the result archive, not the soft archive (0.01)
     assert archive_table(saved).equals(archive_table(scheduler.result_archive))
-    assert run_metrics(run_dir)[-1]["qd_score"] == pytest.approx(float(scheduler.result_archive.stats.qd_score))
+    result_qd_score = float(scheduler.result_archive.stats.qd_score)
+    assert run_metrics(run_dir)[-1]["qd_score"] == pytest.approx(result_qd_score)
     # The soft archive keeps later, worse solutions that passed a threshold: the best are elsewhere.
     assert scheduler.archive.learning_rate == 0.01
     assert saved.stats.obj_max >= scheduler.archive.stats.obj_max
