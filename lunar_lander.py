@@ -7,6 +7,8 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
 
     python lunar_lander.py --iterations 300 --workers 2      # search; writes outputs/<run>/
     python lunar_lander.py resume outputs/RUN                 # continue a run from its checkpoint
+    python lunar_lander.py --algorithm cma_mae                # or map_elites; default cma_me
+    python lunar_lander.py compare outputs/RUN_A outputs/RUN_B  # plot and tabulate runs side by side
     python lunar_lander.py --help                             # every flag
 """
 
@@ -267,13 +269,39 @@ MEASURE_RANGES = ((-1.0, 1.0), (-3.0, 0.0))  # impact x-position, impact y-veloc
 MEASURE_LABELS = ("Impact x-position", "Impact y-velocity")
 QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
 
-# One row per algorithm, in the spirit of pyribs' examples/sphere.py: what the archive and the
-# emitters are built with. CMA-ME is the tutorial's setup.
+# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
+# whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
+# a small function of the run's config. All rows share the grid, the seeds, x0 and the batch size,
+# so every algorithm asks n_emitters * batch_size solutions per iteration.
+# - cma_me: the tutorial's CMA-ME (EvolutionStrategyEmitter, two-stage improvement ranker).
+# - cma_mae: pyribs' CMA-MAE tutorial and sphere.py's "cma_mae" row: a soft archive with
+#   learning_rate (--learning_rate, 0.01 there) and threshold_min (0 there for objectives in
+#   [0, 100]; here the QD offset -600, below almost every episode's reward), a plain result archive
+#   of the same grid that keeps the best solutions (metrics, heatmaps and archive.pkl come from
+#   it), and emitters with the "imp" ranker, "mu" selection and "basic" restarts.
+# - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
+#   fixed sigma (--sigma0). The policy argmax(W @ obs) ignores W's scale and the search starts
+#   from zeros, so only sigma relative to the elites' weights matters, as for CMA-ES's sigma0.
 ALGORITHMS: dict[str, dict[str, Any]] = {
     "cma_me": {
-        "archive": {},
+        "archive": lambda config: {},
+        "result_archive": False,
         "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": {"ranker": "2imp"},
+        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "2imp"},
+    },
+    "cma_mae": {
+        "archive": lambda config: {"learning_rate": config["learning_rate"],
+                                   "threshold_min": QD_SCORE_OFFSET},
+        "result_archive": True,
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "imp",
+                                          "selection_rule": "mu", "restart_rule": "basic"},
+    },
+    "map_elites": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "GaussianEmitter",
+        "emitter_kwargs": lambda config: {"sigma": config["sigma0"]},
     },
 }
 
@@ -293,28 +321,24 @@ def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
     from ribs.schedulers import Scheduler
 
     spec = ALGORITHMS[config["algorithm"]]
-    archive_seed, *emitter_seeds = derive_seeds(config["seed"], config["n_emitters"] + 1)
-    archive = GridArchive(
-        solution_dim=SOLUTION_DIM,
-        dims=GRID_DIMS,
-        ranges=MEASURE_RANGES,
-        qd_score_offset=QD_SCORE_OFFSET,
-        seed=archive_seed,
-        **spec["archive"],
-    )
+    # A result archive's seed comes last, so the other seeds are those of a run without one.
+    archive_seed, *emitter_seeds, result_seed = derive_seeds(config["seed"], config["n_emitters"] + 2)
+    grid = dict(solution_dim=SOLUTION_DIM, dims=GRID_DIMS, ranges=MEASURE_RANGES,
+                qd_score_offset=QD_SCORE_OFFSET)
+    archive = GridArchive(**grid, seed=archive_seed, **spec["archive"](config))
+    result_archive = GridArchive(**grid, seed=result_seed) if spec["result_archive"] else None
     emitter_class = getattr(ribs_emitters, spec["emitter"])
     emitters = [
         emitter_class(
             archive,
             x0=np.zeros(SOLUTION_DIM) if x0 is None else x0,
-            sigma0=config["sigma0"],
             batch_size=config["batch_size"],
             seed=emitter_seed,
-            **spec["emitter_kwargs"],
+            **spec["emitter_kwargs"](config),
         )
         for emitter_seed in emitter_seeds
     ]
-    return Scheduler(archive, emitters)
+    return Scheduler(archive, emitters, result_archive=result_archive)
 
 
 # ================================================================================================
@@ -602,20 +626,34 @@ def save_heatmap(archive, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
+                   ("best_objective", "Best objective"))
+
+
 def save_progress_plot(metrics: list[dict], path: Path) -> None:
     """QD score, coverage and best objective over iterations, side by side."""
+    save_metric_panels({"": metrics}, "iteration", "Iteration", path)
+
+
+def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, path: Path) -> None:
+    """One panel per metric of PROGRESS_PANELS, one line per run (labelled if it has a label)."""
     import matplotlib.pyplot as plt
 
-    iterations = [row["iteration"] for row in metrics]
-    panels = [("qd_score", "QD score"), ("coverage", "Coverage"), ("best_objective", "Best objective")]
-    fig, axes = plt.subplots(1, len(panels), figsize=(15, 4))
-    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)  # fixed: cheap
-    for ax, (key, label) in zip(axes, panels):
-        ax.plot(iterations, [np.nan if row[key] is None else row[key] for row in metrics])
-        ax.set_xlabel("Iteration")
+    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
+    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
+    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
+        for run_label, metrics in runs.items():
+            values = [np.nan if row[key] is None else row[key] for row in metrics]
+            ax.plot([row[x_key] for row in metrics], values, label=run_label or None)
+        ax.set_xlabel(x_label)
         ax.set_title(label)
         ax.grid(alpha=0.3)
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    labelled = any(runs)
+    if labelled:  # beside the panels, where it hides no curve
+        axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
+                                             bbox_inches="tight" if labelled else None))
     plt.close(fig)
 
 
@@ -665,6 +703,12 @@ def positive_float(name: str, value: Any) -> float:
     return float(value)
 
 
+def fraction(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise UsageError(f"--{name} must be a number in (0, 1], got {value!r}")
+    return float(value)
+
+
 def boolean(name: str, value: Any) -> bool:
     """Fire passes --flag=false as the string 'false' (and --flag alone as True)."""
     words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
@@ -693,6 +737,7 @@ FLAG_CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "n_emitters": positive_int,
     "sigma0": positive_float,
     "batch_size": positive_int,
+    "learning_rate": fraction,
     "log_every": positive_int,
     "fast_env": boolean,
 }
@@ -810,6 +855,7 @@ def search(
     n_emitters: int = 5,
     sigma0: float = 1.0,
     batch_size: int = 30,
+    learning_rate: float = 0.01,
     log_every: int = 25,
     outdir: str | None = None,
     scheduler_address: str | None = None,
@@ -821,7 +867,8 @@ def search(
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:
     checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
-    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help).
+    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help),
+    compare RUN_DIR... (see: lunar_lander.py compare --help).
 
     Args:
         iterations: Number of ask-evaluate-tell iterations.
@@ -829,10 +876,15 @@ def search(
         seed: Seed of the archive and emitters; drawn and recorded in config.json if omitted.
             The same seed gives the same archive whatever the number of workers.
         env_seed: Seed of the Lunar Lander terrain every policy is flown on.
-        algorithm: Which QD algorithm (cma_me: the tutorial's CMA-ME).
+        algorithm: Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae (CMA-MAE) or
+            map_elites (MAP-Elites with Gaussian mutation); each asks n_emitters * batch_size
+            solutions per iteration.
         n_emitters: Number of emitters.
-        sigma0: Initial step size of each emitter (CMA-ES sigma).
+        sigma0: Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed sigma
+            of its Gaussian mutation.
         batch_size: Solutions each emitter proposes per iteration.
+        learning_rate: cma_mae only: how fast a cell's threshold follows its improvements (0.01:
+            pyribs' CMA-MAE setting; 1 makes the archive CMA-ME's).
         log_every: Log a line and refresh the run folder every this many iterations.
         outdir: Run folder; default outputs/<timestamp>_seed<seed>. Must be new or empty.
         scheduler_address: Address of a running Dask scheduler (tcp://HOST:PORT) to evaluate on
@@ -886,6 +938,19 @@ def resume(run_dir: str, iterations: int | None = None, workers: int | None = No
             lambda client, log: {**checkpoint, "config": config})
 
 
+def read_run_json(run_dir: Path, name: str) -> Any:
+    """A JSON file of a run folder, or a UsageError naming what is missing or wrong."""
+    path = run_dir / name
+    if not run_dir.is_dir():
+        raise UsageError(f"{run_dir}: no such run folder")
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (is {run_dir} a run folder of lunar_lander.py?)")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise UsageError(f"{path}: not readable JSON ({error})") from None
+
+
 def read_pickle(path: Path, what: str) -> Any:
     """Unpickle a file of ours, or raise a UsageError that names the file and what is wrong.
 
@@ -922,6 +987,12 @@ def load_archive(path: Path):
     return archive
 
 
+def search_defaults() -> dict[str, Any]:
+    import inspect
+
+    return {name: parameter.default for name, parameter in inspect.signature(search).parameters.items()}
+
+
 def load_checkpoint(path: Path) -> dict:
     """A checkpoint written by this script and consistent with this script's problem."""
     if not path.is_file():
@@ -932,7 +1003,9 @@ def load_checkpoint(path: Path) -> dict:
     from ribs.schedulers import Scheduler
 
     try:
-        config, metrics, iteration = checkpoint["config"], checkpoint["metrics"], checkpoint["iteration"]
+        # A checkpoint from before a flag existed ran with that flag's default.
+        config = checkpoint["config"] = {**search_defaults(), **checkpoint["config"]}
+        metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
         check_flags({name: config[name] for name in FLAG_CHECKS})
         if not isinstance(checkpoint["scheduler"], Scheduler):
             raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
@@ -959,12 +1032,11 @@ def load_run(run_dir: Any) -> tuple[Any, dict]:
     if not path.is_dir():
         raise UsageError(f"{path}: no such run folder")
     archive = load_archive(path / "archive.pkl")
+    config = read_run_json(path, "config.json")
     try:
-        config = json.loads((path / "config.json").read_text())
         config["env_seed"] = non_negative_int("env_seed", config["env_seed"])
-    except (OSError, ValueError, KeyError, TypeError, UsageError) as error:
-        raise UsageError(f"{path / 'config.json'}: no readable run config with an env_seed "
-                         f"({type(error).__name__}: {error})") from None
+    except (KeyError, TypeError, UsageError) as error:
+        raise UsageError(f"{path / 'config.json'}: no run config with an env_seed ({error})") from None
     return archive, config
 
 
@@ -1370,11 +1442,141 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
 
 
 # ================================================================================================
+# Comparing runs: QD score, coverage and best objective against evaluations, and a final table
+# ================================================================================================
+
+COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
+SOLVED_CELLS = f"cells_{LANDED:.0f}+"  # the table's column of cells holding a good landing
+
+
+def solved_cells(run_dir: Path) -> int | None:
+    """Cells of the final archive holding a landing that solves the task (None without archive.csv):
+    QD score and coverage count crashes too; this counts only the good landings."""
+    import pandas as pd
+
+    try:
+        objectives = pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"]
+        return int((objectives >= LANDED).sum())
+    except (OSError, ValueError):
+        return None
+
+
+def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
+    """A run's config and its metrics rows (at least one, each with every compared field)."""
+    config, metrics = read_run_json(run_dir, "config.json"), read_run_json(run_dir, "metrics.json")
+    if not isinstance(config, dict):
+        raise UsageError(f"{run_dir / 'config.json'}: not a run config")
+    if not (isinstance(metrics, list) and metrics
+            and all(isinstance(row, dict) and set(COMPARED) <= row.keys() for row in metrics)):
+        raise UsageError(f"{run_dir / 'metrics.json'}: no metrics to compare")
+    return config, metrics
+
+
+SETTING_FLAGS = ("env_seed", "n_emitters", "batch_size", "sigma0", "learning_rate")
+
+
+def run_setting(config: dict) -> str:
+    """The algorithm, and the flags shaping it that differ from their defaults: runs of one
+    setting with different seeds are repeats of one experiment."""
+    defaults = search_defaults()
+    changed = [f"{flag}={config[flag]}" for flag in SETTING_FLAGS
+               if flag in config and config[flag] != defaults[flag]]
+    return " ".join([str(config.get("algorithm", "?")), *changed])
+
+
+def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
+    """'setting seed N' for each run, or the folders as given when that would be ambiguous."""
+    labels = [f"{run_setting(config)} seed {config.get('seed', '?')}" for config in configs]
+    return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
+
+
+def comparison_outputs(out: str | None, overwrite: bool) -> tuple[Path, Path]:
+    """The PNG and the CSV next to it: by default new files under outputs/; never an existing
+    file unless --overwrite."""
+    if out is None:
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        candidates = [Path("outputs") / f"compare_{stamp}{suffix}.png" for suffix in
+                      ["", *(f"_{i}" for i in range(2, 1000))]]
+        png = next(p for p in candidates if not p.exists() and not p.with_suffix(".csv").exists())
+    else:
+        png = Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png")
+    existing = [str(p) for p in (png, png.with_suffix(".csv")) if p.exists()]
+    if existing and not overwrite:
+        raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
+                         f"or pass --overwrite")
+    return png, png.with_suffix(".csv")
+
+
+def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict],
+                     runs: list[list[dict]]):
+    """One row per run: its final metrics, with the algorithm and seed that produced them."""
+    import pandas as pd
+
+    table = pd.DataFrame([
+        {"run": label, "folder": str(run_dir), "setting": run_setting(config),
+         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
+         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir)}
+        for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
+    ])
+    table[SOLVED_CELLS] = pd.to_numeric(table[SOLVED_CELLS])  # None (no archive.csv): NaN
+    return table
+
+
+def format_table(table) -> str:
+    """The table as aligned text, with as many digits as a reader compares."""
+    whole, decimals = "{:.0f}".format, "{:.1f}".format
+    formats = {"evaluations": whole, "num_elites": whole, "coverage": "{:.4f}".format,
+               "qd_score": "{:,.0f}".format, "best_objective": decimals, "mean_objective": decimals,
+               SOLVED_CELLS: whole}
+    shown = table.drop(columns=["folder"], errors="ignore")
+    return shown.to_string(index=False, formatters={k: v for k, v in formats.items() if k in shown})
+
+
+def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
+    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
+    table of their final values (printed, and written as CSV next to the PNG).
+
+    Runs of the same batch, iterations and env seed give an equal-budget comparison.
+
+    Args:
+        run_dirs: Run folders written by this script (each needs config.json and metrics.json).
+        out: The PNG to write (the CSV gets the same name with .csv); default: a new
+            outputs/compare_<timestamp>.png.
+        overwrite: Replace the PNG and CSV if they already exist.
+    """
+    if not run_dirs:
+        raise UsageError("compare needs at least one run folder: "
+                         "python lunar_lander.py compare RUN_A RUN_B ...")
+    overwrite = boolean("overwrite", overwrite)
+    paths = [Path(str(run_dir)) for run_dir in run_dirs]
+    configs, runs = zip(*(load_run_metrics(path) for path in paths))
+    png, csv = comparison_outputs(None if out is None else str(out), overwrite)
+    labels = run_labels(paths, list(configs))
+    table = comparison_table(labels, paths, list(configs), list(runs))
+    try:
+        save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
+        atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
+    except OSError as error:
+        raise UsageError(f"cannot write {png} and {csv}: {error.strerror or error}") from None
+    print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
+    if table["evaluations"].nunique() > 1:
+        print("note: the runs end at different numbers of evaluations; compare at an equal budget")
+    if table["setting"].duplicated().any():
+        numbers = [*COMPARED, SOLVED_CELLS]
+        means = table.groupby("setting", sort=False)[numbers].mean().reset_index()
+        print("\nmean over the runs of each setting (the seeds of one algorithm and flags):\n"
+              + format_table(means))
+    print(f"wrote {png} and {csv}")
+
+
+# ================================================================================================
 # Command-line entry point
 # ================================================================================================
 
-COMMANDS: dict[str, Callable] = {"search": search, "resume": resume, "video": video, "elites": elites,
-                                  "trajectories": trajectories, "evaluate": evaluate_robustness}
+COMMANDS: dict[str, Callable] = {
+    "search": search, "resume": resume, "video": video, "elites": elites,
+    "trajectories": trajectories, "evaluate": evaluate_robustness, "compare": compare,
+}
 
 
 def reject_unknown_flags(command: Callable, args: list[str]) -> None:

@@ -1,0 +1,179 @@
+"""CMA-MAE and MAP-Elites next to CMA-ME: their setups, complete run folders, resume and warm
+starts for each, and the `compare` command."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from ribs.archives import GridArchive
+from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter
+from ribs.emitters.rankers import ImprovementRanker, TwoStageImprovementRanker
+
+import lunar_lander as ll
+from test_cli import assert_one_line_error
+from util import archive_table, folder_state, load_pickle, run_archive, run_metrics
+
+ALGORITHMS = ["cma_me", "cma_mae", "map_elites"]
+RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
+             "heatmap.png", "progress.png", "run.log"}
+
+
+def tiny_flags(dask_cluster, algorithm, **overrides):
+    return dict(dict(iterations=2, workers=2, seed=5, env_seed=52, algorithm=algorithm,
+                     n_emitters=2, sigma0=1.0, batch_size=6, log_every=1,
+                     scheduler_address=dask_cluster.scheduler_address), **overrides)
+
+
+@pytest.fixture(scope="module")
+def tiny_runs(tmp_path_factory, dask_cluster):
+    """A 2-iteration run folder of each algorithm."""
+    root = tmp_path_factory.mktemp("algorithms")
+    for algorithm in ALGORITHMS:
+        ll.search(**tiny_flags(dask_cluster, algorithm), outdir=str(root / algorithm))
+    return {algorithm: root / algorithm for algorithm in ALGORITHMS}
+
+
+def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
+    config = dict(seed=3, n_emitters=5, sigma0=1.0, batch_size=30, learning_rate=0.01)
+    schedulers = {name: ll.build_scheduler({**config, "algorithm": name}) for name in ALGORITHMS}
+
+    mae = schedulers["cma_mae"]
+    assert mae.archive.learning_rate == 0.01 and mae.archive.threshold_min == -600
+    assert isinstance(mae.result_archive, GridArchive) and mae.result_archive is not mae.archive
+    assert mae.result_archive.learning_rate == 1.0
+    assert tuple(mae.result_archive.dims) == (50, 50) and mae.result_archive.qd_score_offset == -600
+    for emitter in mae.emitters:
+        assert isinstance(emitter, EvolutionStrategyEmitter) and emitter.archive is mae.archive
+        assert type(emitter._ranker) is ImprovementRanker
+        assert emitter._restart_rule == "basic" and emitter._selection_rule == "mu"
+    me = schedulers["cma_me"]
+    assert me.result_archive is me.archive
+    assert all(type(e._ranker) is TwoStageImprovementRanker for e in me.emitters)
+    elites = schedulers["map_elites"]
+    assert elites.result_archive is elites.archive
+    assert all(isinstance(e, GaussianEmitter) and np.all(e.sigma == 1.0) for e in elites.emitters)
+    for scheduler in schedulers.values():
+        assert scheduler.ask().shape == (5 * 30, 32)
+
+
+@pytest.mark.parametrize("algorithm", ALGORITHMS)
+def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
+    run_dir = tiny_runs[algorithm]
+    assert RUN_FILES <= {p.name for p in run_dir.iterdir()}
+    assert len(list((run_dir / "heatmaps").glob("heatmap_*.png"))) == 2
+    metrics = run_metrics(run_dir)
+    assert [row["iteration"] for row in metrics] == [1, 2]
+    assert [row["evaluations"] for row in metrics] == [12, 24]
+    assert json.loads((run_dir / "config.json").read_text())["algorithm"] == algorithm
+    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    assert checkpoint["config"]["algorithm"] == algorithm
+    assert 0 < metrics[-1]["num_elites"] == len(load_pickle(run_dir / "archive.pkl"))
+
+
+def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
+    run_dir = tiny_runs["cma_mae"]
+    scheduler = load_pickle(run_dir / "checkpoint.pkl")["scheduler"]
+    saved = load_pickle(run_dir / "archive.pkl")
+
+    assert saved.learning_rate == 1.0  # the result archive, not the soft archive (0.01)
+    assert archive_table(saved).equals(archive_table(scheduler.result_archive))
+    result_qd_score = float(scheduler.result_archive.stats.qd_score)
+    assert run_metrics(run_dir)[-1]["qd_score"] == pytest.approx(result_qd_score)
+    # The soft archive keeps later, worse solutions that passed a threshold: the best are elsewhere.
+    assert scheduler.archive.learning_rate == 0.01
+    assert saved.stats.obj_max >= scheduler.archive.stats.obj_max
+
+
+@pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
+def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_runs, algorithm):
+    run_dir = tmp_path / "run"
+    ll.search(**tiny_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
+    ll.resume(str(run_dir), iterations=2, scheduler_address=dask_cluster.scheduler_address)
+
+    reference = tiny_runs[algorithm]
+    assert run_archive(run_dir).equals(run_archive(reference))
+    assert run_metrics(run_dir) == run_metrics(reference)
+    schedulers = [load_pickle(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
+    assert np.array_equal(schedulers[0].ask(), schedulers[1].ask())
+    assert archive_table(schedulers[0].archive).equals(archive_table(schedulers[1].archive))
+
+
+@pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
+def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algorithm):
+    source = tiny_runs["cma_me"] / "archive.pkl"
+    run_dir = tmp_path / "warm"
+    ll.search(**tiny_flags(dask_cluster, algorithm, iterations=1),
+              outdir=str(run_dir), from_archive=str(source))
+
+    elites = len(load_pickle(source))
+    metrics = run_metrics(run_dir)
+    assert metrics[0]["iteration"] == 0 and metrics[0]["evaluations"] == elites
+    assert metrics[0]["num_elites"] == elites  # same terrain, same grid: every elite lands again
+    scheduler = load_pickle(run_dir / "checkpoint.pkl")["scheduler"]
+    assert len(scheduler.archive) >= elites and len(scheduler.result_archive) >= elites
+
+
+def test_checkpoint_from_before_learning_rate_still_resumes(tmp_path, tiny_runs):
+    checkpoint = load_pickle(tiny_runs["cma_me"] / "checkpoint.pkl")
+    del checkpoint["config"]["learning_rate"]
+    ll.write_pickle(tmp_path / "checkpoint.pkl", checkpoint)
+
+    assert ll.load_checkpoint(tmp_path / "checkpoint.pkl")["config"]["learning_rate"] == 0.01
+
+
+def test_unknown_algorithm_and_bad_learning_rate_are_one_line_errors(run_cli, tmp_path):
+    result = run_cli("--algorithm", "cma_es", "--outdir", tmp_path / "run")
+    assert_one_line_error(result, "--algorithm", "cma_es", "cma_me, cma_mae, map_elites")
+    for value in (0, 1.5, "fast"):
+        assert_one_line_error(run_cli(f"--learning_rate={value}", "--outdir", tmp_path / "run"),
+                              "--learning_rate", "(0, 1]")
+    assert not (tmp_path / "run").exists()
+
+
+def test_compare_writes_png_and_table(run_cli, tmp_path, tiny_runs):
+    runs = [tiny_runs["cma_me"], tiny_runs["cma_mae"]]
+    result = run_cli("compare", *runs)
+
+    assert result.returncode == 0, result.stderr
+    pngs = list((tmp_path / "outputs").glob("compare_*.png"))
+    assert len(pngs) == 1 and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with open(pngs[0].with_suffix(".csv")) as file:
+        rows = list(csv.DictReader(file))
+    labels = ["cma_me n_emitters=2 batch_size=6 seed 5", "cma_mae n_emitters=2 batch_size=6 seed 5"]
+    assert [row["run"] for row in rows] == labels
+    for row, run_dir in zip(rows, runs):
+        final = run_metrics(run_dir)[-1]
+        assert int(row["evaluations"]) == final["evaluations"] == 24
+        assert float(row["qd_score"]) == pytest.approx(final["qd_score"])
+        assert float(row["coverage"]) == pytest.approx(final["coverage"])
+        assert float(row["best_objective"]) == pytest.approx(final["best_objective"])
+        objectives = load_pickle(run_dir / "archive.pkl").data("objective")
+        assert int(row["cells_200+"]) == int((objectives >= 200).sum())
+    assert labels[0] in result.stdout and labels[1] in result.stdout
+    assert f"{final['qd_score']:,.0f}" in result.stdout
+
+    before = folder_state(tmp_path / "outputs")
+    assert_one_line_error(run_cli("compare", *runs, "--out", pngs[0]), "already exist", "--overwrite")
+    assert folder_state(tmp_path / "outputs") == before
+    assert run_cli("compare", *runs, "--out", pngs[0], "--overwrite").returncode == 0
+
+
+def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_runs):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "no_metrics").mkdir()
+    (tmp_path / "no_metrics" / "config.json").write_text("{}")
+    (tmp_path / "no_metrics" / "metrics.json").write_text("[]")
+    for bad, words in [("missing", "no such run folder"), ("empty", "config.json"),
+                       ("no_metrics", "no metrics")]:
+        assert_one_line_error(run_cli("compare", tiny_runs["cma_me"], tmp_path / bad), bad, words)
+    assert_one_line_error(run_cli("compare"), "at least one run folder")
+    assert not (tmp_path / "outputs").exists()
+
+
+def test_runs_are_labelled_by_the_flags_that_shape_them():
+    defaults = ll.search_defaults()
+    assert ll.run_setting({**defaults, "algorithm": "cma_mae"}) == "cma_mae"
+    assert ll.run_setting({**defaults, "algorithm": "cma_mae", "learning_rate": 0.1, "seed": 3,
+                           "iterations": 9}) == "cma_mae learning_rate=0.1"
+    assert ll.run_setting({"algorithm": "cma_me", "seed": 1}) == "cma_me"  # older config.json
