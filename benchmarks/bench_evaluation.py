@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """How fast does a search evaluate its rollouts? One seeded search, three ways, same results.
 
-    python benchmarks/bench_evaluation.py [--iterations 20] [--workers "[1, 2]"] [--out FILE]
+    python benchmarks/bench_evaluation.py [--iterations 20] [--workers "[1, 2]"] [--repeats 3]
 
 Runs the same seeded CMA-ME search (the tutorial's 5 emitters x 30) for a fixed number of
 iterations:
@@ -13,14 +13,15 @@ iterations:
 
 It prints a table and writes JSON with seconds per iteration, rollouts per second, parallel
 efficiency (serial rollout time / (workers x search time)), the main process's CPU share of the
-search's wall time, and whether every variant produced the same archive. Cluster start-up is not
-timed (each cluster first runs one warm-up task per worker); the search loop is.
+search's wall time, and whether every variant produced the same archive: medians over --repeats
+rounds of all variants, since a shared machine's speed wanders. Cluster start-up is not timed
+(each cluster first runs one warm-up task per worker); the search loop is.
 """
 
 from __future__ import annotations
 
-import json
 import logging
+import os
 import platform
 import sys
 import time
@@ -119,57 +120,63 @@ def archive_table(archive):
     return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
 
 
-def main(iterations: int = 20, workers: tuple = (1, 2), out: str = "benchmarks/results.json") -> None:
-    steps = count_steps(iterations)
-    rollouts = iterations * CONFIG["n_emitters"] * CONFIG["batch_size"]
+def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]:
+    """Every variant once: {(name, workers): timings and archive}; workers 0 is in-process."""
     runs = {
-        "serial tutorial rollout, gym.make env": run_search(
-            serial_evaluate(tutorial_simulate), None, iterations),
-        "serial project rollout, streamlined env": run_search(
+        ("serial tutorial rollout, gym.make env", 0):
+            run_search(serial_evaluate(tutorial_simulate), None, iterations),
+        ("serial project rollout, streamlined env", 0): run_search(
             serial_evaluate(lambda s, seed, env=ll.FastLunarLander(): ll.rollout(s, seed, env)),
             None, iterations),
     }
-    serial_baseline = runs["serial tutorial rollout, gym.make env"]["evaluate_s"]
-    serial_engine = runs["serial project rollout, streamlined env"]["evaluate_s"]
-    rows = []
-    for name, serial in runs.items():
-        rows.append({"variant": name, "workers": 0, "serial_rollout_s": serial["evaluate_s"]})
     for n in workers:
-        for name, evaluate, serial_time in [
-            ("baseline: task per solution (tutorial)", tutorial_evaluate, serial_baseline),
-            ("engine: lunar_lander.evaluate", ll.evaluate, serial_engine),
-        ]:
+        for name, evaluate in [("baseline: task per solution (tutorial)", tutorial_evaluate),
+                               ("engine: lunar_lander.evaluate", ll.evaluate)]:
             cluster, client = local_client(n)
             try:
-                runs[f"{name} x{n}"] = result = run_search(evaluate, client, iterations)
+                runs[name, n] = run_search(evaluate, client, iterations)
             finally:
                 client.close()
                 cluster.close()
-            rows.append({"variant": name, "workers": n, "serial_rollout_s": serial_time,
-                         "efficiency": serial_time / (n * result["wall_s"])})
-    for row, result in zip(rows, runs.values()):
-        row.update({
-            "search_s": round(result["wall_s"], 2),
-            "s_per_iteration": round(result["wall_s"] / iterations, 3),
-            "rollouts_per_s": round(rollouts / result["wall_s"], 1),
-            "main_cpu_share": round(result["main_cpu_s"] / result["wall_s"], 3),
-        })
-        row["serial_rollout_s"] = round(row["serial_rollout_s"], 2)
-        if "efficiency" in row:
-            row["efficiency"] = round(row["efficiency"], 3)
-    tables = [archive_table(result["archive"]) for result in runs.values()]
+    return runs
+
+
+def main(iterations: int = 20, workers: tuple = (1, 2), repeats: int = 3,
+         out: str = "benchmarks/results.json") -> None:
+    """Median of `repeats` rounds of every variant: a shared machine's speed wanders by ~10%."""
+    steps = count_steps(iterations)
+    rollouts = iterations * CONFIG["n_emitters"] * CONFIG["batch_size"]
+    rounds = [run_variants(iterations, tuple(workers)) for _ in range(repeats)]
+    median = lambda key, field: float(np.median([r[key][field] for r in rounds]))
+    serial = {"baseline": median(("serial tutorial rollout, gym.make env", 0), "evaluate_s"),
+              "engine": median(("serial project rollout, streamlined env", 0), "evaluate_s")}
+    rows = []
+    for name, n in rounds[0]:
+        wall, cpu = median((name, n), "wall_s"), median((name, n), "main_cpu_s")
+        row = {"variant": name, "workers": n, "search_s": round(wall, 2),
+               "s_per_iteration": round(wall / iterations, 3),
+               "rollouts_per_s": round(rollouts / wall, 1),
+               "main_cpu_share": round(float(np.median([r[name, n]["main_cpu_s"] / r[name, n]["wall_s"]
+                                                        for r in rounds])), 3),
+               "search_s_all_rounds": [round(r[name, n]["wall_s"], 2) for r in rounds]}
+        if n:
+            serial_time = serial["baseline" if name.startswith("baseline") else "engine"]
+            row["serial_rollout_s"] = round(serial_time, 2)
+            row["efficiency"] = round(serial_time / (n * wall), 3)
+        rows.append(row)
+    tables = [archive_table(result["archive"]) for r in rounds for result in r.values()]
     identical = all(table.equals(tables[0]) for table in tables[1:])
-    engine_x2 = next((r for r in rows if r["variant"].startswith("engine") and r["workers"] == 2), None)
-    base_x2 = next((r for r in rows if r["variant"].startswith("baseline") and r["workers"] == 2), None)
+    by_key = {(r["variant"].split(":")[0], r["workers"]): r for r in rows}
+    engine_x2, base_x2 = by_key.get(("engine", 2)), by_key.get(("baseline", 2))
     summary = {
-        "iterations": iterations, "rollouts": rollouts, "steps": steps,
-        "us_per_step_tutorial_gym_make": round(serial_baseline / steps * 1e6, 2),
-        "us_per_step_streamlined": round(serial_engine / steps * 1e6, 2),
-        "per_step_ratio": round(serial_engine / serial_baseline, 3),
+        "iterations": iterations, "rollouts": rollouts, "steps": steps, "repeats": repeats,
+        "us_per_step_tutorial_gym_make": round(serial["baseline"] / steps * 1e6, 2),
+        "us_per_step_streamlined": round(serial["engine"] / steps * 1e6, 2),
+        "per_step_ratio": round(serial["engine"] / serial["baseline"], 3),
         "engine_speedup_vs_baseline_at_2_workers":
             round(base_x2["search_s"] / engine_x2["search_s"], 2) if engine_x2 and base_x2 else None,
         "identical_archives": identical,
-        "machine": {"python": platform.python_version(), "cpus": __import__("os").cpu_count()},
+        "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
     }
     print_table(rows, summary)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
@@ -178,7 +185,8 @@ def main(iterations: int = 20, workers: tuple = (1, 2), out: str = "benchmarks/r
 
 
 def print_table(rows: list[dict], summary: dict) -> None:
-    print(f"{summary['iterations']} iterations, {summary['rollouts']} rollouts, {summary['steps']} steps")
+    print(f"{summary['iterations']} iterations, {summary['rollouts']} rollouts, {summary['steps']} steps; "
+          f"medians of {summary['repeats']} rounds")
     header = ("variant", "workers", "search s", "s/iter", "rollouts/s", "efficiency", "main CPU")
     print("| " + " | ".join(header) + " |\n|" + "---|" * len(header))
     for r in rows:

@@ -114,6 +114,25 @@ def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algor
     assert len(scheduler.archive) >= elites and len(scheduler.result_archive) >= elites
 
 
+@pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
+def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorithm):
+    import shutil
+
+    run_dir = tmp_path / algorithm
+    shutil.copytree(tiny_runs[algorithm], run_dir)
+    best = load_pickle(run_dir / "archive.pkl").best_elite
+
+    ll.video(str(run_dir), best=True)
+    ll.elites(str(run_dir), top=3)
+
+    with open(run_dir / "videos" / "index.csv") as file:
+        [row] = list(csv.DictReader(file))
+    assert float(row["objective"]) == best["objective"] and row["reproduced"] == "True"
+    assert (run_dir / "videos" / row["video"]).stat().st_size > 1000
+    with open(run_dir / "elites.csv") as file:
+        assert float(next(csv.DictReader(file))["objective"]) == best["objective"]
+
+
 def test_checkpoint_from_before_learning_rate_still_resumes(tmp_path, tiny_runs):
     checkpoint = load_pickle(tiny_runs["cma_me"] / "checkpoint.pkl")
     del checkpoint["config"]["learning_rate"]
