@@ -5,11 +5,15 @@ The problem, the algorithm and the results follow the pyribs tutorial "Using CMA
 Lander Like a Space Shuttle"; this script adds what a research run needs around them: a Dask
 evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a CLI.
 
-    python lunar_lander.py --iterations 300 --workers 2      # search; writes outputs/<run>/
-    python lunar_lander.py resume outputs/RUN                 # continue a run from its checkpoint
-    python lunar_lander.py --algorithm cma_mae                # or map_elites; default cma_me
-    python lunar_lander.py compare outputs/RUN_A outputs/RUN_B  # plot and tabulate runs side by side
-    python lunar_lander.py --help                             # every flag
+    python lunar_lander.py --iterations 300 --workers 2     # search; writes outputs/<run>/
+    python lunar_lander.py --algorithm cma_mae               # or map_elites; default cma_me
+    python lunar_lander.py resume outputs/RUN                # continue a run from its checkpoint
+    python lunar_lander.py video outputs/RUN --cells "[(-0.4, -0.1)]"   # or --best, --top K
+    python lunar_lander.py elites outputs/RUN --min_objective 200       # table of elites
+    python lunar_lander.py trajectories outputs/RUN --top 10            # flight paths picture
+    python lunar_lander.py evaluate outputs/RUN --env_seeds 0-19        # robustness on terrains
+    python lunar_lander.py compare outputs/RUN_A outputs/RUN_B          # runs side by side
+    python lunar_lander.py COMMAND --help                    # every flag of a command
 """
 
 from __future__ import annotations
