@@ -572,7 +572,7 @@ def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logg
 
     config, scheduler, metrics = checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"]
     snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
-    start = checkpoint["iteration"]
+    start = saved = checkpoint["iteration"]
     elapsed = metrics[-1]["elapsed_s"] if metrics else 0.0
     evaluations = metrics[-1]["evaluations"] if metrics else 0
     bar = tqdm(range(start + 1, iterations + 1), initial=start, total=iterations, unit="it",
@@ -595,9 +595,10 @@ def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logg
             if iteration % config["log_every"] == 0 and iteration < iterations:
                 log.info(describe_progress(row, iterations))
                 save_outputs(run_dir, make_checkpoint(snapshot, metrics, config))
+                saved = iteration
     except BaseException:
         bar.close()
-        if metrics and metrics[-1]["iteration"] > start:  # iterations done since the last save
+        if metrics and metrics[-1]["iteration"] > saved:  # iterations done since the last save
             write_pickle(run_dir / "checkpoint.pkl", make_checkpoint(snapshot, metrics, config))
         raise
     bar.close()
