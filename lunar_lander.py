@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import functools
 import importlib
 import json
@@ -29,6 +30,7 @@ import os
 import pickle
 import platform
 import secrets
+import shutil
 import signal
 import sys
 import tempfile
@@ -60,7 +62,12 @@ if __name__ == "__mp_main__":
 
 
 class UsageError(Exception):
-    """Bad input from the user: reported as one line on stderr with a non-zero exit."""
+    """Bad input from the user: reported as one line on stderr, exit code 2."""
+
+
+class RunError(Exception):
+    """A fault of the machine, not of the input (a full disk, a lost cluster): one line on stderr,
+    exit code 1, and nothing already written is lost."""
 
 
 # ================================================================================================
@@ -510,19 +517,27 @@ os.umask(UMASK)
 
 
 def atomic_write(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
-    """Write `path` via a temporary file and os.replace, so a crash never leaves half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    """Write `path` via a temporary file and os.replace, so a crash never leaves half a file.
+
+    A failed write (a full disk, say) leaves the previous file whole and raises a RunError that
+    names `path`, not the temporary file the error happened in.
+    """
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         os.chmod(tmp, 0o666 & ~UMASK)  # mkstemp makes files private; outputs are ordinary files
         with os.fdopen(fd, mode) as file:
             write(file)
             file.flush()
             os.fsync(file.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+    except BaseException as error:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(error, OSError):
+            raise RunError(f"cannot write {path}: {error.strerror or error}") from None
         raise
 
 
@@ -562,7 +577,8 @@ def make_checkpoint(scheduler_bytes: bytes, metrics: list[dict], config: dict) -
 
 
 def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logging.Logger) -> dict:
-    """Iterate ask -> evaluate -> tell up to `iterations`, refreshing outputs every log_every.
+    """Iterate ask -> evaluate -> tell up to `iterations`, refreshing outputs every log_every and at
+    the end; returns the final checkpoint.
 
     After each tell the scheduler is snapshotted in memory (pickled, ~1 ms): a stop while the cluster
     evaluates (ask has already moved the emitters on) or any error still writes a checkpoint of the
@@ -596,13 +612,21 @@ def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logg
                 log.info(describe_progress(row, iterations))
                 save_outputs(run_dir, make_checkpoint(snapshot, metrics, config))
                 saved = iteration
-    except BaseException:
+    except BaseException as error:
         bar.close()
         if metrics and metrics[-1]["iteration"] > saved:  # iterations done since the last save
-            write_pickle(run_dir / "checkpoint.pkl", make_checkpoint(snapshot, metrics, config))
+            try:
+                write_pickle(run_dir / "checkpoint.pkl", make_checkpoint(snapshot, metrics, config))
+            except RunError:
+                if not isinstance(error, RunError):  # a stop, or another fault: report this one
+                    raise
         raise
     bar.close()
-    return make_checkpoint(snapshot, metrics, config)
+    checkpoint = make_checkpoint(snapshot, metrics, config)
+    save_outputs(run_dir, checkpoint)
+    if metrics:
+        log.info("Done. " + describe_progress(metrics[-1], iterations))
+    return checkpoint
 
 
 def describe_progress(row: dict, iterations: int) -> str:
@@ -772,8 +796,46 @@ def check_scheduler_reachable(address: str | None) -> None:
         raise UsageError(f"cannot reach the Dask scheduler at {address}: {error}") from None
 
 
-def prepare_run_dir(outdir: str | None, seed: int) -> Path:
-    """A new, empty, writable run folder: an existing run is never written over."""
+LOCK_FILE = ".lock"  # in every folder being written; holds the writer's pid
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Be the only writer of `folder` while the block runs, or refuse with the holder's pid.
+
+    An OS lock (flock) on folder/.lock: the kernel drops it when its process ends, however it ends,
+    so a kill -9 never leaves a stale lock. Readers (elites, compare) take no lock.
+    """
+    import fcntl
+
+    try:
+        fd = os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as error:
+        raise UsageError(f"cannot write the folder {folder}: {error.strerror or error}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise UsageError(f"{folder} is being written by another lunar_lander.py process "
+                             f"(pid {holder}); wait for it to end, or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def holds_files(folder: Path) -> bool:
+    """Whether `folder` exists with anything in it but a lock file (or is not a folder)."""
+    return folder.exists() and (not folder.is_dir() or any(
+        path.name != LOCK_FILE for path in folder.iterdir()))
+
+
+@contextlib.contextmanager
+def new_run_folder(outdir: str | None, seed: int) -> Iterator[Path]:
+    """A new, empty run folder, locked for this process: an existing run is never written over,
+    not even by a second search started into the same --outdir at the same moment."""
     if outdir is None:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         run_dir = Path("outputs") / f"{stamp}_seed{seed}"
@@ -781,16 +843,26 @@ def prepare_run_dir(outdir: str | None, seed: int) -> Path:
                        if not p.exists())
     else:
         run_dir = Path(outdir)
-    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
-        raise UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
-                         f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
+                       f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    if holds_files(run_dir):
+        raise taken
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write(run_dir / ".write_test", lambda f: f.write(b""))
-        os.unlink(run_dir / ".write_test")
     except OSError as error:
         raise UsageError(f"cannot write the run folder {run_dir}: {error.strerror or error}") from None
-    return run_dir
+    with folder_lock(run_dir):
+        if holds_files(run_dir):  # another process filled it between the check and the lock
+            raise taken
+        yield run_dir
+
+
+class QuietFileHandler(logging.FileHandler):
+    """run.log is a copy of the console: a failed write (a full disk) must not print a traceback;
+    the fault is reported once, by the write that matters."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        pass
 
 
 def make_logger(run_dir: Path) -> logging.Logger:
@@ -802,17 +874,20 @@ def make_logger(run_dir: Path) -> logging.Logger:
         log.removeHandler(handler)
         handler.close()
     console = logging.StreamHandler(sys.stdout)
-    logfile = logging.FileHandler(run_dir / "run.log", encoding="utf-8")
+    logfile = QuietFileHandler(run_dir / "run.log", encoding="utf-8")
     logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
     for handler in (console, logfile):
         log.addHandler(handler)
     return log
 
 
-def execute(run_dir: Path, iterations: int, workers: int, scheduler_address: str | None,
-            begin: Callable[[Any, logging.Logger], dict]) -> dict:
-    """Start (or join) a Dask cluster, get the starting checkpoint from `begin`, run the loop and
-    write the final outputs. The cluster is shut down however this ends."""
+@contextlib.contextmanager
+def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> Iterator[tuple]:
+    """The Dask client and the log of a command writing `run_dir`, shut down however it ends.
+
+    A stop or a fault (a full disk, a lost cluster) ends with one line that says which iteration
+    the folder's checkpoint holds and the command that continues from it.
+    """
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     log = make_logger(run_dir)
@@ -820,19 +895,32 @@ def execute(run_dir: Path, iterations: int, workers: int, scheduler_address: str
         log.info(f"Run folder: {run_dir}")
         try:
             with dask_client(workers, scheduler_address, log) as client:
-                checkpoint = begin(client, log)
-                checkpoint = run_loop(run_dir, checkpoint, client, iterations, log)
+                yield client, log
         except KeyboardInterrupt:
-            log.info(f"Stopped. The checkpoint holds the last completed iteration; continue with: "
-                     f"python lunar_lander.py resume {run_dir}")
+            log.info(f"Stopped; {checkpoint_state(run_dir)}")
             raise
-        save_outputs(run_dir, checkpoint)
-        if checkpoint["metrics"]:
-            log.info("Done. " + describe_progress(checkpoint["metrics"][-1], iterations))
-    return checkpoint
+        except (RunError, OSError) as error:
+            raise RunError(f"{fault_text(error)}; {checkpoint_state(run_dir)}") from None
 
 
-def fresh_checkpoint(config: dict, client, log: logging.Logger, seed_archive=None) -> dict:
+def checkpoint_state(run_dir: Path) -> str:
+    """What a stopped or failed run folder holds, and the command that continues it."""
+    try:
+        held = f"its checkpoint holds iteration {read_pickle(run_dir / 'checkpoint.pkl', '')['iteration']}"
+    except (UsageError, KeyError, TypeError):
+        held = "it holds no checkpoint yet (resume starts the run from its config.json)"
+    return f"{held}; continue with: python lunar_lander.py resume {run_dir}"
+
+
+def fault_text(error: BaseException) -> str:
+    """An OSError (or our RunError) as one line: the file and the cause, without a traceback."""
+    if isinstance(error, OSError) and error.filename:
+        return f"{error.filename}: {error.strerror or error}"
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+def fresh_checkpoint(run_dir: Path, config: dict, client, log: logging.Logger,
+                     seed_archive=None) -> dict:
     """Iteration 0 of a new run, written at once so the folder always holds a checkpoint.
 
     With `seed_archive` (a warm start), its elites are first flown again in this run's setting
@@ -851,7 +939,7 @@ def fresh_checkpoint(config: dict, client, log: logging.Logger, seed_archive=Non
                  f"emitters start from the best (objective {objectives.max():.1f})")
     checkpoint = {"format": CHECKPOINT_FORMAT, "scheduler": scheduler or build_scheduler(config),
                   "metrics": metrics, "iteration": 0, "config": config}
-    write_pickle(Path(config["outdir"]) / "checkpoint.pkl", checkpoint)
+    write_pickle(run_dir / "checkpoint.pkl", checkpoint)
     return checkpoint
 
 
@@ -908,14 +996,15 @@ def search(
     check_scheduler_reachable(scheduler_address)
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
-    run_dir = prepare_run_dir(flags["outdir"], flags["seed"])
-    config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
-              "command": sys.argv, "versions": library_versions()}
-    if from_archive:
-        config["from_archive"] = str(Path(from_archive).resolve())
-    write_json(run_dir / "config.json", config)
-    execute(run_dir, config["iterations"], config["workers"], scheduler_address,
-            lambda client, log: fresh_checkpoint(config, client, log, seed_archive))
+    with new_run_folder(flags["outdir"], flags["seed"]) as run_dir:
+        config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
+                  "command": sys.argv, "versions": library_versions()}
+        if from_archive:
+            config["from_archive"] = str(Path(from_archive).resolve())
+        write_json(run_dir / "config.json", config)
+        with run_session(run_dir, config["workers"], scheduler_address) as (client, log):
+            checkpoint = fresh_checkpoint(run_dir, config, client, log, seed_archive)
+            run_loop(run_dir, checkpoint, client, config["iterations"], log)
 
 
 def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
@@ -930,21 +1019,40 @@ def resume(run_dir: str, iterations: int | None = None, workers: int | None = No
         scheduler_address: Address of a running Dask scheduler to evaluate on instead.
     """
     path = Path(run_dir)
-    checkpoint = load_checkpoint(path / "checkpoint.pkl")
+    load_run_state(path)  # refuse a bad folder before anything is written in it
     check_scheduler_reachable(scheduler_address)
-    config = checkpoint["config"]
-    iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)
-    workers = positive_int("workers", config["workers"] if workers is None else workers)
-    if iterations < checkpoint["iteration"]:
-        raise UsageError(f"{path} is already at iteration {checkpoint['iteration']}; "
-                         f"--iterations must be at least that")
-    config = {**config, "iterations": max(iterations, config["iterations"]),
-              "resumed": [*config.get("resumed", []), {
-                  "at": datetime.datetime.now().isoformat(), "from_iteration": checkpoint["iteration"],
-                  "to_iteration": iterations, "workers": workers}]}
-    write_json(path / "config.json", config)
-    execute(path, iterations, workers, scheduler_address,
-            lambda client, log: {**checkpoint, "config": config})
+    with folder_lock(path):
+        config, checkpoint = load_run_state(path)  # as the last writer left it
+        iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)
+        workers = positive_int("workers", config["workers"] if workers is None else workers)
+        done = checkpoint["iteration"] if checkpoint else 0
+        if iterations < done:
+            raise UsageError(f"{path} is already at iteration {done}; --iterations must be at least that")
+        seed_archive = load_archive(Path(config["from_archive"])) if (
+            checkpoint is None and config.get("from_archive")) else None
+        config = {**config, "iterations": max(iterations, config["iterations"]),
+                  "resumed": [*config.get("resumed", []), {
+                      "at": datetime.datetime.now().isoformat(), "from_iteration": done,
+                      "to_iteration": iterations, "workers": workers}]}
+        write_json(path / "config.json", config)
+        with run_session(path, workers, scheduler_address) as (client, log):
+            if checkpoint is None:
+                checkpoint = fresh_checkpoint(path, config, client, log, seed_archive)
+            run_loop(path, {**checkpoint, "config": config}, client, iterations, log)
+
+
+def load_run_state(run_dir: Path) -> tuple[dict, dict | None]:
+    """A run folder's config and checkpoint. A run killed before its first checkpoint (while its
+    cluster started) has only config.json: its checkpoint is None, and resume starts it afresh
+    from that config, which records the seed, so it ends as the uninterrupted run would."""
+    path = run_dir / "checkpoint.pkl"
+    if path.is_file() or not (run_dir / "config.json").is_file():
+        checkpoint = load_checkpoint(path)
+        return checkpoint["config"], checkpoint
+    try:
+        return check_run_config(read_run_json(run_dir, "config.json")), None
+    except UsageError as error:
+        raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
 
 
 def read_run_json(run_dir: Path, name: str) -> Any:
@@ -1002,6 +1110,18 @@ def search_defaults() -> dict[str, Any]:
     return {name: parameter.default for name, parameter in inspect.signature(search).parameters.items()}
 
 
+def check_run_config(config: Any) -> dict:
+    """A run's recorded config, every flag valid (a UsageError says which is not); a config from
+    before a flag existed ran with that flag's default."""
+    try:
+        config = {**search_defaults(), **config}
+        check_flags({name: config[name] for name in FLAG_CHECKS})
+    except TypeError as error:
+        raise UsageError(str(error)) from None
+    non_negative_int("seed", config["seed"])
+    return config
+
+
 def load_checkpoint(path: Path) -> dict:
     """A checkpoint written by this script and consistent with this script's problem."""
     if not path.is_file():
@@ -1012,10 +1132,8 @@ def load_checkpoint(path: Path) -> dict:
     from ribs.schedulers import Scheduler
 
     try:
-        # A checkpoint from before a flag existed ran with that flag's default.
-        config = checkpoint["config"] = {**search_defaults(), **checkpoint["config"]}
+        checkpoint["config"] = check_run_config(checkpoint["config"])
         metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
-        check_flags({name: config[name] for name in FLAG_CHECKS})
         if not isinstance(checkpoint["scheduler"], Scheduler):
             raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
     except (KeyError, TypeError, UsageError) as error:
@@ -1185,7 +1303,8 @@ class Mp4Recorder(gym.Wrapper):
         if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
             self._writer = imageio_ffmpeg.write_frames(
                 str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
-                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8)
+                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8,
+                ffmpeg_log_level="quiet")  # a failure is reported once, in one line (record_video)
             self._writer.send(None)
         self._writer.send(np.ascontiguousarray(frame))
         self.frames += 1
@@ -1206,14 +1325,20 @@ def load_chosen_elites(run_dir: Any, *selection: Any) -> tuple[dict, list[dict]]
 def record_video(solution: np.ndarray, env_seed: int, path: Path) -> tuple[float, float, float]:
     """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
     + 1 frames (the reset's frame first); written aside and moved into place whole."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
-        env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
-        try:
-            result = rollout(solution, env_seed, env)
-        finally:
-            env.close()
-        os.replace(env.path, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
+            env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
+            try:
+                result = rollout(solution, env_seed, env)
+            finally:
+                env.close()
+            os.replace(env.path, path)
+    except OSError as error:
+        # When ffmpeg fails, Python sees only a broken pipe: a full disk is the usual cause.
+        full = shutil.disk_usage(path.parent).free < 2**20 if path.parent.exists() else False
+        cause = os.strerror(errno.ENOSPC) if full else fault_text(error)
+        raise RunError(f"cannot write {path}: {cause}") from None
     return result
 
 
@@ -1387,8 +1512,7 @@ def console_log() -> logging.Logger:
     log = logging.getLogger("lunar_lander.results")
     log.setLevel(logging.INFO)
     log.propagate = False
-    if not log.handlers:
-        log.addHandler(logging.StreamHandler(sys.stdout))
+    log.handlers = [logging.StreamHandler(sys.stdout)]  # today's stdout, not the first call's
     return log
 
 
@@ -1562,11 +1686,8 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> 
     png, csv = comparison_outputs(None if out is None else str(out), overwrite)
     labels = run_labels(paths, list(configs))
     table = comparison_table(labels, paths, list(configs), list(runs))
-    try:
-        save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
-        atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
-    except OSError as error:
-        raise UsageError(f"cannot write {png} and {csv}: {error.strerror or error}") from None
+    save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
+    atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
     print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
     if table["evaluations"].nunique() > 1:
         print("note: the runs end at different numbers of evaluations; compare at an equal budget")
@@ -1615,6 +1736,9 @@ def main(argv: list[str]) -> int:
     except UsageError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except (RunError, OSError) as error:  # OSError: any fault not already described better
+        print(f"error: {fault_text(error)}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)
         return 130

@@ -5,8 +5,6 @@ import logging
 import os
 import pickle
 import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -16,8 +14,7 @@ import pytest
 from ribs.archives import GridArchive
 
 import lunar_lander as ll
-from conftest import SCRIPT
-from util import folder_state, load_pickle, run_archive, run_metrics
+from util import checkpoint_iteration, folder_state, launch, load_pickle, run_archive, run_metrics, wait_for
 
 ITERATIONS = 30  # long enough for a process to be stopped part-way, a few seconds in all
 
@@ -57,31 +54,21 @@ def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, refer
     assert config["resumed"][0]["from_iteration"] == stop_at
 
 
-def launch(run_dir, dask_cluster):
+def launch_run(run_dir, dask_cluster):
     flags = {k: v for k, v in run_flags(dask_cluster).items() if k != "scheduler_address"}
-    return subprocess.Popen([sys.executable, str(SCRIPT), *[f"--{k}={v}" for k, v in flags.items()],
-                             f"--outdir={run_dir}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+    return launch(**flags, outdir=run_dir)
 
 
-def wait_for_checkpoint(run_dir, process, at_least, timeout=120):
-    """Block until the running search has saved a checkpoint past iteration `at_least`."""
-    deadline = time.time() + timeout
-    while time.time() < deadline and process.poll() is None:
-        try:
-            if load_pickle(run_dir / "checkpoint.pkl")["iteration"] >= at_least:
-                return
-        except (OSError, EOFError, pickle.UnpicklingError):
-            pass
-        time.sleep(0.05)
-    raise AssertionError(f"no checkpoint past {at_least}: {process.communicate()}")
+def wait_for_checkpoint(run_dir, process, at_least):
+    wait_for(lambda: checkpoint_iteration(run_dir) >= at_least, process,
+             f"a checkpoint past iteration {at_least}")
 
 
 @pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM])
 def test_interrupt_keeps_a_checkpoint_and_resume_completes(tmp_path, dask_cluster, reference,
                                                             stop_signal):
     run_dir = tmp_path / "run"
-    process = launch(run_dir, dask_cluster)
+    process = launch_run(run_dir, dask_cluster)
     wait_for_checkpoint(run_dir, process, at_least=3)
     process.send_signal(stop_signal)
     out, err = process.communicate(timeout=60)
@@ -98,7 +85,7 @@ def test_interrupt_keeps_a_checkpoint_and_resume_completes(tmp_path, dask_cluste
 
 def test_kill_9_leaves_a_loadable_checkpoint(tmp_path, dask_cluster, reference):
     run_dir = tmp_path / "run"
-    process = launch(run_dir, dask_cluster)
+    process = launch_run(run_dir, dask_cluster)
     wait_for_checkpoint(run_dir, process, at_least=6)
     os.killpg(process.pid, signal.SIGKILL)  # the search and its Dask workers, at once
     process.communicate(timeout=60)

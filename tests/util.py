@@ -30,3 +30,36 @@ def run_metrics(run_dir: Path) -> list[dict]:
 def folder_state(path: Path) -> dict:
     """Every file below `path` with its bytes: to check that a failed command touched nothing."""
     return {str(p.relative_to(path)): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
+
+
+def launch(*args, **flags):
+    """The script as a real process in a session of its own (so a test can kill its whole group)."""
+    import subprocess
+    import sys
+
+    from conftest import SCRIPT
+
+    return subprocess.Popen([sys.executable, str(SCRIPT), *map(str, args),
+                             *[f"--{k}={v}" for k, v in flags.items()]],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def wait_for(condition, process, what, timeout=120):
+    """Poll `condition` until it holds; fail with the process's output if it ends first."""
+    import time
+
+    deadline = time.time() + timeout
+    while time.time() < deadline and process.poll() is None:
+        if condition():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"never saw {what}: {process.communicate()}")
+
+
+def checkpoint_iteration(run_dir: Path) -> int:
+    """The iteration of a run folder's checkpoint, -1 while there is none (or it is being replaced)."""
+    try:
+        return load_pickle(Path(run_dir) / "checkpoint.pkl")["iteration"]
+    except (OSError, EOFError, pickle.UnpicklingError):
+        return -1

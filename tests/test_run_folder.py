@@ -1,0 +1,160 @@
+"""Run folders survive a full disk, a kill before the first checkpoint and a second writer.
+
+The full-disk tests mount a real tmpfs of a few MB (root only; skipped, saying why, elsewhere).
+"""
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import uuid
+
+import pytest
+
+import lunar_lander as ll
+from util import (checkpoint_iteration, folder_state, launch, load_pickle, run_archive,
+                  run_metrics, wait_for)
+
+FLAGS = dict(iterations=12, workers=2, seed=3, env_seed=52, algorithm="cma_me", n_emitters=2,
+             sigma0=1.0, batch_size=6, log_every=1)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, dask_cluster):
+    """The uninterrupted run that every interrupted one must end equal to."""
+    run_dir = tmp_path_factory.mktemp("reference") / "run"
+    ll.search(**FLAGS, outdir=str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    return run_dir
+
+
+def assert_same_run(run_dir, reference):
+    assert run_archive(run_dir).equals(run_archive(reference))
+    assert run_metrics(run_dir) == run_metrics(reference)
+
+
+@contextlib.contextmanager
+def small_disk(tmp_path, size):
+    """A real tmpfs of `size` mounted at tmp_path/disk, for as long as the block runs."""
+    mount_point = tmp_path / f"disk-{uuid.uuid4().hex[:6]}"
+    mount_point.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mount_point)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {mounted.stderr.strip()}")
+    try:
+        yield mount_point
+    finally:
+        subprocess.run(["umount", "-l", str(mount_point)], check=False)
+
+
+def fill(folder):
+    """Take every byte left on folder's filesystem."""
+    with open(folder / "filler", "wb") as file:
+        with contextlib.suppress(OSError):
+            while True:
+                file.write(b"\0" * 65536)
+                file.flush()
+
+
+def assert_one_line_fault(code, stderr, *fragments):
+    """Exit code 1 and one line of error, the last one printed (a search's progress bar may
+    precede it on stderr)."""
+    assert code == 1, stderr
+    lines = [line for line in stderr.strip().splitlines() if line.strip()]
+    assert lines[-1].startswith("error: ") and "Traceback" not in stderr, stderr
+    assert sum(line.startswith("error: ") for line in lines) == 1
+    for fragment in fragments:
+        assert fragment in lines[-1], lines[-1]
+
+
+def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path, dask_cluster,
+                                                                        reference):
+    with small_disk(tmp_path, "2400k") as disk:
+        run_dir = disk / "run"
+        process = launch(**FLAGS, outdir=run_dir, scheduler_address=dask_cluster.scheduler_address)
+        out, err = process.communicate(timeout=300)
+
+        held = checkpoint_iteration(run_dir)
+        assert 0 <= held < FLAGS["iterations"]
+        assert_one_line_fault(process.returncode, err, "No space left on device", str(run_dir),
+                              f"its checkpoint holds iteration {held}",
+                              f"python lunar_lander.py resume {run_dir}")
+        assert not list(run_dir.rglob(".*.tmp"))  # no half-written file left behind
+        assert json.loads((run_dir / "config.json").read_text())["seed"] == FLAGS["seed"]
+
+        subprocess.run(["mount", "-o", "remount,size=64m", str(disk)], check=True)  # room again
+        ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+        assert_same_run(run_dir, reference)
+
+
+@pytest.mark.parametrize("args", [
+    ["video", "{run}", "--best"],
+    ["trajectories", "{run}", "--top", "2"],
+    ["elites", "{run}"],
+    ["evaluate", "{run}", "--env_seeds", "3", "--top", "2", "--scheduler_address", "{address}"],
+    ["compare", "{run}", "--out", "{run}/comparison"],
+])
+def test_every_writing_command_reports_a_full_disk_in_one_line(tmp_path, reference, dask_cluster,
+                                                                capsys, args):
+    with small_disk(tmp_path, "4m") as disk:
+        run_dir = disk / "run"
+        shutil.copytree(reference, run_dir)
+        fill(disk)
+        before = folder_state(run_dir)
+
+        code = ll.main([arg.format(run=run_dir, address=dask_cluster.scheduler_address) for arg in args])
+
+        assert_one_line_fault(code, capsys.readouterr().err, "No space left on device", str(run_dir))
+        assert folder_state(run_dir) == before
+
+
+def test_killed_before_its_first_checkpoint_resume_starts_from_the_config(tmp_path, dask_cluster,
+                                                                          reference):
+    run_dir = tmp_path / "run"
+    process = launch(**{**FLAGS, "workers": 1}, outdir=run_dir)  # starts a cluster of its own: slow
+    wait_for(lambda: (run_dir / "config.json").exists(), process, "config.json")
+    os.killpg(process.pid, signal.SIGKILL)
+    process.communicate(timeout=60)
+    assert not (run_dir / "checkpoint.pkl").exists()  # killed while its cluster was starting
+
+    ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+
+    assert_same_run(run_dir, reference)
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["resumed"][0]["from_iteration"] == 0
+
+
+def test_resume_refuses_a_folder_whose_config_is_unusable(tmp_path, capsys):
+    (tmp_path / "config.json").write_text(json.dumps({"seed": "seven"}))
+    before = folder_state(tmp_path)
+    assert ll.main(["resume", str(tmp_path)]) == 2
+    assert "config.json: not a usable run config" in capsys.readouterr().err
+    assert folder_state(tmp_path) == before
+
+
+def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, capsys):
+    run_dir = tmp_path / "run"
+    flags = {**FLAGS, "iterations": 40, "log_every": 2}
+    process = launch(**flags, outdir=run_dir, scheduler_address=dask_cluster.scheduler_address)
+    try:
+        wait_for(lambda: checkpoint_iteration(run_dir) >= 2 and (run_dir / "archive.pkl").exists(),
+                 process, "a first saved iteration")
+
+        assert ll.main(["resume", str(run_dir)]) == 2
+        err = capsys.readouterr().err
+        assert f"is being written by another lunar_lander.py process (pid {process.pid})" in err
+        assert err.count("\n") == 1
+        assert ll.main(["--iterations", "1", "--outdir", str(run_dir)]) == 2
+        assert "already exists and is not empty" in capsys.readouterr().err
+        assert ll.main(["elites", str(run_dir), "--top", "3"]) == 0  # readers take no lock
+        assert ll.main(["compare", str(run_dir), "--out", str(tmp_path / "cmp")]) == 0
+    finally:
+        out, err = process.communicate(timeout=300)
+    assert process.returncode == 0, err
+    assert "resumed" not in json.loads((run_dir / "config.json").read_text())
+    assert load_pickle(run_dir / "checkpoint.pkl")["iteration"] == 40
+    # The writer has ended: its lock went with it.
+    assert ll.main(["resume", str(run_dir), "--iterations", "41",
+                    "--scheduler_address", dask_cluster.scheduler_address]) == 0
