@@ -5,8 +5,12 @@ NUMBA_DISABLE_JIT gives bitwise-identical results, so the tests (and the process
 run with it.
 """
 
+import contextlib
+import dataclasses
+import io
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -44,17 +48,44 @@ def tiny_config(dask_cluster):
                 scheduler_address=dask_cluster.scheduler_address)
 
 
+@dataclasses.dataclass
+class Result:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
 @pytest.fixture
-def run_cli(tmp_path):
-    """Run the script as a user would; returns the CompletedProcess."""
+def run_cli(tmp_path, monkeypatch):
+    """The command line as a user types it, run in-process through main() (no interpreter start,
+    no re-import): the exit code, stdout and stderr, from tmp_path as the working folder."""
+    import lunar_lander as ll
+
+    monkeypatch.chdir(tmp_path)
+
+    def run(*args):
+        out, err = io.StringIO(), io.StringIO()
+        handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                try:
+                    code = ll.main([str(arg) for arg in args])
+                except SystemExit as exit:  # Fire's --help
+                    code = exit.code or 0
+        finally:
+            for signum, handler in handlers.items():  # main() installs its stop handlers
+                signal.signal(signum, handler)
+        return Result(code, out.getvalue(), err.getvalue())
+    return run
+
+
+@pytest.fixture
+def run_process(tmp_path):
+    """The script as a real process (for what needs one: a fresh interpreter, signals, shipping
+    the script to a cluster); returns the CompletedProcess."""
     import subprocess
 
     def run(*args, timeout=300):
         return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=tmp_path,
                               capture_output=True, text=True, timeout=timeout)
     return run
-
-
-def pytest_configure(config):
-    # Box2D's SWIG bindings warn on import under Python 3.11+; the warning is theirs, not ours.
-    config.addinivalue_line("filterwarnings", "ignore:builtin type .* has no __module__:DeprecationWarning")

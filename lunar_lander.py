@@ -7,6 +7,7 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
 
     python lunar_lander.py --iterations 300 --workers 2     # search; writes outputs/<run>/
     python lunar_lander.py --algorithm cma_mae               # or map_elites; default cma_me
+    python lunar_lander.py --measures fuel,flight_time --env_seed 0-4   # other axes, 5 terrains
     python lunar_lander.py resume outputs/RUN                # continue a run from its checkpoint
     python lunar_lander.py video outputs/RUN --cells "[(-0.4, -0.1)]"   # or --best, --top K
     python lunar_lander.py elites outputs/RUN --min_objective 200       # table of elites
@@ -14,11 +15,26 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
     python lunar_lander.py evaluate outputs/RUN --env_seeds 0-19        # robustness on terrains
     python lunar_lander.py compare outputs/RUN_A outputs/RUN_B          # runs side by side
     python lunar_lander.py COMMAND --help                    # every flag of a command
+
+Where to change what (the file reads top to bottom in this order):
+- The problem. A measure: add a row to MEASURES (label, range, short name, how a Flight gives
+  it); `fly` gathers what measures read from an episode. The objective is `Flight.reward`.
+- The algorithms: a row of ALGORITHMS (archive kwargs, emitter class and kwargs).
+- The evaluation engine: `submit_flights` chunks (solution, terrain) pairs for Dask; `fly_chunk`
+  runs on the workers; `evaluate_batch` averages each solution over the run's terrains.
+- The run: `Run` holds one search between iterations and is the one place a checkpoint is built
+  and written; `run_loop` is ask -> evaluate -> tell; `save_outputs` writes the run folder's files.
+- The commands: `search` and `resume`, then the results commands (video, elites, trajectories,
+  evaluate, compare). A flag is declared, documented and defaulted in its command's signature
+  and docstring; FLAG_CHECKS says how it is checked; COMMANDS lists the commands.
+- The machinery: flag checks, folder locks, atomic file writes, logs, the streamlined env
+  (FastLunarLander), and `main`, which turns bad input into one line and exit code 2.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import errno
 import functools
@@ -71,12 +87,13 @@ class RunError(Exception):
 
 
 # ================================================================================================
-# The problem: a linear policy flying Lunar Lander on a fixed terrain
+# The problem: a linear policy flying Lunar Lander, and what its flight is measured by
 # ================================================================================================
 
 ENV_ID = "LunarLander-v3"
 ACTION_DIM, OBS_DIM = 4, 8  # discrete actions; observation (x, y, vx, vy, angle, spin, leg1, leg2)
 SOLUTION_DIM = ACTION_DIM * OBS_DIM
+NOOP, LEFT, MAIN, RIGHT = range(ACTION_DIM)  # the discrete actions: engines off, or one fires
 
 
 def make_env(fast: bool = True, render_mode: str | None = None) -> gym.Env:
@@ -87,13 +104,68 @@ def make_env(fast: bool = True, render_mode: str | None = None) -> gym.Env:
     return gym.make(ENV_ID, render_mode=render_mode)
 
 
-def rollout(solution: np.ndarray, env_seed: int, env: gym.Env,
-            trajectory: list | None = None) -> tuple[float, float, float]:
+@dataclasses.dataclass
+class Flight:
+    """One episode summed up: everything a measure may read, gathered in a single pass.
+
+    "Touchdown" is the first step on which either leg touches the ground. A lander that never
+    touches it has no touchdown; its impact observation is then its last one.
+    """
+
+    reward: float = 0.0  # the episode's total reward: the objective
+    steps: int = 0
+    touchdown: np.ndarray | None = None  # the observation at touchdown
+    touchdown_step: int | None = None
+    last: np.ndarray | None = None  # the last observation
+    min_y_velocity: float = math.inf  # the fastest descent of the whole episode
+    max_tilt: float = 0.0  # the largest |angle| up to touchdown (the whole episode without one)
+    firings: list[int] = dataclasses.field(default_factory=lambda: [0] * ACTION_DIM)
+
+    @property
+    def impact(self) -> np.ndarray:
+        return self.last if self.touchdown is None else self.touchdown
+
+
+@dataclasses.dataclass(frozen=True)
+class Measure:
+    """One behaviour a landing is told apart by: its axis label, its range in the archive (values
+    outside fall into the edge cells), a short name for file names, and how a flight gives it."""
+
+    label: str
+    range: tuple[float, float]
+    short: str
+    of: Callable[[Flight], float]
+    descending: bool = False  # drawn top to bottom (the tutorial puts faster impacts at the bottom)
+
+
+# The measures a search can use (--measures picks 1 to 3, in order). Each is computed per terrain
+# and averaged over the run's terrains. The ranges hold what the policies of real runs reach: an
+# elite on an edge cell of a 50-cell axis is rare (README, "Measures"). To add one, add a row.
+MEASURES: dict[str, Measure] = {
+    # The tutorial's two: where and how fast the lander comes down (without a touchdown: its last
+    # x-position and its fastest descent).
+    "impact_x": Measure("Impact x-position", (-1.0, 1.0), "x", lambda f: f.impact[0]),
+    "impact_y_velocity": Measure(
+        "Impact y-velocity", (-3.0, 0.0), "v", descending=True,
+        of=lambda f: f.min_y_velocity if f.touchdown is None else f.touchdown[3]),
+    "impact_x_velocity": Measure("Impact x-velocity", (-3.0, 3.0), "vx", lambda f: f.impact[2]),
+    # Angles are not wrapped: a lander that tumbles goes past pi, into the edge cells.
+    "impact_angle": Measure("Impact angle (rad)", (-math.pi, math.pi), "angle", lambda f: f.impact[4]),
+    # Fuel in main-engine firings: a side firing costs a tenth of one, as in the env's reward.
+    "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 500.0), "fuel",
+                    lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT])),
+    # A lander falling freely touches down after ~51 steps; one that hovers flies all 1000.
+    "flight_time": Measure("Steps to touchdown", (50.0, 1000.0), "steps",
+                           lambda f: f.steps if f.touchdown_step is None else f.touchdown_step),
+    "max_tilt": Measure("Largest tilt before touchdown (rad)", (0.0, math.pi), "tilt",
+                        lambda f: f.max_tilt),
+}
+TUTORIAL_MEASURES = ("impact_x", "impact_y_velocity")  # the default, and what old run folders used
+
+
+def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None) -> Flight:
     """Fly the policy action = argmax(W @ obs) for one episode on the terrain of `env_seed`.
 
-    Returns (objective, impact x-position, impact y-velocity): the objective is the episode's total
-    reward; the measures are taken when either leg first touches the ground, or, if the lander never
-    touches it, they are the last x-position and the fastest descent (minimum y-velocity).
     With a `trajectory` list, each step's (x, y) position is appended to it.
     """
     weights = np.asarray(solution, dtype=np.float64).reshape(ACTION_DIM, OBS_DIM)
@@ -101,21 +173,1601 @@ def rollout(solution: np.ndarray, env_seed: int, env: gym.Env,
     # would take matmul's non-BLAS path, so it keeps matmul.
     scores = weights.dot if weights.flags.c_contiguous else weights.__matmul__
     obs, _ = env.reset(seed=env_seed)
-    total_reward, impact, min_y_velocity = 0.0, None, np.inf
-    done = False
+    flight, firings, done = Flight(), [0] * ACTION_DIM, False
+    total_reward, min_y_velocity, max_tilt, touchdown, steps = 0.0, math.inf, 0.0, None, 0
     while not done:
-        obs, reward, terminated, truncated, _ = env.step(int(scores(obs).argmax()))
+        action = int(scores(obs).argmax())
+        firings[action] += 1
+        obs, reward, terminated, truncated, _ = env.step(action)
         done = terminated or truncated
+        steps += 1
         total_reward += reward
         if obs[3] < min_y_velocity:
             min_y_velocity = obs[3]
-        if impact is None and (obs[6] or obs[7]):
-            impact = (obs[0], obs[3])
+        if touchdown is None:
+            max_tilt = max(max_tilt, abs(float(obs[4])))
+            if obs[6] or obs[7]:
+                touchdown, flight.touchdown_step = obs, steps
         if trajectory is not None:
             trajectory.append((float(obs[0]), float(obs[1])))
-    if impact is None:
-        impact = (obs[0], min_y_velocity)
-    return float(total_reward), float(impact[0]), float(impact[1])
+    flight.reward, flight.steps, flight.touchdown, flight.last = total_reward, steps, touchdown, obs
+    flight.min_y_velocity, flight.max_tilt, flight.firings = float(min_y_velocity), max_tilt, firings
+    return flight
+
+
+def rollout(solution: np.ndarray, env_seed: int, env: gym.Env,
+            measures: tuple[str, ...] = TUTORIAL_MEASURES,
+            trajectory: list | None = None) -> tuple[float, ...]:
+    """(objective, *measures) of one episode: the objective is the episode's total reward."""
+    flight = fly(solution, env_seed, env, trajectory)
+    return (float(flight.reward), *(float(MEASURES[name].of(flight)) for name in measures))
+
+
+# ================================================================================================
+# The algorithm: an archive of elites, emitters that propose solutions, a scheduler tying them
+# ================================================================================================
+
+MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps a 32-number solution
+QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
+
+# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
+# whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
+# a small function of the run's config. All rows share the grid, the seeds, x0 and the batch size,
+# so every algorithm asks n_emitters * batch_size solutions per iteration.
+# - cma_me: the tutorial's CMA-ME (EvolutionStrategyEmitter, two-stage improvement ranker).
+# - cma_mae: pyribs' CMA-MAE tutorial and sphere.py's "cma_mae" row: a soft archive with
+#   learning_rate (--learning_rate, 0.01 there) and threshold_min (0 there for objectives in
+#   [0, 100]; here the QD offset -600, below almost every episode's reward), a plain result archive
+#   of the same grid that keeps the best solutions (metrics, heatmaps and archive.pkl come from
+#   it), and emitters with the "imp" ranker, "mu" selection and "basic" restarts.
+# - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
+#   fixed sigma (--sigma0). The policy argmax(W @ obs) ignores W's scale and the search starts
+#   from zeros, so only sigma relative to the elites' weights matters, as for CMA-ES's sigma0.
+ALGORITHMS: dict[str, dict[str, Any]] = {
+    "cma_me": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "2imp"},
+    },
+    "cma_mae": {
+        "archive": lambda config: {"learning_rate": config["learning_rate"],
+                                   "threshold_min": QD_SCORE_OFFSET},
+        "result_archive": True,
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "imp",
+                                          "selection_rule": "mu", "restart_rule": "basic"},
+    },
+    "map_elites": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "GaussianEmitter",
+        "emitter_kwargs": lambda config: {"sigma": config["sigma0"]},
+    },
+}
+
+
+def derive_seeds(seed: int, count: int) -> list[int]:
+    """Independent seeds for the archive and each emitter, all fixed by the one run seed."""
+    return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
+
+
+def archive_grid(config: dict[str, Any]) -> dict[str, Any]:
+    """The archive's cells: --grid of them along each of the run's --measures, over its range."""
+    measures = config["measures"]
+    return dict(solution_dim=SOLUTION_DIM, dims=(config["grid"],) * len(measures),
+                ranges=[MEASURES[name].range for name in measures], qd_score_offset=QD_SCORE_OFFSET)
+
+
+def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
+    """The archive, emitters and scheduler of `config["algorithm"]`, seeded from `config["seed"]`.
+
+    The emitters start from `x0` (default: zeros, as in the tutorial).
+    """
+    from ribs import emitters as ribs_emitters
+    from ribs.archives import GridArchive
+    from ribs.schedulers import Scheduler
+
+    spec = ALGORITHMS[config["algorithm"]]
+    # A result archive's seed comes last, so the other seeds are those of a run without one.
+    archive_seed, *emitter_seeds, result_seed = derive_seeds(config["seed"], config["n_emitters"] + 2)
+    grid = archive_grid(config)
+    archive = GridArchive(**grid, seed=archive_seed, **spec["archive"](config))
+    result_archive = GridArchive(**grid, seed=result_seed) if spec["result_archive"] else None
+    emitter_class = getattr(ribs_emitters, spec["emitter"])
+    emitters = [
+        emitter_class(
+            archive,
+            x0=np.zeros(SOLUTION_DIM) if x0 is None else x0,
+            batch_size=config["batch_size"],
+            seed=emitter_seed,
+            **spec["emitter_kwargs"](config),
+        )
+        for emitter_seed in emitter_seeds
+    ]
+    return Scheduler(archive, emitters, result_archive=result_archive)
+
+
+# ================================================================================================
+# The evaluation engine: batches of rollouts on a Dask cluster
+# ================================================================================================
+
+_WORKER_ENVS: dict[bool, gym.Env] = {}  # one environment per worker process, reused across tasks
+
+
+def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str, ...],
+              fast_env: bool = True) -> np.ndarray:
+    """Runs on a worker: fly solutions[i] on terrain env_seeds[i]; rows of (objective, *measures).
+
+    A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
+    small next to the rollouts, and the environment is kept between tasks: reset(seed) gives the
+    same episode bit for bit as a fresh environment, without paying for gym.make each time.
+    """
+    env = _WORKER_ENVS.get(fast_env)
+    if env is None:
+        env = _WORKER_ENVS[fast_env] = make_env(fast_env)
+    rows = [rollout(solution, int(seed), env, measures) for solution, seed in zip(solutions, env_seeds)]
+    return np.array(rows).reshape(-1, 1 + len(measures))
+
+
+# Two chunks per worker even out episodes of 60 to 1000 steps across workers as well as more do
+# (measured: 1, 2, 3, 4, 8), while each task costs the main process ~0.6 ms of scheduling.
+CHUNKS_PER_WORKER = 2
+MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
+MAX_CHUNK = 1000  # rollouts per task at most (a few seconds), so big batches report progress
+
+
+def by_reference(function: Callable) -> Callable:
+    """The same function, reached through this script's import name instead of `__main__`.
+
+    Dask pickles functions of `__main__` by value into every task; through the module name they
+    travel as a short reference that workers resolve by importing this script.
+    """
+    if function.__module__ != "__main__":
+        return function
+    return getattr(importlib.import_module(Path(__file__).stem), function.__name__)
+
+
+def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
+                   fast_env: bool = True) -> list:
+    """Send every solution to be flown on every terrain; the futures of the chunks, in order.
+
+    The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
+    the number of terrains, so the workers stay evenly loaded. Tasks of a dead worker are retried.
+    """
+    workers = max(1, sum(client.nthreads().values()))
+    pairs = len(solutions) * len(env_seeds)
+    n_chunks = min(max(CHUNKS_PER_WORKER * workers, -(-pairs // MAX_CHUNK)), max(1, pairs // MIN_CHUNK))
+    chunks = np.array_split(np.arange(pairs), n_chunks)
+    seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
+    return [client.submit(by_reference(fly_chunk), solutions[chunk // len(env_seeds)], seeds[chunk],
+                          tuple(measures), fast_env, pure=False, retries=3) for chunk in chunks]
+
+
+def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int]) -> np.ndarray:
+    """The chunks' rows, put together: (solutions, terrains, 1 + measures)."""
+    rows = np.concatenate(chunk_results)
+    return rows.reshape(-1, len(env_seeds), rows.shape[1])
+
+
+def averaged(flights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Objectives and measures: each solution's mean over its terrains (one terrain: itself)."""
+    means = flights.mean(axis=1)
+    return means[:, 0], means[:, 1:]
+
+
+def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Objectives and measures of `solutions` in the run's setting, flown on the Dask cluster.
+
+    Results come back in the order of the solutions whatever the number of workers, so a fixed
+    seed gives the same archive on 1 or 100 workers.
+    """
+    futures = submit_flights(client, solutions, config["env_seed"], config["measures"],
+                             config["fast_env"])
+    return averaged(per_terrain(client.gather(futures), config["env_seed"]))
+
+
+def ship_script(client) -> None:
+    """Make this exact script importable by the scheduler and every worker of a cluster.
+
+    Tasks refer to `lunar_lander.evaluate_chunk` by name, so the scheduler (which unpickles task
+    graphs) and the workers must import this script. Machines elsewhere have the libraries but not
+    the script, or an older copy: then it is uploaded (to workers that join later too). Where all
+    already import this very file (a local cluster), nothing is reloaded.
+    """
+    import hashlib
+
+    def digest_of_importable_script() -> str | None:  # runs on the scheduler and the workers
+        import hashlib
+        import importlib.util
+
+        spec = importlib.util.find_spec("lunar_lander")
+        if spec is None or not spec.origin:
+            return None
+        with open(spec.origin, "rb") as file:
+            return hashlib.sha256(file.read()).hexdigest()
+
+    path = Path(__file__).resolve()
+    ours = hashlib.sha256(path.read_bytes()).hexdigest()
+    theirs = [client.run_on_scheduler(digest_of_importable_script),
+              *client.run(digest_of_importable_script).values()]
+    if any(digest != ours for digest in theirs):
+        client.upload_file(str(path))
+
+
+@contextlib.contextmanager
+def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
+    """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
+    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit).
+
+    A local cluster listens on localhost only: it runs whatever code it is sent.
+    """
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler_address:
+        try:
+            client = Client(scheduler_address, timeout="20s")
+        except (OSError, ValueError) as error:
+            raise UsageError(f"cannot connect to the Dask scheduler at {scheduler_address}: "
+                             f"{str(error).splitlines()[0]}") from None
+        with client:
+            ship_script(client)
+            log.info(f"Dask cluster at {scheduler_address}: {len(client.nthreads())} worker(s); "
+                     f"dashboard {client.dashboard_link}")
+            yield client
+        return
+    # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
+    warnings.filterwarnings("ignore", message="Port 8787 is already in use")
+    with LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:8787",
+        silence_logs=logging.ERROR,
+    ) as cluster, Client(cluster) as client:
+        log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
+        yield client
+
+
+# ================================================================================================
+# The run: ask -> evaluate -> tell, with metrics, checkpoints and outputs
+# ================================================================================================
+
+class StopRequests:
+    """Ctrl-C and SIGTERM, acted on only where stopping is safe.
+
+    A signal only records the request, except inside `interruptible()` (waiting for the cluster's
+    results), where it stops the wait at once. So a stop never cuts a checkpoint write, an import
+    or a tell in half: the iteration in flight is abandoned and the last completed one is kept.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._raise_now = False
+
+    def install(self) -> None:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.requested = True
+        if self._raise_now:
+            self._raise_now = False
+            raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def interruptible(self) -> Iterator[None]:
+        self.check()
+        self._raise_now = True
+        try:
+            yield
+        finally:
+            self._raise_now = False
+
+
+STOP = StopRequests()
+CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
+
+
+def iteration_metrics(archive, iteration: int, evaluations: int, elapsed: float) -> dict:
+    """One row of metrics.json: the archive's state after `iteration` iterations."""
+    stats = archive.stats
+    return {
+        "iteration": iteration,
+        "evaluations": evaluations,
+        "coverage": float(stats.coverage),
+        "num_elites": int(stats.num_elites),
+        "qd_score": float(stats.qd_score),
+        "best_objective": float(stats.obj_max) if stats.num_elites else None,
+        "mean_objective": float(stats.obj_mean) if stats.num_elites else None,
+        "elapsed_s": round(elapsed, 3),
+    }
+
+
+class Run:
+    """One search between two iterations, and the folder it is saved to.
+
+    The checkpoint is built and written here only. It always holds the last completed iteration:
+    ask() moves the emitters on, so the scheduler is snapshotted (pickled, ~1 ms) after every tell,
+    and a stop or a fault while the cluster evaluates writes that snapshot. The iteration in flight
+    is abandoned, never half-recorded. The scheduler is pickled as one object (its emitters share
+    its archive; CMA-ES state and RNGs come along), so a resumed run asks exactly the same.
+    """
+
+    def __init__(self, run_dir: Path, config: dict, scheduler, metrics: list[dict]) -> None:
+        self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
+        self.snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+        self.saved = self.iteration
+        self._asked_at = 0.0
+
+    @classmethod
+    def start(cls, run_dir: Path, config: dict, client, log: logging.Logger,
+              seed_archive=None) -> Run:
+        """Iteration 0 of a new run, checkpointed at once so the folder always holds one.
+
+        With `seed_archive` (a warm start), its elites are first flown again in this run's setting
+        (another terrain, say) and inserted, and the emitters start from the best of them.
+        """
+        if seed_archive is None:
+            run = cls(run_dir, config, build_scheduler(config), [])
+        else:
+            elites = seed_archive.data(["solution"])["solution"]
+            objectives, measures = evaluate_batch(client, elites, config)
+            scheduler = build_scheduler(config, x0=elites[int(np.argmax(objectives))])
+            for archive in {id(a): a for a in (scheduler.archive, scheduler.result_archive)}.values():
+                archive.add(elites, objectives, measures)
+            run = cls(run_dir, config, scheduler,
+                      [iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0)])
+            log.info(f"Warm start: {len(elites)} elites re-evaluated, {len(scheduler.result_archive)} "
+                     f"kept; emitters start from the best (objective {objectives.max():.1f})")
+        run.save_checkpoint(force=True)
+        return run
+
+    @classmethod
+    def from_checkpoint(cls, run_dir: Path, checkpoint: dict) -> Run:
+        return cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"])
+
+    @property
+    def iteration(self) -> int:
+        return self.metrics[-1]["iteration"] if self.metrics else 0  # a warm start has iteration 0
+
+    def ask(self) -> np.ndarray:
+        self._asked_at = time.perf_counter()
+        return self.scheduler.ask()
+
+    def tell(self, objectives: np.ndarray, measures: np.ndarray) -> dict:
+        """Record the evaluated batch; returns the new row of metrics."""
+        self.scheduler.tell(objectives, measures)
+        self.snapshot = pickle.dumps(self.scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+        last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
+        self.metrics.append(iteration_metrics(
+            self.scheduler.result_archive, self.iteration + 1, last["evaluations"] + len(objectives),
+            last["elapsed_s"] + time.perf_counter() - self._asked_at))
+        return self.metrics[-1]
+
+    def checkpoint(self) -> dict:
+        """Everything needed to continue the run, as of the last completed iteration."""
+        return {"format": CHECKPOINT_FORMAT, "scheduler": pickle.loads(self.snapshot),
+                "metrics": list(self.metrics), "iteration": self.iteration, "config": self.config}
+
+    def save_checkpoint(self, force: bool = False) -> None:
+        """Write the checkpoint if iterations were completed since the last save."""
+        if force or self.iteration > self.saved:
+            write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
+            self.saved = self.iteration
+
+    def save(self) -> None:
+        """Refresh every file of the run folder; the checkpoint goes first."""
+        checkpoint = self.checkpoint()
+        write_pickle(self.dir / "checkpoint.pkl", checkpoint)
+        self.saved = self.iteration
+        save_outputs(self.dir, checkpoint)
+
+
+def run_loop(run: Run, client, iterations: int, log: logging.Logger) -> None:
+    """Iterate ask -> evaluate -> tell up to `iterations`, refreshing the run folder every
+    log_every iterations and at the end. A stop or a fault keeps the last completed iteration."""
+    from tqdm import tqdm
+
+    bar = tqdm(range(run.iteration + 1, iterations + 1), initial=run.iteration, total=iterations,
+               unit="it", desc="search", dynamic_ncols=True)
+    try:
+        for iteration in bar:
+            STOP.check()
+            solutions = run.ask()
+            with STOP.interruptible():
+                objectives, measures = evaluate_batch(client, solutions, run.config)
+            row = run.tell(objectives, measures)
+            bar.set_postfix(coverage=f"{row['coverage']:.3f}", qd=f"{row['qd_score']:.4g}",
+                            best=f"{row['best_objective'] or float('nan'):.1f}", refresh=False)
+            if iteration % run.config["log_every"] == 0 and iteration < iterations:
+                log.info(describe_progress(row, iterations))
+                run.save()
+    except BaseException as error:
+        bar.close()
+        try:
+            run.save_checkpoint()
+        except RunError:
+            if not isinstance(error, RunError):  # a stop, or another fault: report this one
+                raise
+        raise
+    bar.close()
+    run.save()
+    if run.metrics:
+        log.info("Done. " + describe_progress(run.metrics[-1], iterations))
+
+
+def describe_progress(row: dict, iterations: int) -> str:
+    best = row["best_objective"]
+    return (f"iteration {row['iteration']}/{iterations}: {row['evaluations']} evaluations, "
+            f"coverage {row['coverage']:.3f}, QD score {row['qd_score']:.0f}, "
+            f"best {best if best is None else round(best, 1)}, "
+            f"{row['elapsed_s'] / max(row['iteration'], 1):.2f} s/iteration")
+
+
+def load_run_state(run_dir: Path) -> tuple[dict, dict | None]:
+    """A run folder's config and checkpoint. A run killed before its first checkpoint (while its
+    cluster started) has only config.json: its checkpoint is None, and resume starts it afresh
+    from that config, which records the seed, so it ends as the uninterrupted run would."""
+    path = run_dir / "checkpoint.pkl"
+    if path.is_file() or not (run_dir / "config.json").is_file():
+        checkpoint = load_checkpoint(path)
+        return checkpoint["config"], checkpoint
+    recorded = read_run_json(run_dir, "config.json")
+    try:
+        return check_run_config(recorded), None
+    except UsageError as error:
+        raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
+
+
+def check_archive(archive: Any, path: Path, config: dict) -> None:
+    """The archive must be the grid of the run's config: solution size, cells, measure ranges."""
+    from ribs.archives import GridArchive
+
+    if not isinstance(archive, GridArchive):
+        raise UsageError(f"{path}: holds a {type(archive).__name__}, not a GridArchive")
+    grid = archive_grid(config)
+    shape = (archive.solution_dim, tuple(archive.dims), np.round(archive.lower_bounds, 9).tolist(),
+             np.round(archive.upper_bounds, 9).tolist())
+    lower, upper = zip(*grid["ranges"])
+    expected = (grid["solution_dim"], tuple(grid["dims"]), np.round(lower, 9).tolist(),
+                np.round(upper, 9).tolist())
+    if shape != expected:
+        raise UsageError(f"{path}: archive of another shape (solution size, grid, lower and upper "
+                         f"bounds {shape}; the run's --measures {','.join(config['measures'])} and "
+                         f"--grid {config['grid']} need {expected})")
+
+
+def check_archive_size(config: dict) -> None:
+    if config["grid"] ** len(config["measures"]) > MAX_CELLS:
+        raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
+                         f"{config['grid'] ** len(config['measures']):,} cells; at most {MAX_CELLS:,}")
+
+
+def load_archive(path: Path, config: dict):
+    """A saved archive, checked against the config of the run that uses it."""
+    archive = read_pickle(path, "archive pickle")
+    check_archive(archive, path, config)
+    if len(archive) == 0:
+        raise UsageError(f"{path}: the archive is empty; nothing to start from")
+    return archive
+
+
+def search_defaults() -> dict[str, Any]:
+    import inspect
+
+    return {name: parameter.default for name, parameter in inspect.signature(search).parameters.items()}
+
+
+def check_run_config(config: Any) -> dict:
+    """A run's recorded config, every flag valid (a UsageError says which is not); a config from
+    before a flag existed ran with that flag's default."""
+    try:
+        config = {**search_defaults(), **config}
+        config.update(check_flags({name: config[name] for name in FLAG_CHECKS}))
+    except TypeError as error:
+        raise UsageError(str(error)) from None
+    non_negative_int("seed", config["seed"])
+    return config
+
+
+def load_checkpoint(path: Path) -> dict:
+    """A checkpoint written by this script and consistent with this script's problem."""
+    if not path.is_file():
+        raise UsageError(f"{path}: no checkpoint there (is {path.parent} a run folder of lunar_lander.py?)")
+    checkpoint = read_pickle(path, "checkpoint")
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
+    from ribs.schedulers import Scheduler
+
+    try:
+        checkpoint["config"] = check_run_config(checkpoint["config"])
+        metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
+        if not isinstance(checkpoint["scheduler"], Scheduler):
+            raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
+    except (KeyError, TypeError, UsageError) as error:
+        raise UsageError(f"{path}: checkpoint of an incompatible config ({error})") from None
+    if [row["iteration"] for row in metrics if row["iteration"] > 0] != list(range(1, iteration + 1)):
+        raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
+    check_archive(checkpoint["scheduler"].archive, path, checkpoint["config"])
+    return checkpoint
+
+
+
+HEATMAP_RANGE = (-300, 300)
+
+
+def save_heatmap(archive, measures: list[str], path: Path, title: str) -> None:
+    """The tutorial's heatmap: objective per cell (faster impacts at the bottom). One measure
+    gives a strip; with three, each cell of the first two shows the best elite over the third."""
+    import matplotlib.pyplot as plt
+    from ribs.archives import GridArchive
+    from ribs.visualize import grid_archive_heatmap
+
+    if archive.measure_dim == 3:
+        data = archive.data(["solution", "objective", "measures"])
+        shown = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims[:2],
+                            ranges=list(zip(archive.lower_bounds[:2], archive.upper_bounds[:2])))
+        shown.add(data["solution"], data["objective"], data["measures"][:, :2])
+        title += f" (best over {MEASURES[measures[2]].label.lower()})"
+    else:
+        shown = archive
+    fig, ax = plt.subplots(figsize=(8, 6))
+    grid_archive_heatmap(shown, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
+    ax.set_xlabel(MEASURES[measures[0]].label)
+    if len(measures) > 1:
+        ax.set_ylabel(MEASURES[measures[1]].label)
+        if MEASURES[measures[1]].descending:
+            ax.invert_yaxis()
+    ax.set_title(title)
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    plt.close(fig)
+
+
+PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
+                   ("best_objective", "Best objective"))
+
+
+def save_progress_plot(metrics: list[dict], path: Path) -> None:
+    """QD score, coverage and best objective over iterations, side by side."""
+    save_metric_panels({"": metrics}, "iteration", "Iteration", path)
+
+
+def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, path: Path) -> None:
+    """One panel per metric of PROGRESS_PANELS, one line per run (labelled if it has a label)."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
+    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
+    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
+        for run_label, metrics in runs.items():
+            values = [np.nan if row[key] is None else row[key] for row in metrics]
+            ax.plot([row[x_key] for row in metrics], values, label=run_label or None)
+        ax.set_xlabel(x_label)
+        ax.set_title(label)
+        ax.grid(alpha=0.3)
+    labelled = any(runs)
+    if labelled:  # beside the panels, where it hides no curve
+        axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
+                                             bbox_inches="tight" if labelled else None))
+    plt.close(fig)
+
+
+def save_outputs(run_dir: Path, checkpoint: dict) -> None:
+    """The run folder's files besides the checkpoint: metrics, archive, heatmaps, progress."""
+    write_json(run_dir / "metrics.json", checkpoint["metrics"])
+    archive = checkpoint["scheduler"].result_archive
+    iteration = checkpoint["iteration"]
+    write_pickle(run_dir / "archive.pkl", archive)
+    table = archive.data(return_type="pandas")
+    atomic_write(run_dir / "archive.csv", lambda f: table.to_csv(f, index=False), mode="w")
+    title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
+    snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
+    save_heatmap(archive, checkpoint["config"]["measures"], snapshot, title)
+    atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
+    save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
+
+
+# ================================================================================================
+# The commands: search and resume
+# ================================================================================================
+
+def search(
+    iterations: int = 300,
+    workers: int = 2,
+    seed: int | None = None,
+    env_seed: Any = 52,
+    measures: Any = TUTORIAL_MEASURES,
+    grid: int = 50,
+    algorithm: str = "cma_me",
+    n_emitters: int = 5,
+    sigma0: float = 1.0,
+    batch_size: int = 30,
+    learning_rate: float = 0.01,
+    log_every: int = 25,
+    outdir: str | None = None,
+    scheduler_address: str | None = None,
+    from_archive: str | None = None,
+    fast_env: bool = True,
+) -> None:
+    """Search Lunar Lander landings with a QD algorithm and write a run folder.
+
+    Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
+    the results back. Every log_every iterations (and at the end) the run folder is refreshed:
+    checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
+    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help),
+    compare RUN_DIR... (see: lunar_lander.py compare --help).
+
+    Args:
+        iterations: Number of ask-evaluate-tell iterations.
+        workers: Number of Dask worker processes (one thread each) evaluating rollouts.
+        seed: Seed of the archive and emitters; drawn and recorded in config.json if omitted.
+            The same seed gives the same archive whatever the number of workers.
+        env_seed: The terrain(s) every policy is flown on: one seed (52), a range (0-4), a list
+            (3,5,8) or both (0-4,10). With several terrains the objective is the mean return
+            over them, and each measure is its per-terrain values averaged.
+        measures: 1 to 3 of the MEASURES table's rows, comma-separated, as the archive's axes:
+            impact_x, impact_y_velocity (the tutorial's, the default), impact_x_velocity,
+            impact_angle, fuel, flight_time, max_tilt.
+        grid: Archive cells along each measure.
+        algorithm: Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae (CMA-MAE) or
+            map_elites (MAP-Elites with Gaussian mutation); each asks n_emitters * batch_size
+            solutions per iteration.
+        n_emitters: Number of emitters.
+        sigma0: Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed sigma
+            of its Gaussian mutation.
+        batch_size: Solutions each emitter proposes per iteration.
+        learning_rate: cma_mae only: how fast a cell's threshold follows its improvements (0.01:
+            pyribs' CMA-MAE setting; 1 makes the archive CMA-ME's).
+        log_every: Log a line and refresh the run folder every this many iterations.
+        outdir: Run folder; default outputs/<timestamp>_seed<seed>. Must be new or empty.
+        scheduler_address: Address of a running Dask scheduler (tcp://HOST:PORT) to evaluate on
+            instead of starting a local cluster; --workers is then ignored.
+        from_archive: Warm start: an archive.pkl of an earlier run whose elites are re-evaluated
+            in this run's setting to fill the archive first; the emitters start from the best.
+        fast_env: Fly rollouts in the streamlined LunarLander-v3 (bitwise identical results,
+            about a third less time per step); false uses gym.make's plain environment.
+    """
+    flags = check_flags(dict(locals()))
+    check_archive_size(flags)
+    seed_archive = load_archive(Path(from_archive), flags) if from_archive else None
+    check_scheduler_reachable(scheduler_address)
+    if flags["seed"] is None:
+        flags["seed"] = secrets.randbelow(2**31)
+    with new_run_folder(flags["outdir"], flags["seed"]) as run_dir:
+        config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
+                  "command": sys.argv, "versions": library_versions()}
+        if from_archive:
+            config["from_archive"] = str(Path(from_archive).resolve())
+        write_json(run_dir / "config.json", config)
+        with run_session(run_dir, config["workers"], scheduler_address) as (client, log):
+            run = Run.start(run_dir, config, client, log, seed_archive)
+            run_loop(run, client, config["iterations"], log)
+
+
+def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
+           scheduler_address: str | None = None) -> None:
+    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped.
+
+    Args:
+        run_dir: A run folder written by this script.
+        iterations: Total iterations to reach; default: those the run was started with. A larger
+            number extends a finished run.
+        workers: Number of Dask worker processes; default: as the run was started.
+        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
+    """
+    path = Path(run_dir)
+    load_run_state(path)  # refuse a bad folder before anything is written in it
+    check_scheduler_reachable(scheduler_address)
+    with folder_lock(path):
+        config, checkpoint = load_run_state(path)  # as the last writer left it
+        iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)
+        workers = positive_int("workers", config["workers"] if workers is None else workers)
+        done = checkpoint["iteration"] if checkpoint else 0
+        if iterations < done:
+            raise UsageError(f"{path} is already at iteration {done}; --iterations must be at least that")
+        seed_archive = load_archive(Path(config["from_archive"]), config) if (
+            checkpoint is None and config.get("from_archive")) else None
+        config = {**config, "iterations": max(iterations, config["iterations"]),
+                  "resumed": [*config.get("resumed", []), {
+                      "at": datetime.datetime.now().isoformat(), "from_iteration": done,
+                      "to_iteration": iterations, "workers": workers}]}
+        write_json(path / "config.json", config)
+        with run_session(path, workers, scheduler_address) as (client, log):
+            if checkpoint is None:
+                run = Run.start(path, config, client, log, seed_archive)
+            else:
+                run = Run.from_checkpoint(path, {**checkpoint, "config": config})
+            run_loop(run, client, iterations, log)
+
+
+@contextlib.contextmanager
+def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> Iterator[tuple]:
+    """The Dask client and the log of a command writing `run_dir`, shut down however it ends.
+
+    A stop or a fault (a full disk, a lost cluster) ends with one line that says which iteration
+    the folder's checkpoint holds and the command that continues from it.
+    """
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    log = make_logger(run_dir)
+    with logging_redirect_tqdm(loggers=[log]):
+        log.info(f"Run folder: {run_dir}")
+        try:
+            with dask_client(workers, scheduler_address, log) as client:
+                yield client, log
+        except KeyboardInterrupt:
+            log.info(f"Stopped; {checkpoint_state(run_dir)}")
+            raise
+        except (RunError, OSError) as error:
+            raise RunError(f"{fault_text(error)}; {checkpoint_state(run_dir)}") from None
+
+
+def checkpoint_state(run_dir: Path) -> str:
+    """What a stopped or failed run folder holds, and the command that continues it."""
+    try:
+        held = f"its checkpoint holds iteration {read_pickle(run_dir / 'checkpoint.pkl', '')['iteration']}"
+    except (UsageError, KeyError, TypeError):
+        held = "it holds no checkpoint yet (resume starts the run from its config.json)"
+    return f"{held}; continue with: python lunar_lander.py resume {run_dir}"
+
+
+# ================================================================================================
+# Looking at the results: videos of chosen cells, elite tables, trajectories, robustness
+# ================================================================================================
+
+LANDED = 200.0  # the episode reward Gymnasium calls solved: a good landing
+
+
+def load_run(run_dir: Any) -> tuple[Any, dict]:
+    """A run folder's archive and config (checked against each other). Folders written before
+    --measures and --grid existed load with the tutorial's measures on a 50x50 grid."""
+    path = Path(str(run_dir))
+    if not path.is_dir():
+        raise UsageError(f"{path}: no such run folder")
+    if not (path / "archive.pkl").is_file():
+        raise UsageError(f"{path / 'archive.pkl'}: no such file (is {path} a run folder of lunar_lander.py?)")
+    recorded = read_run_json(path, "config.json")
+    try:
+        config = check_run_config(recorded)
+    except UsageError as error:
+        raise UsageError(f"{path / 'config.json'}: not a usable run config ({error})") from None
+    return load_archive(path / "archive.pkl", config), config
+
+
+def is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def parse_cells(cells: Any, measures: list[str]) -> list[tuple[float, ...]]:
+    """--cells as points in the run's measures. Fire hands over what it could parse (a list of
+    tuples, or one tuple) and the raw text otherwise, so both are accepted."""
+    import ast
+
+    points, size = cells, len(measures)
+    if isinstance(points, str):
+        with contextlib.suppress(ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+            points = ast.literal_eval(points)
+    if isinstance(points, (int, float)) and size == 1:
+        points = [(points,)]
+    if isinstance(points, (tuple, list)) and points and all(map(is_number, points)):
+        points = [points] if len(points) == size or size > 1 else [(p,) for p in points]
+    if not (isinstance(points, (tuple, list)) and points and all(
+            isinstance(p, (tuple, list)) and len(p) == size and all(map(is_number, p)) for p in points)):
+        example = "(" + ", ".join(f"{sum(MEASURES[m].range) / 2:g}" for m in measures) + ")"
+        raise UsageError(f"--cells takes points of ({', '.join(measures)}) such as "
+                         f'"[{example}]", got {cells!r}')
+    return [tuple(float(v) for v in point) for point in points]
+
+
+def parse_indices(index: Any, archive) -> list[int]:
+    """--index as one archive cell index or several (the cell_index column of `elites`)."""
+    values = list(index) if isinstance(index, (tuple, list)) else [index]
+    cells = int(np.prod(archive.dims))
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
+            raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
+                             f"command's cell_index), got {index!r}")
+    return values
+
+
+def point_text(point) -> str:
+    return "(" + ", ".join(f"{value:g}" for value in point) + ")"
+
+
+def check_in_archive(archive, point: tuple[float, ...], measures: list[str]) -> None:
+    ranges = ", ".join(f"{name} in [{lo:g}, {hi:g}]" for name, lo, hi in
+                       zip(measures, archive.lower_bounds, archive.upper_bounds))
+    if not all(lo <= p <= hi for p, lo, hi in zip(point, archive.lower_bounds, archive.upper_bounds)):
+        raise UsageError(f"cell {point_text(point)} is outside the archive: {ranges}")
+
+
+def elite_rows(archive) -> dict[str, np.ndarray]:
+    """Every elite (solution, objective, measures, index), best first; ties by cell index."""
+    data = archive.data(["solution", "objective", "measures", "index"])
+    order = np.lexsort((data["index"], -data["objective"]))
+    return {field: values[order] for field, values in data.items()}
+
+
+def pick(rows: dict[str, np.ndarray], i: int, name: str) -> dict:
+    return {"name": name, **{field: values[i] for field, values in rows.items()}}
+
+
+def nearest_occupied(archive, point: tuple[float, ...]) -> dict:
+    """The elite whose cell is nearest the point's cell, counting in cells (ties: lowest index)."""
+    rows = elite_rows(archive)
+    target = archive.int_to_grid_index([archive.index_of_single(point)])[0]
+    distance = np.linalg.norm(archive.int_to_grid_index(rows["index"]) - target, axis=1)
+    return pick(rows, int(np.lexsort((rows["index"], distance))[0]), "")
+
+
+def describe_elite(elite: dict, measures: list[str]) -> str:
+    values = ", ".join(f"{name} {value:.3f}" for name, value in zip(measures, elite["measures"]))
+    return f"objective {elite['objective']:.2f}, {values} (cell {elite['index']})"
+
+
+def file_tag(point, measures: list[str]) -> str:
+    """A point in the measures as a file-name part: x-0.40_v-0.10 (the MEASURES short names)."""
+    return "_".join(f"{MEASURES[name].short}{value:.2f}" for name, value in zip(measures, point))
+
+
+def elite_of_cell(archive, point: tuple[float, ...], measures: list[str], nearest: bool) -> dict:
+    """The elite of the cell holding `point`, as archive.retrieve_single finds it; for an empty
+    cell, the nearest occupied one if asked (else the error names it)."""
+    check_in_archive(archive, point, measures)
+    name = f"cell_{file_tag(point, measures)}"
+    occupied, elite = archive.retrieve_single(point)
+    if occupied:
+        return {"name": name, **elite}
+    near = nearest_occupied(archive, point)
+    empty = f"the cell of {point_text(point)} (index {archive.index_of_single(point)}) is empty"
+    if not nearest:
+        raise UsageError(f"{empty}; the nearest occupied cell holds {describe_elite(near, measures)}; "
+                         f"add --nearest to use it")
+    print(f"{empty}; using the nearest occupied cell: {describe_elite(near, measures)}")
+    return {**near, "name": f"{name}_nearest{near['index']}"}
+
+
+def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None,
+                  index: Any = None, nearest: Any = False,
+                  measures: list[str] = TUTORIAL_MEASURES) -> list[dict]:
+    """The elites a results command shows, each named for its file: the --cells points' cells,
+    the --best, the --top K by objective, the --index cells, in that order."""
+    nearest, best, measures = boolean("nearest", nearest), boolean("best", best), list(measures)
+    if cells is None and not best and top is None and index is None:
+        raise UsageError("choose elites with --cells, --best, --top or --index")
+    rows, chosen = elite_rows(archive), []
+    if cells is not None:
+        chosen += [elite_of_cell(archive, point, measures, nearest)
+                   for point in parse_cells(cells, measures)]
+    if best:
+        chosen.append(pick(rows, 0, "best"))
+    if top is not None:
+        chosen += [pick(rows, i, f"top{i + 1:02d}")
+                   for i in range(min(positive_int("top", top), len(rows["index"])))]
+    if index is not None:
+        where = {int(cell): i for i, cell in enumerate(rows["index"])}
+        for cell in parse_indices(index, archive):
+            if cell not in where:
+                raise UsageError(f"cell index {cell} is empty (the elites command lists the occupied ones)")
+            chosen.append(pick(rows, where[cell], f"index{cell}"))
+    for elite in chosen:
+        if not elite["name"].startswith("cell_"):
+            elite["name"] += f"_{file_tag(elite['measures'], measures)}"
+        elite["name"] += f"_obj{elite['objective']:.0f}"
+    return chosen
+
+
+class Mp4Recorder(gym.Wrapper):
+    """Streams the frame after reset and after every step into an mp4 at the env's 50 fps, with
+    imageio-ffmpeg. Not gymnasium's RecordVideo: it keeps every frame in memory, and its moviepy
+    2.2 writer drops the last frame (the landing) whenever 1/fps summed over the frames falls
+    short of their count (212 frames -> 4.2399999 s -> 211 written)."""
+
+    def __init__(self, env: gym.Env, path: Path) -> None:
+        super().__init__(env)
+        self.path, self.frames, self._writer = path, 0, None
+
+    def reset(self, **kwargs):
+        result = self.env.reset(**kwargs)
+        self._write_frame()
+        return result
+
+    def step(self, action):
+        result = self.env.step(action)
+        self._write_frame()
+        return result
+
+    def _write_frame(self) -> None:
+        import imageio_ffmpeg
+
+        frame = self.env.render()
+        if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
+            self._writer = imageio_ffmpeg.write_frames(
+                str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
+                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8,
+                ffmpeg_log_level="quiet")  # a failure is reported once, in one line (record_video)
+            self._writer.send(None)
+        self._writer.send(np.ascontiguousarray(frame))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        super().close()
+
+
+def load_chosen_elites(run_dir: Any, env_seed: Any, *selection: Any) -> tuple[dict, list[dict], int]:
+    """The run's config, the elites `selection` (select_elites' flags) picks from its archive, and
+    the terrain to show them on: --env_seed, by default the run's first."""
+    archive, config = load_run(run_dir)
+    shown = config["env_seed"][0] if env_seed is None else non_negative_int("env_seed", env_seed)
+    return config, select_elites(archive, *selection, measures=config["measures"]), shown
+
+
+def reflown(elite: dict, config: dict) -> tuple[float, list[float]]:
+    """The elite flown again in its run's setting (every terrain, averaged as the engine does):
+    rollouts are deterministic, so this is exactly its stored objective and measures."""
+    env, seeds = make_env(config["fast_env"]), config["env_seed"]
+    rows = [np.array([rollout(elite["solution"], seed, env, config["measures"]) for seed in seeds])]
+    objectives, measures = averaged(per_terrain(rows, seeds))
+    return float(objectives[0]), measures[0].tolist()
+
+
+def record_video(solution: np.ndarray, env_seed: int, path: Path) -> None:
+    """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
+    + 1 frames (the reset's frame first); written aside and moved into place whole."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
+            env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
+            try:
+                fly(solution, env_seed, env)
+            finally:
+                env.close()
+            os.replace(env.path, path)
+    except OSError as error:
+        # When ffmpeg fails, Python sees only a broken pipe: a full disk is the usual cause.
+        full = shutil.disk_usage(path.parent).free < 2**20 if path.parent.exists() else False
+        cause = os.strerror(errno.ENOSPC) if full else fault_text(error)
+        raise RunError(f"cannot write {path}: {cause}") from None
+
+
+def write_csv(path: Path, table) -> None:
+    atomic_write(path, lambda f: table.to_csv(f, index=False), mode="w")
+
+
+def video(run_dir: str, cells: Any = None, best: bool = False, top: int | None = None,
+          index: Any = None, nearest: bool = False, env_seed: int | None = None) -> None:
+    """Render an mp4 per chosen elite, flown on one of the run's terrains, into RUN_DIR/videos/.
+
+    Each elite is also flown again in its run's setting and must score exactly its stored
+    objective and measures (a warning says if not). videos/index.csv lists the videos with the
+    elites' objectives and measures.
+
+    Args:
+        run_dir: A run folder written by this script.
+        cells: Points in the run's measures "[(m1, m2), ...]": the elite of each point's cell
+            (archive.retrieve_single); for the tutorial's impact x and impact y-velocity, e.g.
+            "[(-0.4, -0.1), (0.6, -0.1), (0.0, -0.1)]".
+        best: The elite with the highest objective.
+        top: The K elites with the highest objectives.
+        index: Archive cell indices (the cell_index column of the elites command).
+        nearest: For an empty cell, use the nearest occupied cell instead of stopping.
+        env_seed: The terrain to film on; default: the run's first.
+    """
+    import pandas as pd
+
+    config, chosen, shown = load_chosen_elites(run_dir, env_seed, cells, best, top, index, nearest)
+    folder, rows, measures = Path(str(run_dir)) / "videos", [], config["measures"]
+    for elite in chosen:
+        STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
+        path = folder / f"{elite['name']}.mp4"
+        record_video(elite["solution"], shown, path)
+        print(f"{path}: {describe_elite(elite, measures)}")
+        objective, values = reflown(elite, config)
+        reproduced = objective == elite["objective"] and values == list(elite["measures"])
+        if not reproduced:
+            print(f"warning: flown again, {path.name} scored {objective!r} with measures {values}, "
+                  f"not the stored {elite['objective']!r}, {list(elite['measures'])} "
+                  f"(other library versions?)", file=sys.stderr)
+        rows.append({"video": path.name, "env_seed": shown, "cell_index": int(elite["index"]),
+                     "objective": float(elite["objective"]),
+                     **{name: float(value) for name, value in zip(measures, elite["measures"])},
+                     "reflown_objective": objective, "reproduced": reproduced})
+    write_csv(folder / "index.csv", pd.DataFrame(rows))
+
+
+def elite_table(archive, measures: list[str], min_objective: float | None = None,
+                top: int | None = None):
+    """The archive's elites as a table (archive.data), best first, filtered and cut; the columns
+    are named after the run's measures."""
+    table = archive.data(["objective", "measures", "index"], return_type="pandas")
+    table = table.sort_values(["objective", "index"], ascending=[False, True], ignore_index=True)
+    if min_objective is not None:
+        table = table[table["objective"] >= min_objective]
+    if top is not None:
+        table = table.head(top)
+    columns = {"objective": "objective", **{f"measures_{i}": name for i, name in enumerate(measures)},
+               "index": "cell_index"}
+    return table.rename(columns=columns)[list(columns.values())].reset_index(drop=True)
+
+
+def elites(run_dir: str, min_objective: float | None = None, top: int | None = None) -> None:
+    """Print the run's elites sorted by objective, and write them to RUN_DIR/elites.csv.
+
+    Args:
+        run_dir: A run folder written by this script.
+        min_objective: Only elites scoring at least this (200: good landings).
+        top: Only the K best of those.
+    """
+    archive, config = load_run(run_dir)
+    if min_objective is not None and not is_number(min_objective):
+        raise UsageError(f"--min_objective must be a number, got {min_objective!r}")
+    table = elite_table(archive, config["measures"], min_objective,
+                        None if top is None else positive_int("top", top))
+    path = Path(str(run_dir)) / "elites.csv"
+    write_csv(path, table)
+    print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")
+          if len(table) else "no elites match")
+    print(f"{len(table)} of {len(archive)} elites; written to {path}")
+
+
+def terrain(env_seed: int) -> np.ndarray:
+    """The ground line of a terrain, (x, y) in the observation's units (as trajectories)."""
+    edges, _, _ = _seeded_randoms(env_seed)
+    points = np.array([edges[0][0], *(end for _, end in edges)])
+    return np.column_stack([(points[:, 0] - _HALF_W) / _HALF_W, (points[:, 1] - _PAD_Y) / _HALF_H])
+
+
+def fly_paths(chosen: list[dict], env_seed: int) -> list[tuple[np.ndarray, int]]:
+    """Each elite's (x, y) per step, and the index of its touchdown (its last step if none)."""
+    env, paths = make_env(), []
+    for elite in chosen:
+        STOP.check()
+        path: list = []
+        flight = fly(elite["solution"], env_seed, env, path)
+        paths.append((np.array(path), (flight.touchdown_step or flight.steps) - 1))
+    return paths
+
+
+def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]], env_seed: int,
+                         path: Path) -> None:
+    """The tutorial's "many ways to land" on one page: flight paths over the terrain, coloured by
+    objective, impacts marked. Equal metres on both axes (x and y are scaled differently)."""
+    import matplotlib.pyplot as plt
+    from matplotlib import cm, colors
+
+    objectives = [float(elite["objective"]) for elite in chosen]
+    norm = colors.Normalize(min(objectives) - 1e-9, max(objectives) + 1e-9)
+    cmap = plt.get_cmap("viridis")
+    ground = terrain(env_seed)
+    fig, ax = plt.subplots(figsize=(11, 7))
+    ax.fill_between(ground[:, 0], ground[:, 1], ground[:, 1].min() - 0.2, color="0.75", zorder=0)
+    ax.plot([-0.2, 0.2], [ground[5, 1]] * 2, color="gold", lw=4, label="helipad", zorder=1)
+    for elite, (flight, step) in zip(chosen, paths):
+        colour = cmap(norm(float(elite["objective"])))
+        ax.plot(flight[:, 0], flight[:, 1], color=colour, lw=1.2, alpha=0.9,
+                label=elite["name"] if len(chosen) <= 12 else None)
+        ax.plot(*flight[step], marker="o", ms=7, mec="black", color=colour, zorder=3)
+    ax.set_aspect(_HALF_H / _HALF_W)
+    ax.set_xlim(-1.05, 1.05)
+    ax.set_ylim(ground[:, 1].min() - 0.2, max(1.5, max(float(f[:, 1].max()) for f, _ in paths) + 0.05))
+    ax.set_xlabel("x (observation units: -1 and 1 are the screen edges)")
+    ax.set_ylabel("y of the lander's centre (0: resting on the helipad)")
+    ax.set_title(f"Flight paths of {len(chosen)} elites on terrain {env_seed} (dots: touchdown)")
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="Objective", shrink=0.8)
+    ax.legend(fontsize=7, loc="upper left")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    plt.close(fig)
+
+
+def trajectories(run_dir: str, cells: Any = None, best: bool = False, top: int | None = None,
+                 index: Any = None, nearest: bool = False, env_seed: int | None = None) -> None:
+    """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
+
+    The elites are chosen as for the video command (see: lunar_lander.py video --help).
+
+    Args:
+        run_dir: A run folder written by this script.
+        cells: Points in the run's measures "[(m1, m2), ...]", one elite per point's cell.
+        best: Add the best elite.
+        top: Add the K best elites.
+        index: Add these cells' elites.
+        nearest: Replace an empty cell by the nearest occupied one.
+        env_seed: The terrain to fly on; default: the run's first.
+    """
+    config, chosen, shown = load_chosen_elites(run_dir, env_seed, cells, best, top, index, nearest)
+    path = Path(str(run_dir)) / "trajectories.png"
+    save_trajectory_plot(chosen, fly_paths(chosen, shown), shown, path)
+    for elite in chosen:
+        print(f"{elite['name']}: {describe_elite(elite, config['measures'])}")
+    print(f"written to {path}")
+
+
+def console_log() -> logging.Logger:
+    """Messages of commands that only read a run: printed, not appended to its run.log."""
+    log = logging.getLogger("lunar_lander.results")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    log.handlers = [logging.StreamHandler(sys.stdout)]  # today's stdout, not the first call's
+    return log
+
+
+def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
+                     objectives: np.ndarray):
+    """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
+    elites that generalise best first."""
+    import pandas as pd
+
+    table = pd.DataFrame({"cell_index": rows["index"], "objective": rows["objective"],
+                          **{name: rows["measures"][:, i] for i, name in enumerate(measures)},
+                          "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
+                          "std_objective": objectives.std(axis=1),
+                          "landed_share": (objectives >= LANDED).mean(axis=1)})
+    table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
+                      axis=1)
+    return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
+
+
+def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None = None,
+                        workers: int = 2, scheduler_address: str | None = None) -> None:
+    """Fly the run's elites on other terrains (on Dask) to see which landing styles generalise.
+
+    Writes RUN_DIR/robustness.csv (per elite: its objective in the run, i.e. its mean over the
+    run's terrains; mean, min and standard deviation of its objective over the new terrains, share
+    of landings >= 200, and each terrain's objective) and RUN_DIR/robustness_heatmap.png (the
+    archive coloured by the mean objective on the new terrains).
+
+    Args:
+        run_dir: A run folder written by this script.
+        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10.
+        top: Only the K elites with the highest objectives (default: all).
+        workers: Number of Dask worker processes.
+        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
+    """
+    from dask.distributed import as_completed
+    from ribs.archives import GridArchive
+    from tqdm import tqdm
+
+    archive, config = load_run(run_dir)
+    seeds, workers = seed_list("env_seeds", env_seeds), positive_int("workers", workers)
+    rows = elite_rows(archive)
+    if top is not None:
+        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
+    if seen := sorted(set(seeds) & set(config["env_seed"])):
+        print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
+    with dask_client(workers, scheduler_address, console_log()) as client:
+        futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"])
+        with STOP.interruptible():
+            for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
+                          dynamic_ncols=True):
+                pass
+            objectives = per_terrain(client.gather(futures), seeds)[:, :, 0]
+    run = Path(str(run_dir))
+    table = robustness_table(rows, config["measures"], seeds, objectives)
+    write_csv(run / "robustness.csv", table)
+    means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
+                        ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+    means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
+    save_heatmap(means, config["measures"], run / "robustness_heatmap.png",
+                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
+    landed = table["landed_share"]
+    print(f"{len(table)} elites on {len(seeds)} terrains: "
+          f"mean objective {table['mean_objective'].mean():.1f}; "
+          f"{(landed == 1).sum()} land (>= {LANDED:g}) on every terrain, {(landed >= 0.5).sum()} on at "
+          f"least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
+    print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")
+
+
+# ================================================================================================
+# Comparing runs: QD score, coverage and best objective against evaluations, and a final table
+# ================================================================================================
+
+COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
+SOLVED_CELLS = f"cells_{LANDED:.0f}+"  # the table's column of cells holding a good landing
+
+
+def solved_cells(run_dir: Path) -> int | None:
+    """Cells of the final archive holding a landing that solves the task (None without archive.csv):
+    QD score and coverage count crashes too; this counts only the good landings."""
+    import pandas as pd
+
+    try:
+        objectives = pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"]
+        return int((objectives >= LANDED).sum())
+    except (OSError, ValueError):
+        return None
+
+
+def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
+    """A run's config and its metrics rows (at least one, each with every compared field)."""
+    config, metrics = read_run_json(run_dir, "config.json"), read_run_json(run_dir, "metrics.json")
+    if not isinstance(config, dict):
+        raise UsageError(f"{run_dir / 'config.json'}: not a run config")
+    if not (isinstance(metrics, list) and metrics
+            and all(isinstance(row, dict) and set(COMPARED) <= row.keys() for row in metrics)):
+        raise UsageError(f"{run_dir / 'metrics.json'}: no metrics to compare")
+    return config, metrics
+
+
+SETTING_FLAGS = ("env_seed", "measures", "grid", "n_emitters", "batch_size", "sigma0",
+                 "learning_rate")
+
+
+def run_setting(config: dict) -> str:
+    """The algorithm, and the flags shaping it that differ from their defaults: runs of one
+    setting with different seeds are repeats of one experiment."""
+    defaults, changed = check_flags(search_defaults()), []
+    for flag in (flag for flag in SETTING_FLAGS if flag in config):
+        with contextlib.suppress(UsageError):
+            value = check_flags({flag: config[flag]})[flag]  # 52 and [52] are one terrain
+            if value != defaults[flag]:
+                changed.append(f"{flag}={','.join(map(str, value)) if isinstance(value, list) else value}")
+    return " ".join([str(config.get("algorithm", "?")), *changed])
+
+
+def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
+    """'setting seed N' for each run, or the folders as given when that would be ambiguous."""
+    labels = [f"{run_setting(config)} seed {config.get('seed', '?')}" for config in configs]
+    return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
+
+
+def comparison_outputs(out: str | None, overwrite: bool) -> tuple[Path, Path]:
+    """The PNG and the CSV next to it: by default new files under outputs/; never an existing
+    file unless --overwrite."""
+    if out is None:
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        candidates = [Path("outputs") / f"compare_{stamp}{suffix}.png" for suffix in
+                      ["", *(f"_{i}" for i in range(2, 1000))]]
+        png = next(p for p in candidates if not p.exists() and not p.with_suffix(".csv").exists())
+    else:
+        png = Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png")
+    existing = [str(p) for p in (png, png.with_suffix(".csv")) if p.exists()]
+    if existing and not overwrite:
+        raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
+                         f"or pass --overwrite")
+    return png, png.with_suffix(".csv")
+
+
+def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict],
+                     runs: list[list[dict]]):
+    """One row per run: its final metrics, with the algorithm and seed that produced them."""
+    import pandas as pd
+
+    table = pd.DataFrame([
+        {"run": label, "folder": str(run_dir), "setting": run_setting(config),
+         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
+         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir)}
+        for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
+    ])
+    table[SOLVED_CELLS] = pd.to_numeric(table[SOLVED_CELLS])  # None (no archive.csv): NaN
+    return table
+
+
+def format_table(table) -> str:
+    """The table as aligned text, with as many digits as a reader compares."""
+    whole, decimals = "{:.0f}".format, "{:.1f}".format
+    formats = {"evaluations": whole, "num_elites": whole, "coverage": "{:.4f}".format,
+               "qd_score": "{:,.0f}".format, "best_objective": decimals, "mean_objective": decimals,
+               SOLVED_CELLS: whole}
+    shown = table.drop(columns=["folder"], errors="ignore")
+    return shown.to_string(index=False, formatters={k: v for k, v in formats.items() if k in shown})
+
+
+def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
+    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
+    table of their final values (printed, and written as CSV next to the PNG).
+
+    Runs of the same batch, iterations and env seed give an equal-budget comparison.
+
+    Args:
+        run_dirs: Run folders written by this script (each needs config.json and metrics.json).
+        out: The PNG to write (the CSV gets the same name with .csv); default: a new
+            outputs/compare_<timestamp>.png.
+        overwrite: Replace the PNG and CSV if they already exist.
+    """
+    if not run_dirs:
+        raise UsageError("compare needs at least one run folder: "
+                         "python lunar_lander.py compare RUN_A RUN_B ...")
+    overwrite = boolean("overwrite", overwrite)
+    paths = [Path(str(run_dir)) for run_dir in run_dirs]
+    configs, runs = zip(*(load_run_metrics(path) for path in paths))
+    png, csv = comparison_outputs(None if out is None else str(out), overwrite)
+    labels = run_labels(paths, list(configs))
+    table = comparison_table(labels, paths, list(configs), list(runs))
+    save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
+    atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
+    print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
+    if table["evaluations"].nunique() > 1:
+        print("note: the runs end at different numbers of evaluations; compare at an equal budget")
+    if table["setting"].duplicated().any():
+        numbers = [*COMPARED, SOLVED_CELLS]
+        means = table.groupby("setting", sort=False)[numbers].mean().reset_index()
+        print("\nmean over the runs of each setting (the seeds of one algorithm and flags):\n"
+              + format_table(means))
+    print(f"wrote {png} and {csv}")
+
+
+# ================================================================================================
+# Machinery: flag checks, folders and files, logs, the command line
+# ================================================================================================
+
+def library_versions() -> dict[str, str]:
+    from importlib.metadata import version
+
+    packages = ["ribs", "gymnasium", "box2d", "dask", "distributed", "numpy"]
+    return {"python": platform.python_version(), **{name: version(name) for name in packages}}
+
+
+def positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise UsageError(f"--{name} must be a positive whole number, got {value!r}")
+    return value
+
+
+def non_negative_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise UsageError(f"--{name} must be a whole number >= 0, got {value!r}")
+    return value
+
+
+def positive_float(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise UsageError(f"--{name} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def fraction(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise UsageError(f"--{name} must be a number in (0, 1], got {value!r}")
+    return float(value)
+
+
+def boolean(name: str, value: Any) -> bool:
+    """Fire passes --flag=false as the string 'false' (and --flag alone as True)."""
+    words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if str(value).lower() in words:
+        return words[str(value).lower()]
+    raise UsageError(f"--{name} must be true or false, got {value!r}")
+
+
+def one_of(choices: dict) -> Callable[[str, Any], str]:
+    def check(name: str, value: Any) -> str:
+        if value not in choices:
+            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {value!r}")
+        return value
+    return check
+
+
+def seed_list(name: str, value: Any) -> list[int]:
+    """Seeds as a range 0-19, a list 3,5,8 or both (0-4,10); Fire may have made a number or a
+    tuple of it already."""
+    import re
+
+    parts = [str(part) for part in value] if isinstance(value, (tuple, list)) else str(value).split(",")
+    seeds: list[int] = []
+    for part in parts:
+        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if isinstance(value, bool) or not match or (match[2] and int(match[2]) < int(match[1])):
+            raise UsageError(f"--{name} takes seeds >= 0 such as 52, 0-19, 3,5,8 or 0-4,10; got {value!r}")
+        seeds += range(int(match[1]), int(match[2] or match[1]) + 1)
+    return list(dict.fromkeys(seeds))
+
+
+def measure_names(name: str, value: Any) -> list[str]:
+    """1 to 3 distinct rows of MEASURES, as "a,b" or a list."""
+    names = [str(v).strip() for v in value] if isinstance(value, (tuple, list)) else str(value).split(",")
+    names = [n.strip() for n in names]
+    unknown = [n for n in names if n not in MEASURES]
+    if unknown or not 1 <= len(names) <= 3 or len(set(names)) != len(names):
+        raise UsageError(f"--{name} takes 1 to 3 different measures of {', '.join(MEASURES)}; "
+                         f"got {value!r}")
+    return names
+
+
+# How each search flag is checked; None (a drawn seed, a default folder) passes unchecked.
+FLAG_CHECKS: dict[str, Callable[[str, Any], Any]] = {
+    "iterations": positive_int,
+    "workers": positive_int,
+    "seed": non_negative_int,
+    "env_seed": seed_list,
+    "measures": measure_names,
+    "grid": positive_int,
+    "algorithm": one_of(ALGORITHMS),
+    "n_emitters": positive_int,
+    "sigma0": positive_float,
+    "batch_size": positive_int,
+    "learning_rate": fraction,
+    "log_every": positive_int,
+    "fast_env": boolean,
+}
+
+
+def check_flags(flags: dict[str, Any]) -> dict[str, Any]:
+    return {name: value if value is None or name not in FLAG_CHECKS
+            else FLAG_CHECKS[name](name, value) for name, value in flags.items()}
+
+
+def check_scheduler_reachable(address: str | None) -> None:
+    """Fail before anything is written if the scheduler's address is malformed or nobody listens."""
+    import socket
+
+    if address is None:
+        return
+    from distributed.comm import get_address_host_port
+
+    try:
+        host, port = get_address_host_port(address)
+        socket.create_connection((host, port), timeout=10).close()
+    except (OSError, ValueError) as error:
+        raise UsageError(f"cannot reach the Dask scheduler at {address}: {error}") from None
+
+
+LOCK_FILE = ".lock"  # in every folder being written; holds the writer's pid
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Be the only writer of `folder` while the block runs, or refuse with the holder's pid.
+
+    An OS lock (flock) on folder/.lock: the kernel drops it when its process ends, however it ends,
+    so a kill -9 never leaves a stale lock. Readers (elites, compare) take no lock.
+    """
+    import fcntl
+
+    try:
+        fd = os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as error:
+        raise UsageError(f"cannot write the folder {folder}: {error.strerror or error}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise UsageError(f"{folder} is being written by another lunar_lander.py process "
+                             f"(pid {holder}); wait for it to end, or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def holds_files(folder: Path) -> bool:
+    """Whether `folder` exists with anything in it but a lock file (or is not a folder)."""
+    return folder.exists() and (not folder.is_dir() or any(
+        path.name != LOCK_FILE for path in folder.iterdir()))
+
+
+@contextlib.contextmanager
+def new_run_folder(outdir: str | None, seed: int) -> Iterator[Path]:
+    """A new, empty run folder, locked for this process: an existing run is never written over,
+    not even by a second search started into the same --outdir at the same moment."""
+    if outdir is None:
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        run_dir = Path("outputs") / f"{stamp}_seed{seed}"
+        run_dir = next(p for p in [run_dir, *(Path(f"{run_dir}_{i}") for i in range(2, 1000))]
+                       if not p.exists())
+    else:
+        run_dir = Path(outdir)
+    taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
+                       f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    if holds_files(run_dir):
+        raise taken
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot write the run folder {run_dir}: {error.strerror or error}") from None
+    with folder_lock(run_dir):
+        if holds_files(run_dir):  # another process filled it between the check and the lock
+            raise taken
+        yield run_dir
+
+
+UMASK = os.umask(0o022)
+os.umask(UMASK)
+
+
+def atomic_write(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
+    """Write `path` via a temporary file and os.replace, so a crash never leaves half a file.
+
+    A failed write (a full disk, say) leaves the previous file whole and raises a RunError that
+    names `path`, not the temporary file the error happened in.
+    """
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.chmod(tmp, 0o666 & ~UMASK)  # mkstemp makes files private; outputs are ordinary files
+        with os.fdopen(fd, mode) as file:
+            write(file)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException as error:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(error, OSError):
+            raise RunError(f"cannot write {path}: {error.strerror or error}") from None
+        raise
+
+
+def write_json(path: Path, data: Any) -> None:
+    atomic_write(path, lambda f: json.dump(data, f, indent=2), mode="w")
+
+
+def write_pickle(path: Path, obj: Any) -> None:
+    atomic_write(path, lambda f: pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def read_run_json(run_dir: Path, name: str) -> Any:
+    """A JSON file of a run folder, or a UsageError naming what is missing or wrong."""
+    path = run_dir / name
+    if not run_dir.is_dir():
+        raise UsageError(f"{run_dir}: no such run folder")
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (is {run_dir} a run folder of lunar_lander.py?)")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise UsageError(f"{path}: not readable JSON ({error})") from None
+
+
+def read_pickle(path: Path, what: str) -> Any:
+    """Unpickle a file of ours, or raise a UsageError that names the file and what is wrong.
+
+    Pickles can run code when loaded: only load files you trust (archive.csv is for sharing).
+    """
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (expected {what})")
+    try:
+        with open(path, "rb") as file:
+            return pickle.load(file)
+    except Exception as error:  # truncated, corrupt, or not a pickle at all
+        raise UsageError(f"{path}: not a readable {what} ({type(error).__name__}: {error})") from None
+
+
+def fault_text(error: BaseException) -> str:
+    """An OSError (or our RunError) as one line: the file and the cause, without a traceback."""
+    if isinstance(error, OSError) and error.filename:
+        return f"{error.filename}: {error.strerror or error}"
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+class QuietFileHandler(logging.FileHandler):
+    """run.log is a copy of the console: a failed write (a full disk) must not print a traceback;
+    the fault is reported once, by the write that matters."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        pass
+
+
+def make_logger(run_dir: Path) -> logging.Logger:
+    """Messages go to the console and, appended, to the run folder's run.log."""
+    log = logging.getLogger("lunar_lander")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    for handler in list(log.handlers):
+        log.removeHandler(handler)
+        handler.close()
+    console = logging.StreamHandler(sys.stdout)
+    logfile = QuietFileHandler(run_dir / "run.log", encoding="utf-8")
+    logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+    for handler in (console, logfile):
+        log.addHandler(handler)
+    return log
 
 
 # ------------------------------------------------------------------------------------------------
@@ -271,1437 +1923,6 @@ class FastLunarLander(upstream.LunarLander):
         return state, reward, False
 
 
-# ================================================================================================
-# The algorithm: an archive of elites, emitters that propose solutions, a scheduler tying them
-# ================================================================================================
-
-GRID_DIMS = (50, 50)
-MEASURE_RANGES = ((-1.0, 1.0), (-3.0, 0.0))  # impact x-position, impact y-velocity
-MEASURE_LABELS = ("Impact x-position", "Impact y-velocity")
-QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
-
-# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
-# whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
-# a small function of the run's config. All rows share the grid, the seeds, x0 and the batch size,
-# so every algorithm asks n_emitters * batch_size solutions per iteration.
-# - cma_me: the tutorial's CMA-ME (EvolutionStrategyEmitter, two-stage improvement ranker).
-# - cma_mae: pyribs' CMA-MAE tutorial and sphere.py's "cma_mae" row: a soft archive with
-#   learning_rate (--learning_rate, 0.01 there) and threshold_min (0 there for objectives in
-#   [0, 100]; here the QD offset -600, below almost every episode's reward), a plain result archive
-#   of the same grid that keeps the best solutions (metrics, heatmaps and archive.pkl come from
-#   it), and emitters with the "imp" ranker, "mu" selection and "basic" restarts.
-# - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
-#   fixed sigma (--sigma0). The policy argmax(W @ obs) ignores W's scale and the search starts
-#   from zeros, so only sigma relative to the elites' weights matters, as for CMA-ES's sigma0.
-ALGORITHMS: dict[str, dict[str, Any]] = {
-    "cma_me": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "2imp"},
-    },
-    "cma_mae": {
-        "archive": lambda config: {"learning_rate": config["learning_rate"],
-                                   "threshold_min": QD_SCORE_OFFSET},
-        "result_archive": True,
-        "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "imp",
-                                          "selection_rule": "mu", "restart_rule": "basic"},
-    },
-    "map_elites": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "GaussianEmitter",
-        "emitter_kwargs": lambda config: {"sigma": config["sigma0"]},
-    },
-}
-
-
-def derive_seeds(seed: int, count: int) -> list[int]:
-    """Independent seeds for the archive and each emitter, all fixed by the one run seed."""
-    return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
-
-
-def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
-    """The archive, emitters and scheduler of `config["algorithm"]`, seeded from `config["seed"]`.
-
-    The emitters start from `x0` (default: zeros, as in the tutorial).
-    """
-    from ribs.archives import GridArchive
-    from ribs import emitters as ribs_emitters
-    from ribs.schedulers import Scheduler
-
-    spec = ALGORITHMS[config["algorithm"]]
-    # A result archive's seed comes last, so the other seeds are those of a run without one.
-    archive_seed, *emitter_seeds, result_seed = derive_seeds(config["seed"], config["n_emitters"] + 2)
-    grid = dict(solution_dim=SOLUTION_DIM, dims=GRID_DIMS, ranges=MEASURE_RANGES,
-                qd_score_offset=QD_SCORE_OFFSET)
-    archive = GridArchive(**grid, seed=archive_seed, **spec["archive"](config))
-    result_archive = GridArchive(**grid, seed=result_seed) if spec["result_archive"] else None
-    emitter_class = getattr(ribs_emitters, spec["emitter"])
-    emitters = [
-        emitter_class(
-            archive,
-            x0=np.zeros(SOLUTION_DIM) if x0 is None else x0,
-            batch_size=config["batch_size"],
-            seed=emitter_seed,
-            **spec["emitter_kwargs"](config),
-        )
-        for emitter_seed in emitter_seeds
-    ]
-    return Scheduler(archive, emitters, result_archive=result_archive)
-
-
-# ================================================================================================
-# The evaluation engine: batches of rollouts on a Dask cluster
-# ================================================================================================
-
-_WORKER_ENVS: dict[bool, gym.Env] = {}  # one environment per worker process, reused across tasks
-
-
-def evaluate_chunk(solutions: np.ndarray, env_seed: int, fast_env: bool = True) -> np.ndarray:
-    """Runs on a worker: roll out a chunk of solutions; rows of (objective, x, y-velocity).
-
-    A chunk of solutions per task (not one task per solution) keeps the scheduler's per-task cost
-    small next to the rollouts, and the environment is kept between tasks: reset(seed) gives the
-    same episode bit for bit as a fresh environment, without paying for gym.make each time.
-    """
-    env = _WORKER_ENVS.get(fast_env)
-    if env is None:
-        env = _WORKER_ENVS[fast_env] = make_env(fast_env)
-    return np.array([rollout(solution, env_seed, env) for solution in solutions]).reshape(-1, 3)
-
-
-# Two chunks per worker even out episodes of 60 to 1000 steps across workers as well as more do
-# (measured: 1, 2, 3, 4, 8), while each task costs the main process ~0.6 ms of scheduling.
-CHUNKS_PER_WORKER = 2
-MIN_CHUNK = 4  # solutions per task at least, on big clusters: a task costs ~0.6 ms to schedule
-
-
-def by_reference(function: Callable) -> Callable:
-    """The same function, reached through this script's import name instead of `__main__`.
-
-    Dask pickles functions of `__main__` by value into every task; through the module name they
-    travel as a short reference that workers resolve by importing this script.
-    """
-    if function.__module__ != "__main__":
-        return function
-    return getattr(importlib.import_module(Path(__file__).stem), function.__name__)
-
-
-def evaluate(client, solutions: np.ndarray, env_seed: int,
-             fast_env: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Objectives and measures of `solutions`, in their order, evaluated on the Dask cluster.
-
-    Results come back in the order of the solutions whatever the number of workers, so a fixed
-    seed gives the same archive on 1 or 100 workers. Tasks of a worker that dies are retried.
-    """
-    workers = max(1, sum(client.nthreads().values()))
-    n_chunks = min(CHUNKS_PER_WORKER * workers, max(1, len(solutions) // MIN_CHUNK))
-    chunks = np.array_split(solutions, n_chunks)
-    futures = client.map(
-        by_reference(evaluate_chunk), chunks, env_seed=env_seed, fast_env=fast_env, pure=False,
-        retries=3,
-    )
-    results = np.concatenate(client.gather(futures))
-    return results[:, 0], results[:, 1:]
-
-
-def ship_script(client) -> None:
-    """Make this exact script importable by the scheduler and every worker of a cluster.
-
-    Tasks refer to `lunar_lander.evaluate_chunk` by name, so the scheduler (which unpickles task
-    graphs) and the workers must import this script. Machines elsewhere have the libraries but not
-    the script, or an older copy: then it is uploaded (to workers that join later too). Where all
-    already import this very file (a local cluster), nothing is reloaded.
-    """
-    import hashlib
-
-    def digest_of_importable_script() -> str | None:  # runs on the scheduler and the workers
-        import hashlib
-        import importlib.util
-
-        spec = importlib.util.find_spec("lunar_lander")
-        if spec is None or not spec.origin:
-            return None
-        with open(spec.origin, "rb") as file:
-            return hashlib.sha256(file.read()).hexdigest()
-
-    path = Path(__file__).resolve()
-    ours = hashlib.sha256(path.read_bytes()).hexdigest()
-    theirs = [client.run_on_scheduler(digest_of_importable_script),
-              *client.run(digest_of_importable_script).values()]
-    if any(digest != ours for digest in theirs):
-        client.upload_file(str(path))
-
-
-@contextlib.contextmanager
-def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
-    """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
-    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit).
-
-    A local cluster listens on localhost only: it runs whatever code it is sent.
-    """
-    from dask.distributed import Client, LocalCluster
-
-    if scheduler_address:
-        try:
-            client = Client(scheduler_address, timeout="20s")
-        except (OSError, ValueError) as error:
-            raise UsageError(f"cannot connect to the Dask scheduler at {scheduler_address}: "
-                             f"{str(error).splitlines()[0]}") from None
-        with client:
-            ship_script(client)
-            log.info(f"Dask cluster at {scheduler_address}: {len(client.nthreads())} worker(s); "
-                     f"dashboard {client.dashboard_link}")
-            yield client
-        return
-    # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
-    warnings.filterwarnings("ignore", message="Port 8787 is already in use")
-    with LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address="127.0.0.1:8787",
-        silence_logs=logging.ERROR,
-    ) as cluster, Client(cluster) as client:
-        log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
-        yield client
-
-
-# ================================================================================================
-# The run loop: ask -> evaluate -> tell, with metrics and checkpoints
-# ================================================================================================
-
-class StopRequests:
-    """Ctrl-C and SIGTERM, acted on only where stopping is safe.
-
-    A signal only records the request, except inside `interruptible()` (waiting for the cluster's
-    results), where it stops the wait at once. So a stop never cuts a checkpoint write, an import
-    or a tell in half: the iteration in flight is abandoned and the last completed one is kept.
-    """
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._raise_now = False
-
-    def install(self) -> None:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._on_signal)
-
-    def _on_signal(self, signum: int, frame: Any) -> None:
-        self.requested = True
-        if self._raise_now:
-            self._raise_now = False
-            raise KeyboardInterrupt
-
-    def check(self) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-
-    @contextlib.contextmanager
-    def interruptible(self) -> Iterator[None]:
-        self.check()
-        self._raise_now = True
-        try:
-            yield
-        finally:
-            self._raise_now = False
-
-
-STOP = StopRequests()
-CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
-UMASK = os.umask(0o022)
-os.umask(UMASK)
-
-
-def atomic_write(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
-    """Write `path` via a temporary file and os.replace, so a crash never leaves half a file.
-
-    A failed write (a full disk, say) leaves the previous file whole and raises a RunError that
-    names `path`, not the temporary file the error happened in.
-    """
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.chmod(tmp, 0o666 & ~UMASK)  # mkstemp makes files private; outputs are ordinary files
-        with os.fdopen(fd, mode) as file:
-            write(file)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException as error:
-        if tmp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-        if isinstance(error, OSError):
-            raise RunError(f"cannot write {path}: {error.strerror or error}") from None
-        raise
-
-
-def write_json(path: Path, data: Any) -> None:
-    atomic_write(path, lambda f: json.dump(data, f, indent=2), mode="w")
-
-
-def write_pickle(path: Path, obj: Any) -> None:
-    atomic_write(path, lambda f: pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def iteration_metrics(archive, iteration: int, evaluations: int, elapsed: float) -> dict:
-    """One row of metrics.json: the archive's state after `iteration` iterations."""
-    stats = archive.stats
-    return {
-        "iteration": iteration,
-        "evaluations": evaluations,
-        "coverage": float(stats.coverage),
-        "num_elites": int(stats.num_elites),
-        "qd_score": float(stats.qd_score),
-        "best_objective": float(stats.obj_max) if stats.num_elites else None,
-        "mean_objective": float(stats.obj_mean) if stats.num_elites else None,
-        "elapsed_s": round(elapsed, 3),
-    }
-
-
-def make_checkpoint(scheduler_bytes: bytes, metrics: list[dict], config: dict) -> dict:
-    """Everything needed to continue a run. The scheduler is pickled as one object: its emitters
-    share its archive, and CMA-ES state and RNGs come along, so a resumed run asks the same."""
-    return {
-        "format": CHECKPOINT_FORMAT,
-        "scheduler": pickle.loads(scheduler_bytes),
-        "metrics": list(metrics),
-        "iteration": metrics[-1]["iteration"] if metrics else 0,  # metrics may start at iteration 0
-        "config": config,
-    }
-
-
-def run_loop(run_dir: Path, checkpoint: dict, client, iterations: int, log: logging.Logger) -> dict:
-    """Iterate ask -> evaluate -> tell up to `iterations`, refreshing outputs every log_every and at
-    the end; returns the final checkpoint.
-
-    After each tell the scheduler is snapshotted in memory (pickled, ~1 ms): a stop while the cluster
-    evaluates (ask has already moved the emitters on) or any error still writes a checkpoint of the
-    last completed iteration. The iteration in flight is abandoned, never half-recorded.
-    """
-    from tqdm import tqdm
-
-    config, scheduler, metrics = checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"]
-    snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
-    start = saved = checkpoint["iteration"]
-    elapsed = metrics[-1]["elapsed_s"] if metrics else 0.0
-    evaluations = metrics[-1]["evaluations"] if metrics else 0
-    bar = tqdm(range(start + 1, iterations + 1), initial=start, total=iterations, unit="it",
-               desc="search", dynamic_ncols=True)
-    try:
-        for iteration in bar:
-            STOP.check()
-            tic = time.perf_counter()
-            solutions = scheduler.ask()
-            with STOP.interruptible():
-                objectives, measures = evaluate(client, solutions, config["env_seed"], config["fast_env"])
-            scheduler.tell(objectives, measures)
-            elapsed += time.perf_counter() - tic
-            evaluations += len(solutions)
-            snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
-            row = iteration_metrics(scheduler.result_archive, iteration, evaluations, elapsed)
-            metrics.append(row)
-            bar.set_postfix(coverage=f"{row['coverage']:.3f}", qd=f"{row['qd_score']:.4g}",
-                            best=f"{row['best_objective'] or float('nan'):.1f}", refresh=False)
-            if iteration % config["log_every"] == 0 and iteration < iterations:
-                log.info(describe_progress(row, iterations))
-                save_outputs(run_dir, make_checkpoint(snapshot, metrics, config))
-                saved = iteration
-    except BaseException as error:
-        bar.close()
-        if metrics and metrics[-1]["iteration"] > saved:  # iterations done since the last save
-            try:
-                write_pickle(run_dir / "checkpoint.pkl", make_checkpoint(snapshot, metrics, config))
-            except RunError:
-                if not isinstance(error, RunError):  # a stop, or another fault: report this one
-                    raise
-        raise
-    bar.close()
-    checkpoint = make_checkpoint(snapshot, metrics, config)
-    save_outputs(run_dir, checkpoint)
-    if metrics:
-        log.info("Done. " + describe_progress(metrics[-1], iterations))
-    return checkpoint
-
-
-def describe_progress(row: dict, iterations: int) -> str:
-    best = row["best_objective"]
-    return (f"iteration {row['iteration']}/{iterations}: {row['evaluations']} evaluations, "
-            f"coverage {row['coverage']:.3f}, QD score {row['qd_score']:.0f}, "
-            f"best {best if best is None else round(best, 1)}, "
-            f"{row['elapsed_s'] / max(row['iteration'], 1):.2f} s/iteration")
-
-
-# ================================================================================================
-# The outputs: archive files, heatmaps and progress plots in the run folder
-# ================================================================================================
-
-HEATMAP_RANGE = (-300, 300)
-
-
-def save_heatmap(archive, path: Path, title: str) -> None:
-    """The tutorial's heatmap: objective per cell, faster impacts at the bottom."""
-    import matplotlib.pyplot as plt
-    from ribs.visualize import grid_archive_heatmap
-
-    fig, ax = plt.subplots(figsize=(8, 6))
-    grid_archive_heatmap(archive, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
-    ax.invert_yaxis()
-    ax.set_xlabel(MEASURE_LABELS[0])
-    ax.set_ylabel(MEASURE_LABELS[1])
-    ax.set_title(title)
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
-    plt.close(fig)
-
-
-PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
-                   ("best_objective", "Best objective"))
-
-
-def save_progress_plot(metrics: list[dict], path: Path) -> None:
-    """QD score, coverage and best objective over iterations, side by side."""
-    save_metric_panels({"": metrics}, "iteration", "Iteration", path)
-
-
-def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, path: Path) -> None:
-    """One panel per metric of PROGRESS_PANELS, one line per run (labelled if it has a label)."""
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
-    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
-    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
-    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
-        for run_label, metrics in runs.items():
-            values = [np.nan if row[key] is None else row[key] for row in metrics]
-            ax.plot([row[x_key] for row in metrics], values, label=run_label or None)
-        ax.set_xlabel(x_label)
-        ax.set_title(label)
-        ax.grid(alpha=0.3)
-    labelled = any(runs)
-    if labelled:  # beside the panels, where it hides no curve
-        axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
-                                             bbox_inches="tight" if labelled else None))
-    plt.close(fig)
-
-
-def save_outputs(run_dir: Path, checkpoint: dict) -> None:
-    """Refresh every file of the run folder from a checkpoint; the checkpoint goes first."""
-    write_pickle(run_dir / "checkpoint.pkl", checkpoint)
-    write_json(run_dir / "metrics.json", checkpoint["metrics"])
-    archive = checkpoint["scheduler"].result_archive
-    iteration = checkpoint["iteration"]
-    write_pickle(run_dir / "archive.pkl", archive)
-    table = archive.data(return_type="pandas")
-    atomic_write(run_dir / "archive.csv", lambda f: table.to_csv(f, index=False), mode="w")
-    title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
-    snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
-    save_heatmap(archive, snapshot, title)
-    atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
-    save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
-
-
-# ================================================================================================
-# The commands
-# ================================================================================================
-
-
-def library_versions() -> dict[str, str]:
-    from importlib.metadata import version
-
-    packages = ["ribs", "gymnasium", "box2d", "dask", "distributed", "numpy"]
-    return {"python": platform.python_version(), **{name: version(name) for name in packages}}
-
-
-def positive_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise UsageError(f"--{name} must be a positive whole number, got {value!r}")
-    return value
-
-
-def non_negative_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise UsageError(f"--{name} must be a whole number >= 0, got {value!r}")
-    return value
-
-
-def positive_float(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise UsageError(f"--{name} must be a positive number, got {value!r}")
-    return float(value)
-
-
-def fraction(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
-        raise UsageError(f"--{name} must be a number in (0, 1], got {value!r}")
-    return float(value)
-
-
-def boolean(name: str, value: Any) -> bool:
-    """Fire passes --flag=false as the string 'false' (and --flag alone as True)."""
-    words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if str(value).lower() in words:
-        return words[str(value).lower()]
-    raise UsageError(f"--{name} must be true or false, got {value!r}")
-
-
-def one_of(choices: dict) -> Callable[[str, Any], str]:
-    def check(name: str, value: Any) -> str:
-        if value not in choices:
-            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {value!r}")
-        return value
-    return check
-
-
-# How each search flag is checked; None (a drawn seed, a default folder) passes unchecked.
-FLAG_CHECKS: dict[str, Callable[[str, Any], Any]] = {
-    "iterations": positive_int,
-    "workers": positive_int,
-    "seed": non_negative_int,
-    "env_seed": non_negative_int,
-    "algorithm": one_of(ALGORITHMS),
-    "n_emitters": positive_int,
-    "sigma0": positive_float,
-    "batch_size": positive_int,
-    "learning_rate": fraction,
-    "log_every": positive_int,
-    "fast_env": boolean,
-}
-
-
-def check_flags(flags: dict[str, Any]) -> dict[str, Any]:
-    return {name: value if value is None or name not in FLAG_CHECKS
-            else FLAG_CHECKS[name](name, value) for name, value in flags.items()}
-
-
-def check_scheduler_reachable(address: str | None) -> None:
-    """Fail before anything is written if the scheduler's address is malformed or nobody listens."""
-    import socket
-
-    if address is None:
-        return
-    from distributed.comm import get_address_host_port
-
-    try:
-        host, port = get_address_host_port(address)
-        socket.create_connection((host, port), timeout=10).close()
-    except (OSError, ValueError) as error:
-        raise UsageError(f"cannot reach the Dask scheduler at {address}: {error}") from None
-
-
-LOCK_FILE = ".lock"  # in every folder being written; holds the writer's pid
-
-
-@contextlib.contextmanager
-def folder_lock(folder: Path) -> Iterator[None]:
-    """Be the only writer of `folder` while the block runs, or refuse with the holder's pid.
-
-    An OS lock (flock) on folder/.lock: the kernel drops it when its process ends, however it ends,
-    so a kill -9 never leaves a stale lock. Readers (elites, compare) take no lock.
-    """
-    import fcntl
-
-    try:
-        fd = os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
-    except OSError as error:
-        raise UsageError(f"cannot write the folder {folder}: {error.strerror or error}") from None
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-            raise UsageError(f"{folder} is being written by another lunar_lander.py process "
-                             f"(pid {holder}); wait for it to end, or stop it") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
-
-
-def holds_files(folder: Path) -> bool:
-    """Whether `folder` exists with anything in it but a lock file (or is not a folder)."""
-    return folder.exists() and (not folder.is_dir() or any(
-        path.name != LOCK_FILE for path in folder.iterdir()))
-
-
-@contextlib.contextmanager
-def new_run_folder(outdir: str | None, seed: int) -> Iterator[Path]:
-    """A new, empty run folder, locked for this process: an existing run is never written over,
-    not even by a second search started into the same --outdir at the same moment."""
-    if outdir is None:
-        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-        run_dir = Path("outputs") / f"{stamp}_seed{seed}"
-        run_dir = next(p for p in [run_dir, *(Path(f"{run_dir}_{i}") for i in range(2, 1000))]
-                       if not p.exists())
-    else:
-        run_dir = Path(outdir)
-    taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
-                       f"(to continue a run there: python lunar_lander.py resume {run_dir})")
-    if holds_files(run_dir):
-        raise taken
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise UsageError(f"cannot write the run folder {run_dir}: {error.strerror or error}") from None
-    with folder_lock(run_dir):
-        if holds_files(run_dir):  # another process filled it between the check and the lock
-            raise taken
-        yield run_dir
-
-
-class QuietFileHandler(logging.FileHandler):
-    """run.log is a copy of the console: a failed write (a full disk) must not print a traceback;
-    the fault is reported once, by the write that matters."""
-
-    def handleError(self, record: logging.LogRecord) -> None:
-        pass
-
-
-def make_logger(run_dir: Path) -> logging.Logger:
-    """Messages go to the console and, appended, to the run folder's run.log."""
-    log = logging.getLogger("lunar_lander")
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    for handler in list(log.handlers):
-        log.removeHandler(handler)
-        handler.close()
-    console = logging.StreamHandler(sys.stdout)
-    logfile = QuietFileHandler(run_dir / "run.log", encoding="utf-8")
-    logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
-    for handler in (console, logfile):
-        log.addHandler(handler)
-    return log
-
-
-@contextlib.contextmanager
-def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> Iterator[tuple]:
-    """The Dask client and the log of a command writing `run_dir`, shut down however it ends.
-
-    A stop or a fault (a full disk, a lost cluster) ends with one line that says which iteration
-    the folder's checkpoint holds and the command that continues from it.
-    """
-    from tqdm.contrib.logging import logging_redirect_tqdm
-
-    log = make_logger(run_dir)
-    with logging_redirect_tqdm(loggers=[log]):
-        log.info(f"Run folder: {run_dir}")
-        try:
-            with dask_client(workers, scheduler_address, log) as client:
-                yield client, log
-        except KeyboardInterrupt:
-            log.info(f"Stopped; {checkpoint_state(run_dir)}")
-            raise
-        except (RunError, OSError) as error:
-            raise RunError(f"{fault_text(error)}; {checkpoint_state(run_dir)}") from None
-
-
-def checkpoint_state(run_dir: Path) -> str:
-    """What a stopped or failed run folder holds, and the command that continues it."""
-    try:
-        held = f"its checkpoint holds iteration {read_pickle(run_dir / 'checkpoint.pkl', '')['iteration']}"
-    except (UsageError, KeyError, TypeError):
-        held = "it holds no checkpoint yet (resume starts the run from its config.json)"
-    return f"{held}; continue with: python lunar_lander.py resume {run_dir}"
-
-
-def fault_text(error: BaseException) -> str:
-    """An OSError (or our RunError) as one line: the file and the cause, without a traceback."""
-    if isinstance(error, OSError) and error.filename:
-        return f"{error.filename}: {error.strerror or error}"
-    return (str(error).strip().splitlines() or [type(error).__name__])[0]
-
-
-def fresh_checkpoint(run_dir: Path, config: dict, client, log: logging.Logger,
-                     seed_archive=None) -> dict:
-    """Iteration 0 of a new run, written at once so the folder always holds a checkpoint.
-
-    With `seed_archive` (a warm start), its elites are first flown again in this run's setting
-    (another terrain, say) and inserted, and the emitters start from the best of them.
-    """
-    metrics, x0, scheduler = [], None, None
-    if seed_archive is not None:
-        elites = seed_archive.data(["solution"])["solution"]
-        objectives, measures = evaluate(client, elites, config["env_seed"], config["fast_env"])
-        x0 = elites[int(np.argmax(objectives))]
-        scheduler = build_scheduler(config, x0=x0)
-        for archive in {id(a): a for a in (scheduler.archive, scheduler.result_archive)}.values():
-            archive.add(elites, objectives, measures)
-        metrics.append(iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0))
-        log.info(f"Warm start: {len(elites)} elites re-evaluated, {metrics[0]['num_elites']} kept; "
-                 f"emitters start from the best (objective {objectives.max():.1f})")
-    checkpoint = {"format": CHECKPOINT_FORMAT, "scheduler": scheduler or build_scheduler(config),
-                  "metrics": metrics, "iteration": 0, "config": config}
-    write_pickle(run_dir / "checkpoint.pkl", checkpoint)
-    return checkpoint
-
-
-def search(
-    iterations: int = 300,
-    workers: int = 2,
-    seed: int | None = None,
-    env_seed: int = 52,
-    algorithm: str = "cma_me",
-    n_emitters: int = 5,
-    sigma0: float = 1.0,
-    batch_size: int = 30,
-    learning_rate: float = 0.01,
-    log_every: int = 25,
-    outdir: str | None = None,
-    scheduler_address: str | None = None,
-    from_archive: str | None = None,
-    fast_env: bool = True,
-) -> None:
-    """Search Lunar Lander landings with a QD algorithm and write a run folder.
-
-    Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
-    the results back. Every log_every iterations (and at the end) the run folder is refreshed:
-    checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
-    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help),
-    compare RUN_DIR... (see: lunar_lander.py compare --help).
-
-    Args:
-        iterations: Number of ask-evaluate-tell iterations.
-        workers: Number of Dask worker processes (one thread each) evaluating rollouts.
-        seed: Seed of the archive and emitters; drawn and recorded in config.json if omitted.
-            The same seed gives the same archive whatever the number of workers.
-        env_seed: Seed of the Lunar Lander terrain every policy is flown on.
-        algorithm: Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae (CMA-MAE) or
-            map_elites (MAP-Elites with Gaussian mutation); each asks n_emitters * batch_size
-            solutions per iteration.
-        n_emitters: Number of emitters.
-        sigma0: Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed sigma
-            of its Gaussian mutation.
-        batch_size: Solutions each emitter proposes per iteration.
-        learning_rate: cma_mae only: how fast a cell's threshold follows its improvements (0.01:
-            pyribs' CMA-MAE setting; 1 makes the archive CMA-ME's).
-        log_every: Log a line and refresh the run folder every this many iterations.
-        outdir: Run folder; default outputs/<timestamp>_seed<seed>. Must be new or empty.
-        scheduler_address: Address of a running Dask scheduler (tcp://HOST:PORT) to evaluate on
-            instead of starting a local cluster; --workers is then ignored.
-        from_archive: Warm start: an archive.pkl of an earlier run whose elites are re-evaluated
-            in this run's setting to fill the archive first; the emitters start from the best.
-        fast_env: Fly rollouts in the streamlined LunarLander-v3 (bitwise identical results,
-            about a third less time per step); false uses gym.make's plain environment.
-    """
-    flags = check_flags(dict(locals()))
-    seed_archive = load_archive(Path(from_archive)) if from_archive else None
-    check_scheduler_reachable(scheduler_address)
-    if flags["seed"] is None:
-        flags["seed"] = secrets.randbelow(2**31)
-    with new_run_folder(flags["outdir"], flags["seed"]) as run_dir:
-        config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
-                  "command": sys.argv, "versions": library_versions()}
-        if from_archive:
-            config["from_archive"] = str(Path(from_archive).resolve())
-        write_json(run_dir / "config.json", config)
-        with run_session(run_dir, config["workers"], scheduler_address) as (client, log):
-            checkpoint = fresh_checkpoint(run_dir, config, client, log, seed_archive)
-            run_loop(run_dir, checkpoint, client, config["iterations"], log)
-
-
-def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
-           scheduler_address: str | None = None) -> None:
-    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped.
-
-    Args:
-        run_dir: A run folder written by this script.
-        iterations: Total iterations to reach; default: those the run was started with. A larger
-            number extends a finished run.
-        workers: Number of Dask worker processes; default: as the run was started.
-        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
-    """
-    path = Path(run_dir)
-    load_run_state(path)  # refuse a bad folder before anything is written in it
-    check_scheduler_reachable(scheduler_address)
-    with folder_lock(path):
-        config, checkpoint = load_run_state(path)  # as the last writer left it
-        iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)
-        workers = positive_int("workers", config["workers"] if workers is None else workers)
-        done = checkpoint["iteration"] if checkpoint else 0
-        if iterations < done:
-            raise UsageError(f"{path} is already at iteration {done}; --iterations must be at least that")
-        seed_archive = load_archive(Path(config["from_archive"])) if (
-            checkpoint is None and config.get("from_archive")) else None
-        config = {**config, "iterations": max(iterations, config["iterations"]),
-                  "resumed": [*config.get("resumed", []), {
-                      "at": datetime.datetime.now().isoformat(), "from_iteration": done,
-                      "to_iteration": iterations, "workers": workers}]}
-        write_json(path / "config.json", config)
-        with run_session(path, workers, scheduler_address) as (client, log):
-            if checkpoint is None:
-                checkpoint = fresh_checkpoint(path, config, client, log, seed_archive)
-            run_loop(path, {**checkpoint, "config": config}, client, iterations, log)
-
-
-def load_run_state(run_dir: Path) -> tuple[dict, dict | None]:
-    """A run folder's config and checkpoint. A run killed before its first checkpoint (while its
-    cluster started) has only config.json: its checkpoint is None, and resume starts it afresh
-    from that config, which records the seed, so it ends as the uninterrupted run would."""
-    path = run_dir / "checkpoint.pkl"
-    if path.is_file() or not (run_dir / "config.json").is_file():
-        checkpoint = load_checkpoint(path)
-        return checkpoint["config"], checkpoint
-    try:
-        return check_run_config(read_run_json(run_dir, "config.json")), None
-    except UsageError as error:
-        raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
-
-
-def read_run_json(run_dir: Path, name: str) -> Any:
-    """A JSON file of a run folder, or a UsageError naming what is missing or wrong."""
-    path = run_dir / name
-    if not run_dir.is_dir():
-        raise UsageError(f"{run_dir}: no such run folder")
-    if not path.is_file():
-        raise UsageError(f"{path}: no such file (is {run_dir} a run folder of lunar_lander.py?)")
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as error:
-        raise UsageError(f"{path}: not readable JSON ({error})") from None
-
-
-def read_pickle(path: Path, what: str) -> Any:
-    """Unpickle a file of ours, or raise a UsageError that names the file and what is wrong.
-
-    Pickles can run code when loaded: only load files you trust (archive.csv is for sharing).
-    """
-    if not path.is_file():
-        raise UsageError(f"{path}: no such file (expected {what})")
-    try:
-        with open(path, "rb") as file:
-            return pickle.load(file)
-    except Exception as error:  # truncated, corrupt, or not a pickle at all
-        raise UsageError(f"{path}: not a readable {what} ({type(error).__name__}: {error})") from None
-
-
-def check_archive(archive: Any, path: Path) -> None:
-    """The archive must be a grid of this problem: same solution size, grid and measure ranges."""
-    from ribs.archives import GridArchive
-
-    if not isinstance(archive, GridArchive):
-        raise UsageError(f"{path}: holds a {type(archive).__name__}, not a GridArchive")
-    shape = (archive.solution_dim, tuple(archive.dims), np.round(archive.lower_bounds, 9).tolist(),
-             np.round(archive.upper_bounds, 9).tolist())
-    expected = (SOLUTION_DIM, GRID_DIMS, [lo for lo, _ in MEASURE_RANGES], [hi for _, hi in MEASURE_RANGES])
-    if shape != expected:
-        raise UsageError(f"{path}: archive of another shape (solution size, grid, lower and upper "
-                         f"bounds {shape}; this problem needs {expected})")
-
-
-def load_archive(path: Path):
-    archive = read_pickle(path, "archive pickle")
-    check_archive(archive, path)
-    if len(archive) == 0:
-        raise UsageError(f"{path}: the archive is empty; nothing to start from")
-    return archive
-
-
-def search_defaults() -> dict[str, Any]:
-    import inspect
-
-    return {name: parameter.default for name, parameter in inspect.signature(search).parameters.items()}
-
-
-def check_run_config(config: Any) -> dict:
-    """A run's recorded config, every flag valid (a UsageError says which is not); a config from
-    before a flag existed ran with that flag's default."""
-    try:
-        config = {**search_defaults(), **config}
-        check_flags({name: config[name] for name in FLAG_CHECKS})
-    except TypeError as error:
-        raise UsageError(str(error)) from None
-    non_negative_int("seed", config["seed"])
-    return config
-
-
-def load_checkpoint(path: Path) -> dict:
-    """A checkpoint written by this script and consistent with this script's problem."""
-    if not path.is_file():
-        raise UsageError(f"{path}: no checkpoint there (is {path.parent} a run folder of lunar_lander.py?)")
-    checkpoint = read_pickle(path, "checkpoint")
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
-        raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
-    from ribs.schedulers import Scheduler
-
-    try:
-        checkpoint["config"] = check_run_config(checkpoint["config"])
-        metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
-        if not isinstance(checkpoint["scheduler"], Scheduler):
-            raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
-    except (KeyError, TypeError, UsageError) as error:
-        raise UsageError(f"{path}: checkpoint of an incompatible config ({error})") from None
-    if [row["iteration"] for row in metrics if row["iteration"] > 0] != list(range(1, iteration + 1)):
-        raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
-    check_archive(checkpoint["scheduler"].archive, path)
-    return checkpoint
-
-
-# ================================================================================================
-# Looking at the results: videos of chosen cells, elite tables, trajectories, robustness
-# ================================================================================================
-
-LANDED = 200.0  # the episode reward Gymnasium calls solved: a good landing
-ELITE_COLUMNS = {"objective": "objective", "measures_0": "impact_x",
-                 "measures_1": "impact_y_velocity", "index": "cell_index"}
-
-
-def load_run(run_dir: Any) -> tuple[Any, dict]:
-    """A run folder's archive (validated) and config: the results are shown on the run's terrain."""
-    path = Path(str(run_dir))
-    if not path.is_dir():
-        raise UsageError(f"{path}: no such run folder")
-    archive = load_archive(path / "archive.pkl")
-    config = read_run_json(path, "config.json")
-    try:
-        config["env_seed"] = non_negative_int("env_seed", config["env_seed"])
-    except (KeyError, TypeError, UsageError) as error:
-        raise UsageError(f"{path / 'config.json'}: no run config with an env_seed ({error})") from None
-    return archive, config
-
-
-def is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def parse_cells(cells: Any) -> list[tuple[float, float]]:
-    """--cells as measure points. Fire hands over what it could parse (a list of tuples, or one
-    tuple) and the raw text otherwise, so both are accepted."""
-    import ast
-
-    points = cells
-    if isinstance(points, str):
-        with contextlib.suppress(ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
-            points = ast.literal_eval(points)
-    if isinstance(points, (tuple, list)) and len(points) == 2 and all(map(is_number, points)):
-        points = [points]
-    if not (isinstance(points, (tuple, list)) and points and all(
-            isinstance(p, (tuple, list)) and len(p) == 2 and all(map(is_number, p)) for p in points)):
-        raise UsageError(f'--cells takes (impact x, impact y-velocity) points such as '
-                         f'"[(-0.4, -0.1), (0.6, -0.1)]", got {cells!r}')
-    return [(float(x), float(v)) for x, v in points]
-
-
-def parse_indices(index: Any, archive) -> list[int]:
-    """--index as one archive cell index or several (the cell_index column of `elites`)."""
-    values = list(index) if isinstance(index, (tuple, list)) else [index]
-    cells = int(np.prod(archive.dims))
-    for value in values:
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
-            raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
-                             f"command's cell_index), got {index!r}")
-    return values
-
-
-def check_in_archive(archive, point: tuple[float, float]) -> None:
-    ranges = ", ".join(f"{label.lower()} in [{lo:g}, {hi:g}]" for label, lo, hi in
-                       zip(MEASURE_LABELS, archive.lower_bounds, archive.upper_bounds))
-    if not all(lo <= p <= hi for p, lo, hi in zip(point, archive.lower_bounds, archive.upper_bounds)):
-        raise UsageError(f"cell ({point[0]:g}, {point[1]:g}) is outside the archive: {ranges}")
-
-
-def elite_rows(archive) -> dict[str, np.ndarray]:
-    """Every elite (solution, objective, measures, index), best first; ties by cell index."""
-    data = archive.data(["solution", "objective", "measures", "index"])
-    order = np.lexsort((data["index"], -data["objective"]))
-    return {field: values[order] for field, values in data.items()}
-
-
-def pick(rows: dict[str, np.ndarray], i: int, name: str) -> dict:
-    return {"name": name, **{field: values[i] for field, values in rows.items()}}
-
-
-def nearest_occupied(archive, point: tuple[float, float]) -> dict:
-    """The elite whose cell is nearest the point's cell, counting in cells (ties: lowest index)."""
-    rows = elite_rows(archive)
-    target = archive.int_to_grid_index([archive.index_of_single(point)])[0]
-    distance = np.linalg.norm(archive.int_to_grid_index(rows["index"]) - target, axis=1)
-    return pick(rows, int(np.lexsort((rows["index"], distance))[0]), "")
-
-
-def describe_elite(elite: dict) -> str:
-    return (f"objective {elite['objective']:.2f}, impact x {elite['measures'][0]:.3f}, "
-            f"impact y-velocity {elite['measures'][1]:.3f} (cell {elite['index']})")
-
-
-def elite_of_cell(archive, point: tuple[float, float], nearest: bool) -> dict:
-    """The elite of the cell holding `point`, as archive.retrieve_single finds it; for an empty
-    cell, the nearest occupied one if asked (else the error names it)."""
-    check_in_archive(archive, point)
-    name = f"cell_x{point[0]:.2f}_v{point[1]:.2f}"
-    occupied, elite = archive.retrieve_single(point)
-    if occupied:
-        return {"name": name, **elite}
-    near = nearest_occupied(archive, point)
-    empty = f"the cell of ({point[0]:g}, {point[1]:g}) (index {archive.index_of_single(point)}) is empty"
-    if not nearest:
-        raise UsageError(f"{empty}; the nearest occupied cell holds {describe_elite(near)}; "
-                         f"add --nearest to use it")
-    print(f"{empty}; using the nearest occupied cell: {describe_elite(near)}")
-    return {**near, "name": f"{name}_nearest{near['index']}"}
-
-
-def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None,
-                  index: Any = None, nearest: Any = False) -> list[dict]:
-    """The elites a results command shows, each named for its file: the --cells points' cells,
-    the --best, the --top K by objective, the --index cells, in that order."""
-    nearest, best = boolean("nearest", nearest), boolean("best", best)
-    if cells is None and not best and top is None and index is None:
-        raise UsageError("choose elites with --cells, --best, --top or --index")
-    rows, chosen = elite_rows(archive), []
-    if cells is not None:
-        chosen += [elite_of_cell(archive, point, nearest) for point in parse_cells(cells)]
-    if best:
-        chosen.append(pick(rows, 0, "best"))
-    if top is not None:
-        chosen += [pick(rows, i, f"top{i + 1:02d}")
-                   for i in range(min(positive_int("top", top), len(rows["index"])))]
-    if index is not None:
-        where = {int(cell): i for i, cell in enumerate(rows["index"])}
-        for cell in parse_indices(index, archive):
-            if cell not in where:
-                raise UsageError(f"cell index {cell} is empty (the elites command lists the occupied ones)")
-            chosen.append(pick(rows, where[cell], f"index{cell}"))
-    for elite in chosen:
-        if not elite["name"].startswith("cell_"):
-            elite["name"] += f"_x{elite['measures'][0]:.2f}_v{elite['measures'][1]:.2f}"
-        elite["name"] += f"_obj{elite['objective']:.0f}"
-    return chosen
-
-
-class Mp4Recorder(gym.Wrapper):
-    """Streams the frame after reset and after every step into an mp4 at the env's 50 fps, with
-    imageio-ffmpeg. Not gymnasium's RecordVideo: it keeps every frame in memory, and its moviepy
-    2.2 writer drops the last frame (the landing) whenever 1/fps summed over the frames falls
-    short of their count (212 frames -> 4.2399999 s -> 211 written)."""
-
-    def __init__(self, env: gym.Env, path: Path) -> None:
-        super().__init__(env)
-        self.path, self.frames, self._writer = path, 0, None
-
-    def reset(self, **kwargs):
-        result = self.env.reset(**kwargs)
-        self._write_frame()
-        return result
-
-    def step(self, action):
-        result = self.env.step(action)
-        self._write_frame()
-        return result
-
-    def _write_frame(self) -> None:
-        import imageio_ffmpeg
-
-        frame = self.env.render()
-        if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
-            self._writer = imageio_ffmpeg.write_frames(
-                str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
-                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8,
-                ffmpeg_log_level="quiet")  # a failure is reported once, in one line (record_video)
-            self._writer.send(None)
-        self._writer.send(np.ascontiguousarray(frame))
-        self.frames += 1
-
-    def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
-        super().close()
-
-
-def load_chosen_elites(run_dir: Any, *selection: Any) -> tuple[dict, list[dict]]:
-    """The run's config and the elites `selection` (select_elites' flags) picks from its archive."""
-    archive, config = load_run(run_dir)
-    return config, select_elites(archive, *selection)
-
-
-def record_video(solution: np.ndarray, env_seed: int, path: Path) -> tuple[float, float, float]:
-    """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
-    + 1 frames (the reset's frame first); written aside and moved into place whole."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
-            env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
-            try:
-                result = rollout(solution, env_seed, env)
-            finally:
-                env.close()
-            os.replace(env.path, path)
-    except OSError as error:
-        # When ffmpeg fails, Python sees only a broken pipe: a full disk is the usual cause.
-        full = shutil.disk_usage(path.parent).free < 2**20 if path.parent.exists() else False
-        cause = os.strerror(errno.ENOSPC) if full else fault_text(error)
-        raise RunError(f"cannot write {path}: {cause}") from None
-    return result
-
-
-def write_csv(path: Path, table) -> None:
-    atomic_write(path, lambda f: table.to_csv(f, index=False), mode="w")
-
-
-def video(run_dir: str, cells: Any = None, best: bool = False, top: int | None = None,
-          index: Any = None, nearest: bool = False) -> None:
-    """Render an mp4 per chosen elite, flown on the run's terrain, into RUN_DIR/videos/.
-
-    Each elite is flown again and must score exactly its stored objective (a warning says if not).
-    videos/index.csv lists the videos with the elites' objectives and measures.
-
-    Args:
-        run_dir: A run folder written by this script.
-        cells: Measure points "[(x, y-velocity), ...]": the elite of each point's cell
-            (archive.retrieve_single), e.g. "[(-0.4, -0.1), (0.6, -0.1), (0.0, -0.1)]".
-        best: The elite with the highest objective.
-        top: The K elites with the highest objectives.
-        index: Archive cell indices (the cell_index column of the elites command).
-        nearest: For an empty cell, use the nearest occupied cell instead of stopping.
-    """
-    import pandas as pd
-
-    config, chosen = load_chosen_elites(run_dir, cells, best, top, index, nearest)
-    folder, rows = Path(str(run_dir)) / "videos", []
-    for elite in chosen:
-        STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
-        path = folder / f"{elite['name']}.mp4"
-        objective, *measures = record_video(elite["solution"], config["env_seed"], path)
-        print(f"{path}: {describe_elite(elite)}")
-        reproduced = objective == elite["objective"] and measures == list(elite["measures"])
-        if not reproduced:
-            print(f"warning: flown again, {path.name} scored {objective!r} with measures {measures}, "
-                  f"not the stored {elite['objective']!r}, {list(elite['measures'])} "
-                  f"(other library versions?)", file=sys.stderr)
-        rows.append({"video": path.name, "cell_index": int(elite["index"]),
-                     "objective": float(elite["objective"]), "impact_x": float(elite["measures"][0]),
-                     "impact_y_velocity": float(elite["measures"][1]),
-                     "reflown_objective": objective, "reproduced": reproduced})
-    write_csv(folder / "index.csv", pd.DataFrame(rows))
-
-
-def elite_table(archive, min_objective: float | None = None, top: int | None = None):
-    """The archive's elites as a table (archive.data), best first, filtered and cut."""
-    table = archive.data(["objective", "measures", "index"], return_type="pandas")
-    table = table.sort_values(["objective", "index"], ascending=[False, True], ignore_index=True)
-    if min_objective is not None:
-        table = table[table["objective"] >= min_objective]
-    if top is not None:
-        table = table.head(top)
-    return table.rename(columns=ELITE_COLUMNS)[list(ELITE_COLUMNS.values())].reset_index(drop=True)
-
-
-def elites(run_dir: str, min_objective: float | None = None, top: int | None = None) -> None:
-    """Print the run's elites sorted by objective, and write them to RUN_DIR/elites.csv.
-
-    Args:
-        run_dir: A run folder written by this script.
-        min_objective: Only elites scoring at least this (200: good landings).
-        top: Only the K best of those.
-    """
-    archive, _ = load_run(run_dir)
-    if min_objective is not None and not is_number(min_objective):
-        raise UsageError(f"--min_objective must be a number, got {min_objective!r}")
-    table = elite_table(archive, min_objective, None if top is None else positive_int("top", top))
-    path = Path(str(run_dir)) / "elites.csv"
-    write_csv(path, table)
-    print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")
-          if len(table) else "no elites match")
-    print(f"{len(table)} of {len(archive)} elites; written to {path}")
-
-
-def terrain(env_seed: int) -> np.ndarray:
-    """The ground line of a terrain, (x, y) in the observation's units (as trajectories)."""
-    edges, _, _ = _seeded_randoms(env_seed)
-    points = np.array([edges[0][0], *(end for _, end in edges)])
-    return np.column_stack([(points[:, 0] - _HALF_W) / _HALF_W, (points[:, 1] - _PAD_Y) / _HALF_H])
-
-
-def fly_paths(chosen: list[dict], env_seed: int) -> list[np.ndarray]:
-    """Each elite's (x, y) per step, and the step of its impact (the measures' step)."""
-    env, paths = make_env(), []
-    for elite in chosen:
-        STOP.check()
-        path: list = []
-        rollout(elite["solution"], env_seed, env, path)
-        paths.append(np.array(path))
-    return paths
-
-
-def impact_step(path: np.ndarray, impact_x: float) -> int:
-    """The step whose x is the impact x (rollout records both from the same observation); the last
-    step if none is (a lander that never touched ground has its last x as impact x)."""
-    hits = np.flatnonzero(path[:, 0] == impact_x)
-    return int(hits[0]) if len(hits) else len(path) - 1
-
-
-def save_trajectory_plot(chosen: list[dict], paths: list[np.ndarray], env_seed: int,
-                         path: Path) -> None:
-    """The tutorial's "many ways to land" on one page: flight paths over the terrain, coloured by
-    objective, impacts marked. Equal metres on both axes (x and y are scaled differently)."""
-    import matplotlib.pyplot as plt
-    from matplotlib import cm, colors
-
-    objectives = [float(elite["objective"]) for elite in chosen]
-    norm = colors.Normalize(min(objectives) - 1e-9, max(objectives) + 1e-9)
-    cmap = plt.get_cmap("viridis")
-    ground = terrain(env_seed)
-    fig, ax = plt.subplots(figsize=(11, 7))
-    ax.fill_between(ground[:, 0], ground[:, 1], ground[:, 1].min() - 0.2, color="0.75", zorder=0)
-    ax.plot([-0.2, 0.2], [ground[5, 1]] * 2, color="gold", lw=4, label="helipad", zorder=1)
-    for elite, flight in zip(chosen, paths):
-        colour = cmap(norm(float(elite["objective"])))
-        step = impact_step(flight, float(elite["measures"][0]))
-        ax.plot(flight[:, 0], flight[:, 1], color=colour, lw=1.2, alpha=0.9,
-                label=elite["name"] if len(chosen) <= 12 else None)
-        ax.plot(*flight[step], marker="o", ms=7, mec="black", color=colour, zorder=3)
-    ax.set_aspect(_HALF_H / _HALF_W)
-    ax.set_xlim(-1.05, 1.05)
-    ax.set_ylim(ground[:, 1].min() - 0.2, max(1.5, max(float(f[:, 1].max()) for f in paths) + 0.05))
-    ax.set_xlabel("x (observation units: -1 and 1 are the screen edges)")
-    ax.set_ylabel("y of the lander's centre (0: resting on the helipad)")
-    ax.set_title(f"Flight paths of {len(chosen)} elites on terrain {env_seed} (dots: impact)")
-    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="Objective", shrink=0.8)
-    ax.legend(fontsize=7, loc="upper left")
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
-    plt.close(fig)
-
-
-def trajectories(run_dir: str, cells: Any = None, best: bool = False, top: int | None = None,
-                 index: Any = None, nearest: bool = False) -> None:
-    """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
-
-    The elites are chosen as for the video command (see: lunar_lander.py video --help).
-
-    Args:
-        run_dir: A run folder written by this script.
-        cells: Points "[(x, y-velocity), ...]", one elite per point's cell.
-        best: Add the best elite.
-        top: Add the K best elites.
-        index: Add these cells' elites.
-        nearest: Replace an empty cell by the nearest occupied one.
-    """
-    config, chosen = load_chosen_elites(run_dir, cells, best, top, index, nearest)
-    path = Path(str(run_dir)) / "trajectories.png"
-    save_trajectory_plot(chosen, fly_paths(chosen, config["env_seed"]), config["env_seed"], path)
-    for elite in chosen:
-        print(f"{elite['name']}: {describe_elite(elite)}")
-    print(f"written to {path}")
-
-
-def parse_env_seeds(value: Any) -> list[int]:
-    """--env_seeds as a range 0-19, a list 3,5,8 or both (0-4,10); Fire may have made a number or a
-    tuple of it already."""
-    import re
-
-    parts = [str(part) for part in value] if isinstance(value, (tuple, list)) else str(value).split(",")
-    seeds: list[int] = []
-    for part in parts:
-        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
-        if isinstance(value, bool) or not match or (match[2] and int(match[2]) < int(match[1])):
-            raise UsageError(f"--env_seeds takes seeds >= 0 such as 0-19, 3,5,8 or 0-4,10; got {value!r}")
-        seeds += range(int(match[1]), int(match[2] or match[1]) + 1)
-    return list(dict.fromkeys(seeds))
-
-
-def console_log() -> logging.Logger:
-    """Messages of commands that only read a run: printed, not appended to its run.log."""
-    log = logging.getLogger("lunar_lander.results")
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    log.handlers = [logging.StreamHandler(sys.stdout)]  # today's stdout, not the first call's
-    return log
-
-
-def robustness_table(rows: dict[str, np.ndarray], seeds: list[int], objectives: np.ndarray):
-    """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
-    elites that generalise best first."""
-    import pandas as pd
-
-    table = pd.DataFrame({"cell_index": rows["index"], "objective": rows["objective"],
-                          "impact_x": rows["measures"][:, 0], "impact_y_velocity": rows["measures"][:, 1],
-                          "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
-                          "std_objective": objectives.std(axis=1),
-                          "landed_share": (objectives >= LANDED).mean(axis=1)})
-    table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
-                      axis=1)
-    return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
-
-
-def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None = None,
-                        workers: int = 2, scheduler_address: str | None = None) -> None:
-    """Fly the run's elites on other terrains (on Dask) to see which landing styles generalise.
-
-    Writes RUN_DIR/robustness.csv (per elite: mean, min and standard deviation of its objective over
-    the terrains, share of landings >= 200, and each terrain's objective) and
-    RUN_DIR/robustness_heatmap.png (the archive coloured by the mean objective).
-
-    Args:
-        run_dir: A run folder written by this script.
-        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10.
-        top: Only the K elites with the highest objectives (default: all).
-        workers: Number of Dask worker processes.
-        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
-    """
-    from ribs.archives import GridArchive
-    from tqdm import tqdm
-
-    archive, _ = load_run(run_dir)
-    seeds, workers = parse_env_seeds(env_seeds), positive_int("workers", workers)
-    rows = elite_rows(archive)
-    if top is not None:
-        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
-    with dask_client(workers, scheduler_address, console_log()) as client:
-        columns = []
-        for seed in tqdm(seeds, desc="terrains", unit="terrain", dynamic_ncols=True):
-            with STOP.interruptible():
-                columns.append(evaluate(client, rows["solution"], seed)[0])
-    objectives, run = np.column_stack(columns), Path(str(run_dir))
-    table = robustness_table(rows, seeds, objectives)
-    write_csv(run / "robustness.csv", table)
-    means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
-                        ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
-    means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
-    save_heatmap(means, run / "robustness_heatmap.png",
-                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
-    landed = table["landed_share"]
-    print(f"{len(table)} elites on {len(seeds)} terrains: mean objective {table['mean_objective'].mean():.1f}; "
-          f"{(landed == 1).sum()} land (>= {LANDED:g}) on every terrain, {(landed >= 0.5).sum()} on at "
-          f"least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
-    print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")
-
-
-# ================================================================================================
-# Comparing runs: QD score, coverage and best objective against evaluations, and a final table
-# ================================================================================================
-
-COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
-SOLVED_CELLS = f"cells_{LANDED:.0f}+"  # the table's column of cells holding a good landing
-
-
-def solved_cells(run_dir: Path) -> int | None:
-    """Cells of the final archive holding a landing that solves the task (None without archive.csv):
-    QD score and coverage count crashes too; this counts only the good landings."""
-    import pandas as pd
-
-    try:
-        objectives = pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"]
-        return int((objectives >= LANDED).sum())
-    except (OSError, ValueError):
-        return None
-
-
-def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
-    """A run's config and its metrics rows (at least one, each with every compared field)."""
-    config, metrics = read_run_json(run_dir, "config.json"), read_run_json(run_dir, "metrics.json")
-    if not isinstance(config, dict):
-        raise UsageError(f"{run_dir / 'config.json'}: not a run config")
-    if not (isinstance(metrics, list) and metrics
-            and all(isinstance(row, dict) and set(COMPARED) <= row.keys() for row in metrics)):
-        raise UsageError(f"{run_dir / 'metrics.json'}: no metrics to compare")
-    return config, metrics
-
-
-SETTING_FLAGS = ("env_seed", "n_emitters", "batch_size", "sigma0", "learning_rate")
-
-
-def run_setting(config: dict) -> str:
-    """The algorithm, and the flags shaping it that differ from their defaults: runs of one
-    setting with different seeds are repeats of one experiment."""
-    defaults = search_defaults()
-    changed = [f"{flag}={config[flag]}" for flag in SETTING_FLAGS
-               if flag in config and config[flag] != defaults[flag]]
-    return " ".join([str(config.get("algorithm", "?")), *changed])
-
-
-def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
-    """'setting seed N' for each run, or the folders as given when that would be ambiguous."""
-    labels = [f"{run_setting(config)} seed {config.get('seed', '?')}" for config in configs]
-    return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
-
-
-def comparison_outputs(out: str | None, overwrite: bool) -> tuple[Path, Path]:
-    """The PNG and the CSV next to it: by default new files under outputs/; never an existing
-    file unless --overwrite."""
-    if out is None:
-        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-        candidates = [Path("outputs") / f"compare_{stamp}{suffix}.png" for suffix in
-                      ["", *(f"_{i}" for i in range(2, 1000))]]
-        png = next(p for p in candidates if not p.exists() and not p.with_suffix(".csv").exists())
-    else:
-        png = Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png")
-    existing = [str(p) for p in (png, png.with_suffix(".csv")) if p.exists()]
-    if existing and not overwrite:
-        raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
-                         f"or pass --overwrite")
-    return png, png.with_suffix(".csv")
-
-
-def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict],
-                     runs: list[list[dict]]):
-    """One row per run: its final metrics, with the algorithm and seed that produced them."""
-    import pandas as pd
-
-    table = pd.DataFrame([
-        {"run": label, "folder": str(run_dir), "setting": run_setting(config),
-         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
-         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir)}
-        for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
-    ])
-    table[SOLVED_CELLS] = pd.to_numeric(table[SOLVED_CELLS])  # None (no archive.csv): NaN
-    return table
-
-
-def format_table(table) -> str:
-    """The table as aligned text, with as many digits as a reader compares."""
-    whole, decimals = "{:.0f}".format, "{:.1f}".format
-    formats = {"evaluations": whole, "num_elites": whole, "coverage": "{:.4f}".format,
-               "qd_score": "{:,.0f}".format, "best_objective": decimals, "mean_objective": decimals,
-               SOLVED_CELLS: whole}
-    shown = table.drop(columns=["folder"], errors="ignore")
-    return shown.to_string(index=False, formatters={k: v for k, v in formats.items() if k in shown})
-
-
-def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
-    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
-    table of their final values (printed, and written as CSV next to the PNG).
-
-    Runs of the same batch, iterations and env seed give an equal-budget comparison.
-
-    Args:
-        run_dirs: Run folders written by this script (each needs config.json and metrics.json).
-        out: The PNG to write (the CSV gets the same name with .csv); default: a new
-            outputs/compare_<timestamp>.png.
-        overwrite: Replace the PNG and CSV if they already exist.
-    """
-    if not run_dirs:
-        raise UsageError("compare needs at least one run folder: "
-                         "python lunar_lander.py compare RUN_A RUN_B ...")
-    overwrite = boolean("overwrite", overwrite)
-    paths = [Path(str(run_dir)) for run_dir in run_dirs]
-    configs, runs = zip(*(load_run_metrics(path) for path in paths))
-    png, csv = comparison_outputs(None if out is None else str(out), overwrite)
-    labels = run_labels(paths, list(configs))
-    table = comparison_table(labels, paths, list(configs), list(runs))
-    save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
-    atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
-    print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
-    if table["evaluations"].nunique() > 1:
-        print("note: the runs end at different numbers of evaluations; compare at an equal budget")
-    if table["setting"].duplicated().any():
-        numbers = [*COMPARED, SOLVED_CELLS]
-        means = table.groupby("setting", sort=False)[numbers].mean().reset_index()
-        print("\nmean over the runs of each setting (the seeds of one algorithm and flags):\n"
-              + format_table(means))
-    print(f"wrote {png} and {csv}")
-
-
-# ================================================================================================
-# Command-line entry point
-# ================================================================================================
 
 COMMANDS: dict[str, Callable] = {
     "search": search, "resume": resume, "video": video, "elites": elites,

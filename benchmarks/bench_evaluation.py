@@ -20,6 +20,7 @@ rounds of all variants, since a shared machine's speed wanders. Cluster start-up
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import platform
@@ -35,7 +36,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import lunar_lander as ll  # noqa: E402  (the product, imported by name so workers import it too)
 
-CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30)
+CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
+              measures=list(ll.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True)
 
 
 def tutorial_simulate(model: np.ndarray, seed: int) -> tuple[float, float, float]:
@@ -72,6 +74,14 @@ def serial_evaluate(rollout: Callable) -> Callable:
         results = np.array([rollout(solution, env_seed) for solution in solutions])
         return results[:, 0], results[:, 1:]
     return evaluate
+
+
+def streamlined_rollout(solution: np.ndarray, seed: int, env) -> tuple[float, ...]:
+    return ll.rollout(solution, seed, env)
+
+
+def engine_evaluate(client, solutions: np.ndarray, env_seed: int):
+    return ll.evaluate_batch(client, solutions, {**CONFIG, "env_seed": [env_seed]})
 
 
 def run_search(evaluate: Callable, client, iterations: int) -> dict:
@@ -111,7 +121,7 @@ def local_client(workers: int):
     client = Client(cluster)
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
-    client.gather(client.map(ll.by_reference(ll.evaluate_chunk), [np.zeros((1, 32))] * workers,
+    client.gather(client.map(ll.by_reference(ll.fly_chunk), [np.zeros((1, 32))] * workers,
                              env_seed=52, pure=False))
     return cluster, client
 
@@ -126,12 +136,12 @@ def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]
         ("serial tutorial rollout, gym.make env", 0):
             run_search(serial_evaluate(tutorial_simulate), None, iterations),
         ("serial project rollout, streamlined env", 0): run_search(
-            serial_evaluate(lambda s, seed, env=ll.FastLunarLander(): ll.rollout(s, seed, env)),
+            serial_evaluate(functools.partial(streamlined_rollout, env=ll.FastLunarLander())),
             None, iterations),
     }
     for n in workers:
         for name, evaluate in [("baseline: task per solution (tutorial)", tutorial_evaluate),
-                               ("engine: lunar_lander.evaluate", ll.evaluate)]:
+                               ("engine: lunar_lander.evaluate_batch", engine_evaluate)]:
             cluster, client = local_client(n)
             try:
                 runs[name, n] = run_search(evaluate, client, iterations)
@@ -147,12 +157,14 @@ def main(iterations: int = 20, workers: tuple = (1, 2), repeats: int = 3,
     steps = count_steps(iterations)
     rollouts = iterations * CONFIG["n_emitters"] * CONFIG["batch_size"]
     rounds = [run_variants(iterations, tuple(workers)) for _ in range(repeats)]
-    median = lambda key, field: float(np.median([r[key][field] for r in rounds]))
+    def median(key, field):
+        return float(np.median([r[key][field] for r in rounds]))
+
     serial = {"baseline": median(("serial tutorial rollout, gym.make env", 0), "evaluate_s"),
               "engine": median(("serial project rollout, streamlined env", 0), "evaluate_s")}
     rows = []
     for name, n in rounds[0]:
-        wall, cpu = median((name, n), "wall_s"), median((name, n), "main_cpu_s")
+        wall = median((name, n), "wall_s")
         row = {"variant": name, "workers": n, "search_s": round(wall, 2),
                "s_per_iteration": round(wall / iterations, 3),
                "rollouts_per_s": round(rollouts / wall, 1),

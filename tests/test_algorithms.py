@@ -1,5 +1,5 @@
-"""CMA-MAE and MAP-Elites next to CMA-ME: their setups, complete run folders, resume and warm
-starts for each, and the `compare` command."""
+"""The algorithm table: the tutorial's CMA-ME, CMA-MAE and MAP-Elites, their setups, complete run
+folders, resume and warm starts for each, and the `compare` command."""
 
 import csv
 import json
@@ -9,14 +9,50 @@ import pytest
 from ribs.archives import GridArchive
 from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter
 from ribs.emitters.rankers import ImprovementRanker, TwoStageImprovementRanker
+from ribs.schedulers import Scheduler
+from test_cli import assert_one_line_error
 
 import lunar_lander as ll
-from test_cli import assert_one_line_error
 from util import archive_table, folder_state, load_pickle, run_archive, run_metrics
 
 ALGORITHMS = ["cma_me", "cma_mae", "map_elites"]
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
+
+
+CONFIG = dict(algorithm="cma_me", seed=3, n_emitters=5, sigma0=1.0, batch_size=30,
+              measures=list(ll.TUTORIAL_MEASURES), grid=50)
+
+
+def test_cma_me_is_the_tutorial_setup():
+    scheduler = ll.build_scheduler(CONFIG)
+    archive = scheduler.archive
+
+    assert isinstance(scheduler, Scheduler)
+    assert isinstance(archive, GridArchive)
+    assert tuple(archive.dims) == (50, 50)
+    assert np.allclose(archive.lower_bounds, [-1, -3]) and np.allclose(archive.upper_bounds, [1, 0])
+    assert archive.qd_score_offset == -600
+    assert archive.solution_dim == 32
+    assert len(scheduler.emitters) == 5
+    for emitter in scheduler.emitters:
+        assert isinstance(emitter, EvolutionStrategyEmitter)
+        assert isinstance(emitter._ranker, TwoStageImprovementRanker)
+        assert emitter.batch_size == 30
+        assert emitter.archive is archive
+        assert np.array_equal(emitter.x0, np.zeros(32))
+        assert emitter._sigma0 == 1.0
+
+
+def test_seed_fixes_the_proposals_and_emitters_differ():
+    first = ll.build_scheduler(CONFIG).ask()
+    again = ll.build_scheduler(CONFIG).ask()
+    other = ll.build_scheduler({**CONFIG, "seed": 4}).ask()
+
+    assert np.array_equal(first, again)
+    assert not np.array_equal(first, other)
+    per_emitter = first.reshape(5, 30, 32)
+    assert not np.array_equal(per_emitter[0], per_emitter[1])  # each emitter has its own seed
 
 
 def tiny_flags(dask_cluster, algorithm, **overrides):
@@ -35,7 +71,8 @@ def tiny_runs(tmp_path_factory, dask_cluster):
 
 
 def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
-    config = dict(seed=3, n_emitters=5, sigma0=1.0, batch_size=30, learning_rate=0.01)
+    config = dict(seed=3, n_emitters=5, sigma0=1.0, batch_size=30, learning_rate=0.01,
+                  measures=list(ll.TUTORIAL_MEASURES), grid=50)
     schedulers = {name: ll.build_scheduler({**config, "algorithm": name}) for name in ALGORITHMS}
 
     mae = schedulers["cma_mae"]

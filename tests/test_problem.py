@@ -1,19 +1,25 @@
-"""The problem: rollouts and their measures, checked against a manual step-by-step trace."""
+"""The problem: rollouts and every measure of the MEASURES table, checked against a step-by-step
+trace of gym.make's env made by hand; several terrains averaged by the engine."""
+
+import math
 
 import gymnasium as gym
 import numpy as np
+import pytest
+from test_fast_env import LANDER_W
 
 import lunar_lander as ll
 
 
-def step_trace(weights: np.ndarray, env_seed: int) -> list[tuple[np.ndarray, float]]:
-    """(observation, reward) after every step of one episode, stepped by hand."""
+def step_trace(weights: np.ndarray, env_seed: int) -> list[tuple[int, np.ndarray, float]]:
+    """(action, observation after it, reward) for every step of one episode, stepped by hand."""
     env = gym.make("LunarLander-v3")
     obs, _ = env.reset(seed=env_seed)
     trace, done = [], False
     while not done:
-        obs, reward, terminated, truncated, _ = env.step(int(np.argmax(weights @ obs)))
-        trace.append((obs.copy(), reward))
+        action = int(np.argmax(weights @ obs))
+        obs, reward, terminated, truncated, _ = env.step(action)
+        trace.append((action, obs.copy(), reward))
         done = terminated or truncated
     env.close()
     return trace
@@ -22,31 +28,57 @@ def step_trace(weights: np.ndarray, env_seed: int) -> list[tuple[np.ndarray, flo
 DO_NOTHING = np.zeros((4, 8))  # argmax of zeros is action 0: the lander falls onto the ground
 THRUST_UP = np.zeros((4, 8))
 THRUST_UP[2, 1] = 1.0  # main engine while above the ground: flies off the screen, never touches
+RNG = np.random.default_rng(11)
+MIXED = np.reshape(LANDER_W, (4, 8))  # a found lander: fires every engine, tilts, lands
+
+
+def expected_measures(trace) -> dict[str, float]:
+    """Every measure, computed from the trace as its MEASURES row describes it."""
+    touch = next((i for i, (_, obs, _) in enumerate(trace) if obs[6] or obs[7]), None)
+    impact = trace[-1 if touch is None else touch][1]
+    flight = trace if touch is None else trace[:touch + 1]
+    actions = [action for action, _, _ in trace]
+    return {
+        "impact_x": float(impact[0]),
+        "impact_y_velocity": float(min(obs[3] for _, obs, _ in trace) if touch is None else impact[3]),
+        "impact_x_velocity": float(impact[2]),
+        "impact_angle": float(impact[4]),
+        "fuel": actions.count(2) + 0.1 * (actions.count(1) + actions.count(3)),
+        "flight_time": float(len(trace) if touch is None else touch + 1),
+        "max_tilt": max(abs(float(obs[4])) for _, obs, _ in flight),
+    }
+
+
+@pytest.mark.parametrize("weights", [DO_NOTHING, THRUST_UP, MIXED], ids=["falls", "flies off", "mixed"])
+def test_every_measure_matches_a_hand_made_trace(weights):
+    trace = step_trace(weights, 52)
+    expected = expected_measures(trace)
+    names = tuple(ll.MEASURES)
+
+    result = ll.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names)
+
+    assert result[0] == sum(reward for _, _, reward in trace)
+    assert dict(zip(names, result[1:])) == pytest.approx(expected, rel=1e-12, abs=0)
+    assert ll.rollout(weights.ravel(), 52, ll.make_env(), names) == result  # the streamlined env too
+
+
+def test_the_traces_cover_what_the_measures_tell_apart():
+    falls, flies = expected_measures(step_trace(DO_NOTHING, 52)), expected_measures(step_trace(THRUST_UP, 52))
+    mixed_actions = {action for action, _, _ in step_trace(MIXED, 52)}
+    assert falls["fuel"] == 0 and flies["fuel"] > 0 and mixed_actions == {0, 1, 2, 3}
+    assert 50 < falls["flight_time"] < 100  # free fall touches down after ~60 steps
+    assert flies["impact_x"] < -1.0  # flew off the left edge: the last x is outside the range
+    for row in ll.MEASURES.values():
+        assert row.range[0] < row.range[1] and row.label and row.short
 
 
 def test_measures_at_first_leg_contact():
     trace = step_trace(DO_NOTHING, 52)
-    first_contact = next(i for i, (obs, _) in enumerate(trace) if obs[6] or obs[7])
+    first_contact = next(i for i, (_, obs, _) in enumerate(trace) if obs[6] or obs[7])
     assert 0 < first_contact < len(trace) - 1  # the contact is not simply the last step
-    obs = trace[first_contact][0]
-    expected = (sum(reward for _, reward in trace), float(obs[0]), float(obs[3]))
-
     result = ll.rollout(DO_NOTHING.ravel(), 52, gym.make("LunarLander-v3"))
-
-    assert result == expected
-    assert result[2] != float(trace[-1][0][3])  # measured at contact, not at the end
-
-
-def test_measures_without_contact_are_last_x_and_fastest_descent():
-    trace = step_trace(THRUST_UP, 52)
-    assert not any(obs[6] or obs[7] for obs, _ in trace)
-    expected = (sum(reward for _, reward in trace), float(trace[-1][0][0]),
-                min(float(obs[3]) for obs, _ in trace))
-
-    result = ll.rollout(THRUST_UP.ravel(), 52, gym.make("LunarLander-v3"))
-
-    assert result == expected
-    assert result[1] < -1.0  # flew off the left edge: the last x is outside the archive's range
+    assert result[1:] == (float(trace[first_contact][1][0]), float(trace[first_contact][1][3]))
+    assert result[2] != float(trace[-1][1][3])  # measured at contact, not at the end
 
 
 def test_terrain_seed_changes_the_episode():
@@ -55,20 +87,33 @@ def test_terrain_seed_changes_the_episode():
 
 
 def test_worker_chunk_matches_single_rollouts():
-    rng = np.random.default_rng(0)
-    solutions = rng.normal(size=(5, ll.SOLUTION_DIM))
+    solutions = RNG.normal(size=(5, ll.SOLUTION_DIM))
+    seeds = np.array([52, 52, 7, 7, 3])
     env = gym.make("LunarLander-v3")
-    expected = [ll.rollout(s, 52, env) for s in solutions]
-    assert ll.evaluate_chunk(solutions, 52).tolist() == [list(row) for row in expected]
+    expected = [ll.rollout(s, int(seed), env, ("fuel",)) for s, seed in zip(solutions, seeds)]
+    assert ll.fly_chunk(solutions, seeds, ("fuel",)).tolist() == [list(row) for row in expected]
 
 
-def test_dask_evaluation_keeps_solution_order(dask_client):
-    rng = np.random.default_rng(1)
-    solutions = rng.normal(size=(11, ll.SOLUTION_DIM))
+@pytest.mark.parametrize("terrains", [[52], [52, 7, 3]])
+def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains):
+    solutions = np.random.default_rng(1).normal(size=(11, ll.SOLUTION_DIM))
+    measures = ["impact_x", "flight_time", "max_tilt"]
     env = gym.make("LunarLander-v3")
-    expected = np.array([ll.rollout(s, 52, env) for s in solutions])
+    direct = np.array([[ll.rollout(s, seed, env, measures) for seed in terrains] for s in solutions])
+    config = {"env_seed": terrains, "measures": measures, "fast_env": True}
 
-    objectives, measures = ll.evaluate(dask_client, solutions, 52)
+    objectives, values = ll.evaluate_batch(dask_client, solutions, config)
 
-    assert objectives.tolist() == expected[:, 0].tolist()
-    assert measures.tolist() == expected[:, 1:].tolist()
+    assert objectives.shape == (11,) and values.shape == (11, 3)
+    assert np.allclose(objectives, direct[:, :, 0].mean(axis=1), rtol=1e-12, atol=0)
+    assert np.allclose(values, direct[:, :, 1:].mean(axis=1), rtol=1e-12, atol=0)
+    if len(terrains) == 1:  # one terrain: exactly the rollouts, bit for bit
+        assert objectives.tolist() == direct[:, 0, 0].tolist()
+
+
+def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
+    solutions = np.zeros((6, ll.SOLUTION_DIM))
+    futures = ll.submit_flights(dask_client, solutions, list(range(40)), ())
+    sizes = [len(chunk) for chunk in dask_client.gather(futures)]
+    assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 4  # 2 per worker
+    assert math.isclose(sum(sizes) / len(sizes), 60)

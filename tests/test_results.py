@@ -7,9 +7,9 @@ import numpy as np
 import pandas as pd
 import pytest
 from matplotlib.image import imread
+from test_cli import assert_one_line_error
 
 import lunar_lander as ll
-from test_cli import assert_one_line_error
 from util import folder_state, load_pickle
 
 
@@ -51,7 +51,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
     lengths = []
     for solution in data["solution"]:  # the shortest episode makes the quickest video
         path = []
-        ll.rollout(solution, 52, ll.make_env(), path)
+        ll.rollout(solution, 52, ll.make_env(), trajectory=path)
         lengths.append(len(path))
     shortest = int(np.argmin(lengths))
     point = tuple(data["measures"][shortest])
@@ -72,7 +72,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
 
     index = read_csv(run_dir / "videos" / "index.csv")
     assert index.to_dict("records") == [{
-        "video": name, "cell_index": data["index"][shortest], "objective": objective,
+        "video": name, "env_seed": 52, "cell_index": data["index"][shortest], "objective": objective,
         "impact_x": point[0], "impact_y_velocity": point[1], "reflown_objective": objective,
         "reproduced": True}]
     out, err = capsys.readouterr()
@@ -105,8 +105,12 @@ def test_selection_by_best_top_index_and_cells(archive):
     assert [elite["name"].split("_")[0] for elite in chosen[1:]] == [
         "best", "top01", "top02", "top03", f"index{ranked.iloc[-1]}"]
     # --cells as Fire hands it over: parsed, one tuple alone, or raw text
-    assert ll.parse_cells("[(-0.4, -0.1), (0.6, -0.1)]") == [(-0.4, -0.1), (0.6, -0.1)]
-    assert ll.parse_cells((0.0, -0.1)) == ll.parse_cells([(0, -0.1)]) == [(0.0, -0.1)]
+    tutorial = list(ll.TUTORIAL_MEASURES)
+    assert ll.parse_cells("[(-0.4, -0.1), (0.6, -0.1)]", tutorial) == [(-0.4, -0.1), (0.6, -0.1)]
+    assert ll.parse_cells((0.0, -0.1), tutorial) == ll.parse_cells([(0, -0.1)], tutorial) == [(0.0, -0.1)]
+    assert ll.parse_cells("[(120,), (300,)]", ["fuel"]) == ll.parse_cells((120, 300), ["fuel"]) == [
+        (120.0,), (300.0,)]
+    assert ll.parse_cells("[(1, 2, 3)]", ["fuel", "flight_time", "max_tilt"]) == [(1.0, 2.0, 3.0)]
 
 
 def test_elite_table_is_archive_data_sorted_and_filtered(run_dir, archive, capsys):
@@ -135,9 +139,8 @@ def test_trajectory_picture_of_the_top_elites(run_dir, archive):
     assert {name: after[name] for name in before if name in after} == before  # nothing else touched
 
     top = ll.select_elites(archive, top=3)
-    for elite, path in zip(top, ll.fly_paths(top, 52)):  # the drawn paths are the elites' flights
-        step = ll.impact_step(path, float(elite["measures"][0]))
-        assert path[step, 0] == elite["measures"][0]
+    for elite, (path, step) in zip(top, ll.fly_paths(top, 52)):  # the drawn paths are their flights
+        assert path[step, 0] == elite["measures"][0]  # the dot is at touchdown, where impact x is
 
 
 def test_terrain_is_the_envs_ground():
@@ -176,13 +179,13 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
 @pytest.mark.parametrize("value, seeds", [
     ("0-3", [0, 1, 2, 3]), ((3, 5), [3, 5]), (7, [7]), ("0-2,5", [0, 1, 2, 5]), ("4,4", [4])])
 def test_env_seed_ranges(value, seeds):
-    assert ll.parse_env_seeds(value) == seeds
+    assert ll.seed_list("env_seeds", value) == seeds
 
 
 @pytest.mark.parametrize("value", ["3-1", "a", -1, True, "1-", ""])
 def test_bad_env_seeds(value):
     with pytest.raises(ll.UsageError, match="--env_seeds"):
-        ll.parse_env_seeds(value)
+        ll.seed_list("env_seeds", value)
 
 
 @pytest.mark.parametrize("args, fragments", [

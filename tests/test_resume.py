@@ -16,6 +16,7 @@ from ribs.archives import GridArchive
 import lunar_lander as ll
 from util import checkpoint_iteration, folder_state, launch, load_pickle, run_archive, run_metrics, wait_for
 
+TUTORIAL_RANGES = [ll.MEASURES[name].range for name in ll.TUTORIAL_MEASURES]
 ITERATIONS = 30  # long enough for a process to be stopped part-way, a few seconds in all
 
 
@@ -134,7 +135,7 @@ def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, r
     elites = source.data(["solution"])["solution"]
     env = gym.make("LunarLander-v3")
     flown = np.array([ll.rollout(solution, 7, env) for solution in elites])
-    expected = GridArchive(solution_dim=32, dims=(50, 50), ranges=ll.MEASURE_RANGES)
+    expected = GridArchive(solution_dim=32, dims=(50, 50), ranges=TUTORIAL_RANGES)
     expected.add(elites, flown[:, 0], flown[:, 1:])
 
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -156,7 +157,7 @@ def write_pickle(path, obj):
 def bad_checkpoints(reference):
     """(name, writer of a checkpoint.pkl that must be refused, words the error must contain)."""
     good = load_pickle(reference / "checkpoint.pkl")
-    small = GridArchive(solution_dim=32, dims=(10, 10), ranges=ll.MEASURE_RANGES)
+    small = GridArchive(solution_dim=32, dims=(10, 10), ranges=TUTORIAL_RANGES)
     other_scheduler = ll.build_scheduler({**good["config"]})
     other_scheduler._archive = small
     return [
@@ -198,8 +199,8 @@ def test_resume_of_a_folder_without_checkpoint(tmp_path, run_cli):
     (None, "no such file"),
     (b"\x80\x05garbage", "not a readable"),
     ({"a": 1}, "holds a dict"),
-    (GridArchive(solution_dim=32, dims=(10, 10), ranges=ll.MEASURE_RANGES), "another shape"),
-    (GridArchive(solution_dim=32, dims=(50, 50), ranges=ll.MEASURE_RANGES), "empty"),
+    (GridArchive(solution_dim=32, dims=(10, 10), ranges=TUTORIAL_RANGES), "another shape"),
+    (GridArchive(solution_dim=32, dims=(50, 50), ranges=TUTORIAL_RANGES), "empty"),
 ])
 def test_bad_warm_start_archive(tmp_path, run_cli, content, words):
     path = tmp_path / "archive.pkl"

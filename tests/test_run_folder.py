@@ -14,8 +14,7 @@ import uuid
 import pytest
 
 import lunar_lander as ll
-from util import (checkpoint_iteration, folder_state, launch, load_pickle, run_archive,
-                  run_metrics, wait_for)
+from util import checkpoint_iteration, folder_state, launch, load_pickle, run_archive, run_metrics, wait_for
 
 FLAGS = dict(iterations=12, workers=2, seed=3, env_seed=52, algorithm="cma_me", n_emitters=2,
              sigma0=1.0, batch_size=6, log_every=1)

@@ -11,7 +11,6 @@ import lunar_lander as ll
 from util import run_archive, run_metrics
 
 
-
 @pytest.fixture
 def external_cluster(tmp_path):
     """A scheduler and two single-threaded workers, each in a folder without lunar_lander.py."""
@@ -50,13 +49,13 @@ def can_import_the_script(client) -> list[bool]:
     return list(client.run(lambda: importlib.util.find_spec("lunar_lander") is not None).values())
 
 
-def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_config, run_cli,
+def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_config, run_process,
                                                            external_cluster):
     assert can_import_the_script(external_cluster) == [False, False]
     address = external_cluster.scheduler.address
     flags = {k: v for k, v in tiny_config.items() if k != "scheduler_address"}
 
-    result = run_cli(*[f"--{k}={v}" for k, v in flags.items()], f"--scheduler_address={address}",
+    result = run_process(*[f"--{k}={v}" for k, v in flags.items()], f"--scheduler_address={address}",
                      f"--outdir={tmp_path / 'remote'}")
     assert result.returncode == 0, result.stderr
     assert f"Dask cluster at {address}: 2 worker(s)" in result.stdout
