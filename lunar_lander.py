@@ -33,12 +33,14 @@ Where to change what (the file reads top to bottom in this order):
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import datetime
 import errno
 import functools
 import importlib
+import itertools
 import json
 import logging
 import math
@@ -210,7 +212,8 @@ def rollout(solution: np.ndarray, env_seed: int, env: gym.Env,
 MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps a 32-number solution
 QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
 
-# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
+# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the flags only it uses (an
+# experiment sweeps them for it alone; labels name them for it alone), the archive's extra kwargs,
 # whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
 # a small function of the run's config. All rows share the grid, the seeds, x0 and the batch size,
 # so every algorithm asks n_emitters * batch_size solutions per iteration.
@@ -225,12 +228,14 @@ QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score c
 #   from zeros, so only sigma relative to the elites' weights matters, as for CMA-ES's sigma0.
 ALGORITHMS: dict[str, dict[str, Any]] = {
     "cma_me": {
+        "flags": (),
         "archive": lambda config: {},
         "result_archive": False,
         "emitter": "EvolutionStrategyEmitter",
         "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "2imp"},
     },
     "cma_mae": {
+        "flags": ("learning_rate",),
         "archive": lambda config: {"learning_rate": config["learning_rate"],
                                    "threshold_min": QD_SCORE_OFFSET},
         "result_archive": True,
@@ -239,12 +244,21 @@ ALGORITHMS: dict[str, dict[str, Any]] = {
                                           "selection_rule": "mu", "restart_rule": "basic"},
     },
     "map_elites": {
+        "flags": (),
         "archive": lambda config: {},
         "result_archive": False,
         "emitter": "GaussianEmitter",
         "emitter_kwargs": lambda config: {"sigma": config["sigma0"]},
     },
 }
+
+
+ALGORITHM_FLAGS = {flag for spec in ALGORITHMS.values() for flag in spec["flags"]}
+
+
+def ignores(algorithm: str, flag: str) -> bool:
+    """Whether the algorithm ignores the flag (another algorithm's own, like cma_mae's rate)."""
+    return flag in ALGORITHM_FLAGS and flag not in ALGORITHMS[algorithm]["flags"]
 
 
 def derive_seeds(seed: int, count: int) -> list[int]:
@@ -735,29 +749,48 @@ PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
 
 def save_progress_plot(metrics: list[dict], path: Path) -> None:
     """QD score, coverage and best objective over iterations, side by side."""
-    save_metric_panels({"": metrics}, "iteration", "Iteration", path)
+    save_metric_panels({"": [metrics]}, "iteration", "Iteration", path)
 
 
-def save_metric_panels(runs: dict[str, list[dict]], x_key: str, x_label: str, path: Path) -> None:
-    """One panel per metric of PROGRESS_PANELS, one line per run (labelled if it has a label)."""
+def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label: str,
+                       path: Path) -> None:
+    """One panel per metric of PROGRESS_PANELS, one line per group of runs (labelled if it has a
+    label): a run's own curve, or for several runs their mean and its 95% confidence band."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
     # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
     fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
     for ax, (key, label) in zip(axes, PROGRESS_PANELS):
-        for run_label, metrics in runs.items():
-            values = [np.nan if row[key] is None else row[key] for row in metrics]
-            ax.plot([row[x_key] for row in metrics], values, label=run_label or None)
+        for group_label, runs in groups.items():
+            length = min(len(metrics) for metrics in runs)
+            values = np.array([[np.nan if row[key] is None else row[key] for row in metrics[:length]]
+                               for metrics in runs], dtype=float)
+            x = [row[x_key] for row in runs[0][:length]]
+            line, = ax.plot(x, values.mean(axis=0), label=group_label or None)
+            if len(runs) > 1:
+                low, high = mean_band(values)
+                ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
         ax.set_xlabel(x_label)
         ax.set_title(label)
         ax.grid(alpha=0.3)
-    labelled = any(runs)
+    labelled = any(groups)
     if labelled:  # beside the panels, where it hides no curve
         axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
                                              bbox_inches="tight" if labelled else None))
     plt.close(fig)
+
+
+def mean_band(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A 95% bootstrap confidence band of the mean of the rows of `values`, point by point."""
+    from scipy.stats import bootstrap
+
+    with warnings.catch_warnings():  # points where every run has the same value: a band of width 0
+        warnings.simplefilter("ignore")
+        result = bootstrap((values,), np.mean, axis=0, vectorized=True, method="percentile",
+                           n_resamples=2000, rng=np.random.default_rng(0))
+    return result.confidence_interval.low, result.confidence_interval.high
 
 
 def save_outputs(run_dir: Path, checkpoint: dict) -> None:
@@ -841,7 +874,7 @@ def search(
     check_scheduler_reachable(scheduler_address)
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
-    with new_run_folder(flags["outdir"], flags["seed"]) as run_dir:
+    with new_folder(flags["outdir"], f"seed{flags['seed']}") as run_dir:
         config = {**flags, "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
                   "command": sys.argv, "versions": library_versions()}
         if from_archive:
@@ -854,16 +887,19 @@ def search(
 
 def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
            scheduler_address: str | None = None) -> None:
-    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped.
+    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped; or,
+    for an experiment folder, every unfinished run of the experiment.
 
     Args:
-        run_dir: A run folder written by this script.
+        run_dir: A run folder (or an experiment folder) written by this script.
         iterations: Total iterations to reach; default: those the run was started with. A larger
             number extends a finished run.
         workers: Number of Dask worker processes; default: as the run was started.
         scheduler_address: Address of a running Dask scheduler to evaluate on instead.
     """
     path = Path(run_dir)
+    if (path / "experiment.json").is_file():
+        return resume_experiment(path, iterations, workers, scheduler_address)
     load_run_state(path)  # refuse a bad folder before anything is written in it
     check_scheduler_reachable(scheduler_address)
     with folder_lock(path):
@@ -897,7 +933,7 @@ def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> I
     """
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    log = make_logger(run_dir)
+    log = make_logger(run_dir / "run.log")
     with logging_redirect_tqdm(loggers=[log]):
         log.info(f"Run folder: {run_dir}")
         try:
@@ -917,6 +953,340 @@ def checkpoint_state(run_dir: Path) -> str:
     except (UsageError, KeyError, TypeError):
         held = "it holds no checkpoint yet (resume starts the run from its config.json)"
     return f"{held}; continue with: python lunar_lander.py resume {run_dir}"
+
+
+# ================================================================================================
+# Experiments: many runs interleaved on one Dask cluster
+# ================================================================================================
+
+EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
+# Search flags the experiment sets itself: per run (seed, algorithm, folder) or for the cluster.
+EXPERIMENT_OWN = {"seed", "algorithm", "outdir", "workers", "scheduler_address", "from_archive"}
+# Search flags whose list of values is one more axis of the grid. (--env_seed and --measures take
+# lists of their own: several terrains, several measures of every run.)
+SWEEPABLE = ("n_emitters", "sigma0", "batch_size", "learning_rate", "grid")
+
+
+def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | None = None,
+               workers: int = 2, scheduler_address: str | None = None,
+               max_in_flight: int | None = None, **search_flags: Any) -> None:
+    """Run every combination of the listed settings with every seed, interleaved on one cluster.
+
+    Each run is an ordinary run folder inside the experiment folder (every command works on it),
+    bit for bit what `search` writes alone with the same flags. One process drives all runs: when
+    a run's batch is back it is told, saved every log_every iterations, and its next batch is
+    asked and sent, so the other runs' batches keep the workers busy while one waits for its
+    slowest chunk. experiment.json records the grid, the command and each run's state. Ctrl-C,
+    SIGTERM or kill -9 lose at most what each run did since its last checkpoint: continue with
+    `resume EXPERIMENT_DIR`. A failing run is reported and recorded; the others go on.
+
+    Args:
+        algorithms: Rows of the ALGORITHMS table: cma_me, or a list "[cma_me, cma_mae]".
+        seeds: The seeds of every setting: a range 1-5, a list 1,2,7 or both.
+        outdir: Experiment folder; default outputs/<timestamp>_experiment. Must be new or empty.
+        workers: Number of Dask worker processes (one thread each) of the local cluster.
+        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
+        max_in_flight: Runs evaluated at once (default: all); the others wait their turn. Bounds
+            memory with hundreds of runs.
+        search_flags: Any flag of search (see: lunar_lander.py --help), for every run:
+            --iterations, --env_seed, --measures, --grid, --n_emitters, --sigma0, --batch_size,
+            --learning_rate, --log_every, --fast_env. A list of values of --n_emitters,
+            --sigma0, --batch_size, --learning_rate or --grid, e.g. --learning_rate "[0.01, 0.1]",
+            is one more axis of the grid.
+    """
+    axes, common, seeds = experiment_grid(algorithms, seeds, search_flags)
+    workers = positive_int("workers", workers)
+    limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
+    check_scheduler_reachable(scheduler_address)
+    with new_folder(outdir, "experiment") as folder:
+        plan = {"format": EXPERIMENT_FORMAT, "created": datetime.datetime.now().isoformat(),
+                "command": sys.argv, "axes": axes, "seeds": seeds, "common": common,
+                "workers": workers, "max_in_flight": limit, "versions": library_versions(),
+                "runs": experiment_runs(axes, common, seeds)}
+        write_json(folder / "experiment.json", plan)
+        run_experiment(folder, plan, workers, scheduler_address)
+
+
+def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[dict, dict, list[int]]:
+    """The grid's axes (algorithm first, then each swept flag), the flags every run shares and
+    the seeds, each value checked as search checks it."""
+    if given := sorted(EXPERIMENT_OWN & set(search_flags)):
+        raise UsageError(f"--{given[0]} is set by the experiment for each run; use --algorithms, "
+                         f"--seeds, --outdir, --workers and --scheduler_address of experiment")
+    if unknown := sorted(set(search_flags) - set(search_defaults())):
+        raise UsageError(f"unknown flag --{unknown[0]}")
+    names = [n.strip() for n in algorithms.split(",")] if isinstance(algorithms, str) else list(algorithms)
+    if not names:
+        raise UsageError("--algorithms is empty: the grid has no run")
+    axes = {"algorithm": [one_of(ALGORITHMS)("algorithms", name) for name in names]}
+    common = {name: value for name, value in search_defaults().items() if name not in EXPERIMENT_OWN}
+    for name, value in search_flags.items():
+        if name in SWEEPABLE and isinstance(value, (list, tuple)):
+            if not value:
+                raise UsageError(f"--{name} is an empty list: the grid has no run")
+            axes[name] = [check_flags({name: v})[name] for v in value]
+        else:
+            common[name] = value
+    common = check_flags(common)
+    for setting in itertools.product(*axes.values()):
+        check_archive_size({**common, **dict(zip(axes, setting))})
+    return axes, common, seed_list("seeds", seeds)
+
+
+def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
+    """One entry per (setting, seed): its folder name, setting label, config and state."""
+    import re
+
+    runs, settings = [], []
+    for values in itertools.product(*axes.values()):
+        setting = {flag: common.get(flag) if ignores(values[0], flag) else value
+                   for flag, value in zip(axes, values)}
+        if setting not in settings:  # cma_me at two learning rates is one setting
+            settings.append(setting)
+    for setting in settings:
+        for seed in seeds:
+            config = {**common, **setting, "seed": seed}
+            label = run_setting(config)
+            name = re.sub(r"[^A-Za-z0-9.]+", "_", label) + f"_seed{seed}"
+            runs.append({"name": name, "setting": label, "seed": seed, "config": config,
+                         "state": "pending"})
+    return runs
+
+
+def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: str | None) -> None:
+    """The cluster and the log of an experiment, shut down however it ends."""
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    log = make_logger(folder / "experiment.log")
+    with logging_redirect_tqdm(loggers=[log]):
+        log.info(f"Experiment folder: {folder}: {len(plan['runs'])} runs "
+                 f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)")
+        try:
+            with dask_client(workers, scheduler_address, log) as client:
+                Experiment(folder, plan, client, log).drive()
+        except KeyboardInterrupt:
+            log.info(f"Stopped; every run keeps its last completed iteration; continue with: "
+                     f"python lunar_lander.py resume {folder}")
+            raise
+        except RunsFailed:
+            raise
+        except (RunError, OSError) as error:  # of the experiment itself (experiment.json, cluster)
+            raise RunError(f"{fault_text(error)}; every run keeps its last checkpoint; continue "
+                           f"with: python lunar_lander.py resume {folder}") from None
+
+
+class RunsFailed(RunError):
+    """Some runs of an experiment failed (each recorded with its cause); the others finished."""
+
+
+@dataclasses.dataclass
+class LiveRun:
+    """A run of the experiment in flight: its state, log, folder lock and batch on the cluster."""
+
+    entry: dict
+    run: Run
+    log: logging.Logger
+    lock: contextlib.ExitStack
+    futures: list = dataclasses.field(default_factory=list)
+    waiting: int = 0  # chunks of the current batch not back yet
+
+    @property
+    def target(self) -> int:
+        return self.run.config["iterations"]
+
+
+class Experiment:
+    """Drives many runs on one client: Dask's as_completed hands back chunks in whatever order
+    they finish, and each run goes on as soon as its own batch is whole. A run's results depend on
+    its own asks and tells only, so it ends as it would alone, whatever the interleaving."""
+
+    def __init__(self, folder: Path, plan: dict, client, log: logging.Logger) -> None:
+        from dask.distributed import as_completed
+
+        self.folder, self.plan, self.client, self.log = folder, plan, client, log
+        self.todo = collections.deque(e for e in plan["runs"] if e["state"] != "done")
+        self.live: dict[str, LiveRun] = {}
+        self.owner: dict[str, str] = {}  # future key -> run name
+        self.latest: dict[str, dict] = {}  # run name -> its last metrics row
+        self.finished = as_completed()
+        self.limit = plan.get("max_in_flight") or len(plan["runs"])
+
+    def drive(self) -> None:
+        from tqdm import tqdm
+
+        runs = self.plan["runs"]
+        total = sum(e["config"]["iterations"] for e in runs)
+        done = sum(e["config"]["iterations"] for e in runs if e["state"] == "done")
+        self.bar = tqdm(total=total, initial=done, unit="it", desc="experiment", dynamic_ncols=True)
+        every, logged = self.plan["common"]["log_every"] * len(runs), done
+        try:
+            self.start_more()
+            while self.live:
+                with STOP.interruptible():
+                    future = next(self.finished)
+                live = self.live.get(self.owner.pop(future.key, ""))
+                if live is None:  # a chunk of a run that has failed meanwhile
+                    continue
+                live.waiting -= 1
+                if live.waiting == 0:
+                    self.advance(live)
+                if self.bar.n - logged >= every or not self.live:
+                    logged = self.bar.n
+                    for line in self.describe_settings():
+                        self.log.info(line)
+        except BaseException:
+            for live in list(self.live.values()):
+                with contextlib.suppress(RunError):
+                    live.run.save_checkpoint()
+                self.close(live, "stopped")
+            raise
+        finally:
+            self.bar.close()
+        failed = [e["name"] for e in runs if e["state"] == "failed"]
+        self.log.info(f"Done: {len(runs) - len(failed)} of {len(runs)} runs finished in {self.folder}")
+        if failed:
+            raise RunsFailed(f"{len(failed)} of {len(runs)} runs failed ({', '.join(failed)}): their "
+                           f"causes are in {self.folder / 'experiment.json'}; the others finished. "
+                           f"Mend the cause and retry them with: python lunar_lander.py resume "
+                           f"{self.folder}")
+
+    def start_more(self) -> None:
+        """Open waiting runs until `limit` are in flight."""
+        while self.todo and len(self.live) < self.limit:
+            entry = self.todo.popleft()
+            try:
+                live = self.open(entry)
+            except (UsageError, RunError, OSError) as error:
+                self.record(entry, "failed", error)
+                continue
+            self.live[entry["name"]] = live
+            self.latest[entry["name"]] = live.run.metrics[-1] if live.run.metrics else {}
+            self.record(entry, "running")
+            if live.run.iteration >= live.target:
+                self.finish(live)
+            else:
+                self.launch(live)
+
+    def open(self, entry: dict) -> LiveRun:
+        """A run's folder (made on first use), locked, and its run from checkpoint or config."""
+        run_dir = self.folder / entry["name"]
+        run_dir.mkdir(exist_ok=True)
+        lock = contextlib.ExitStack()
+        lock.enter_context(folder_lock(run_dir))
+        try:
+            if not (run_dir / "config.json").is_file():
+                write_json(run_dir / "config.json", {
+                    **entry["config"], "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
+                    "command": self.plan["command"], "experiment": str(self.folder),
+                    "versions": library_versions()})
+            config, checkpoint = load_run_state(run_dir)
+            if config["iterations"] < entry["config"]["iterations"]:  # the experiment was extended
+                config = {**config, "iterations": entry["config"]["iterations"]}
+                write_json(run_dir / "config.json", {**read_run_json(run_dir, "config.json"),
+                                                     "iterations": config["iterations"]})
+            log = make_logger(run_dir / "run.log", f"lunar_lander.run.{entry['name']}", console=False)
+            run = (Run.start(run_dir, config, self.client, log) if checkpoint is None
+                   else Run.from_checkpoint(run_dir, {**checkpoint, "config": config}))
+        except BaseException:
+            lock.close()
+            raise
+        return LiveRun(entry, run, log, lock)
+
+    def launch(self, live: LiveRun) -> None:
+        """Ask the run's next batch and send it to the cluster."""
+        config = live.run.config
+        live.futures = submit_flights(self.client, live.run.ask(), config["env_seed"],
+                                      config["measures"], config["fast_env"])
+        live.waiting = len(live.futures)
+        for future in live.futures:
+            self.owner[future.key] = live.entry["name"]
+            self.finished.add(future)
+
+    def advance(self, live: LiveRun) -> None:
+        """The run's batch is whole: tell it, save it at its log interval, ask again or finish."""
+        try:
+            results = self.client.gather(live.futures)
+            row = live.run.tell(*averaged(per_terrain(results, live.run.config["env_seed"])))
+            self.latest[live.entry["name"]] = row
+            self.bar.update(1)
+            if row["iteration"] >= live.target:
+                self.finish(live)
+            else:
+                if row["iteration"] % live.run.config["log_every"] == 0:
+                    live.log.info(describe_progress(row, live.target))
+                    live.run.save()
+                self.launch(live)
+        except Exception as error:  # this run's fault (a task that failed, a write): it alone stops
+            with contextlib.suppress(RunError):
+                live.run.save_checkpoint()
+            self.close(live, "failed", error)
+            self.log.info(f"run {live.entry['name']} failed: {fault_text(error)}")
+            self.start_more()
+
+    def finish(self, live: LiveRun) -> None:
+        live.run.save()
+        if live.run.metrics:
+            live.log.info("Done. " + describe_progress(live.run.metrics[-1], live.target))
+        self.close(live, "done")
+        self.start_more()
+
+    def close(self, live: LiveRun, state: str, error: BaseException | None = None) -> None:
+        self.live.pop(live.entry["name"], None)
+        close_logger(live.log)
+        live.lock.close()
+        self.record(live.entry, state, error)
+
+    def record(self, entry: dict, state: str, error: BaseException | None = None) -> None:
+        """A run's new state, in experiment.json at once."""
+        entry["state"] = state
+        if error is not None:
+            entry["error"] = fault_text(error) if isinstance(error, (OSError, RunError)) else (
+                f"{type(error).__name__}: {fault_text(error)}")
+        else:
+            entry.pop("error", None)
+        write_json(self.folder / "experiment.json", self.plan)
+
+    def describe_settings(self) -> list[str]:
+        """A line per setting: its runs' progress, mean QD score and coverage, best objective."""
+        lines = []
+        for setting in dict.fromkeys(e["setting"] for e in self.plan["runs"]):
+            rows = [self.latest[e["name"]] for e in self.plan["runs"]
+                    if e["setting"] == setting and self.latest.get(e["name"])]
+            if rows:
+                best = max((r["best_objective"] for r in rows if r["best_objective"] is not None),
+                           default=float("nan"))
+                lines.append(f"{setting}: {len(rows)} run(s) at iteration "
+                             f"{min(r['iteration'] for r in rows)}-{max(r['iteration'] for r in rows)}, "
+                             f"QD score {np.mean([r['qd_score'] for r in rows]):.0f} (mean), coverage "
+                             f"{np.mean([r['coverage'] for r in rows]):.3f} (mean), best {best:.1f}")
+        return lines
+
+
+def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
+                      scheduler_address: str | None) -> None:
+    """Continue every unfinished run of an experiment (failed ones are tried again)."""
+    read_experiment(folder)  # refuse a bad folder before anything is written in it
+    check_scheduler_reachable(scheduler_address)
+    with folder_lock(folder):
+        plan = read_experiment(folder)
+        workers = positive_int("workers", plan["workers"] if workers is None else workers)
+        if iterations is not None:
+            iterations = positive_int("iterations", iterations)
+            for entry in plan["runs"]:
+                if iterations > entry["config"]["iterations"]:
+                    entry["config"]["iterations"] = iterations
+                    entry["state"] = "pending"
+        plan["resumed"] = [*plan.get("resumed", []), {"at": datetime.datetime.now().isoformat(),
+                                                      "iterations": iterations, "workers": workers}]
+        write_json(folder / "experiment.json", plan)
+        run_experiment(folder, plan, workers, scheduler_address)
+
+
+def read_experiment(folder: Path) -> dict:
+    plan = read_run_json(folder, "experiment.json")
+    if not (isinstance(plan, dict) and plan.get("format") == EXPERIMENT_FORMAT and plan.get("runs")):
+        raise UsageError(f"{folder / 'experiment.json'}: not an experiment of lunar_lander.py")
+    return plan
 
 
 # ================================================================================================
@@ -1407,7 +1777,10 @@ def run_setting(config: dict) -> str:
     """The algorithm, and the flags shaping it that differ from their defaults: runs of one
     setting with different seeds are repeats of one experiment."""
     defaults, changed = check_flags(search_defaults()), []
+    algorithm = config.get("algorithm")
     for flag in (flag for flag in SETTING_FLAGS if flag in config):
+        if algorithm in ALGORITHMS and ignores(algorithm, flag):
+            continue
         with contextlib.suppress(UsageError):
             value = check_flags({flag: config[flag]})[flag]  # 52 and [52] are one terrain
             if value != defaults[flag]:
@@ -1421,21 +1794,61 @@ def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
     return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
 
 
-def comparison_outputs(out: str | None, overwrite: bool) -> tuple[Path, Path]:
-    """The PNG and the CSV next to it: by default new files under outputs/; never an existing
-    file unless --overwrite."""
+def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
+    """The files of a comparison, all named after the PNG: by default new files under outputs/;
+    never an existing file unless --overwrite."""
+    def named(png: Path) -> dict[str, Path]:
+        return {"png": png, "csv": png.with_suffix(".csv"), "md": png.with_suffix(".md"),
+                "settings": png.with_name(f"{png.stem}_settings.csv"),
+                "tests": png.with_name(f"{png.stem}_tests.csv")}
+
     if out is None:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         candidates = [Path("outputs") / f"compare_{stamp}{suffix}.png" for suffix in
                       ["", *(f"_{i}" for i in range(2, 1000))]]
-        png = next(p for p in candidates if not p.exists() and not p.with_suffix(".csv").exists())
+        files = next(named(p) for p in candidates if not any(f.exists() for f in named(p).values()))
     else:
-        png = Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png")
-    existing = [str(p) for p in (png, png.with_suffix(".csv")) if p.exists()]
+        files = named(Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png"))
+    existing = [str(p) for p in files.values() if p.exists()]
     if existing and not overwrite:
         raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
                          f"or pass --overwrite")
-    return png, png.with_suffix(".csv")
+    return files
+
+
+QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
+# CQD score (Kent 2022, ribs.archives.cqd_score) with fixed settings, so that a number means the
+# same in every table: target points drawn uniformly in the archive's measure box with this seed,
+# penalties spread evenly over [0, 1], objectives normalised over [obj_min, obj_max], distances
+# over the box's diagonal. Written next to every comparison.
+CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0,
+       "obj_min": QD_SCORE_OFFSET, "obj_max": 350.0}
+SUMMARISED = ("qd_score", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
+TESTED = ("qd_score", CQD_SCORE)  # pairwise between settings
+FEW_RUNS = 5
+
+
+def cqd(run_dir: Path) -> float | None:
+    """The CQD score of a run's final archive (None without a readable archive.pkl)."""
+    from ribs.archives import cqd_score
+
+    try:
+        archive = read_pickle(run_dir / "archive.pkl", "archive pickle")
+        lower, upper = archive.lower_bounds, archive.upper_bounds
+    except (UsageError, AttributeError):
+        return None
+    targets = np.random.default_rng(CQD["target_seed"]).uniform(
+        lower, upper, size=(CQD["iterations"], CQD["targets"], len(lower)))
+    return float(cqd_score(archive, iterations=CQD["iterations"], target_points=targets,
+                           penalties=CQD["penalties"], obj_min=CQD["obj_min"], obj_max=CQD["obj_max"],
+                           dist_max=float(np.linalg.norm(upper - lower))).mean)
+
+
+def qd_auc(metrics: list[dict]) -> float:
+    """Area under QD score against evaluations, from (0, 0), divided by the evaluations: the
+    run's QD score averaged over its budget, which rewards reaching a score early."""
+    evaluations = [0, *(row["evaluations"] for row in metrics)]
+    return float(np.trapezoid([0, *(row["qd_score"] for row in metrics)], evaluations) / evaluations[-1])
 
 
 def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict],
@@ -1446,55 +1859,179 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict
     table = pd.DataFrame([
         {"run": label, "folder": str(run_dir), "setting": run_setting(config),
          "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
-         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir)}
+         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir),
+         QD_AUC: qd_auc(metrics), CQD_SCORE: cqd(run_dir)}
         for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
     ])
-    table[SOLVED_CELLS] = pd.to_numeric(table[SOLVED_CELLS])  # None (no archive.csv): NaN
+    for column in (SOLVED_CELLS, CQD_SCORE):
+        table[column] = pd.to_numeric(table[column])  # None (no archive): NaN
     return table
+
+
+def bootstrap_interval(values: np.ndarray) -> tuple[float, float]:
+    """95% BCa bootstrap confidence interval of the mean (seeded, so repeatable)."""
+    from scipy.stats import bootstrap
+
+    if len(values) < 2:
+        return math.nan, math.nan
+    if np.ptp(values) == 0:
+        return float(values[0]), float(values[0])
+    result = bootstrap((values,), np.mean, confidence_level=0.95, n_resamples=9999, method="BCa",
+                       rng=np.random.default_rng(0))
+    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+def setting_statistics(table):
+    """Per setting and summarised metric: runs, mean, median and the 95% interval of the mean."""
+    import pandas as pd
+
+    rows = []
+    for setting, group in table.groupby("setting", sort=False):
+        for metric in SUMMARISED:
+            values = group[metric].dropna().to_numpy(dtype=float)
+            low, high = bootstrap_interval(values)
+            rows.append({"setting": setting, "metric": metric, "runs": len(values),
+                         "mean": values.mean() if len(values) else math.nan,
+                         "median": float(np.median(values)) if len(values) else math.nan,
+                         "ci95_low": low, "ci95_high": high})
+    return pd.DataFrame(rows)
+
+
+def holm(p_values: list[float]) -> list[float]:
+    """Holm's step-down adjustment of p-values for testing them all at once."""
+    adjusted, running = [0.0] * len(p_values), 0.0
+    for rank, i in enumerate(np.argsort(p_values)):
+        running = max(running, min(1.0, (len(p_values) - rank) * p_values[i]))
+        adjusted[i] = running
+    return adjusted
+
+
+def pairwise_tests(table):
+    """Every pair of settings, on each TESTED metric: two-sided Mann-Whitney U, Holm-adjusted over
+    the pairs, and Vargha-Delaney A12 (the chance that a run of A beats a run of B; 0.5: even)."""
+    import pandas as pd
+    from scipy.stats import mannwhitneyu
+
+    settings, rows = list(dict.fromkeys(table["setting"])), []
+    for metric in TESTED:
+        block = []
+        for a, b in itertools.combinations(settings, 2):
+            x = table.loc[table["setting"] == a, metric].dropna().to_numpy(dtype=float)
+            y = table.loc[table["setting"] == b, metric].dropna().to_numpy(dtype=float)
+            if len(x) and len(y):
+                test = mannwhitneyu(x, y, alternative="two-sided")
+                block.append({"metric": metric, "setting_a": a, "setting_b": b, "runs_a": len(x),
+                              "runs_b": len(y), "U": float(test.statistic), "p": float(test.pvalue),
+                              "A12": float(test.statistic) / (len(x) * len(y))})
+        for row, adjusted in zip(block, holm([row["p"] for row in block])):
+            row["p_holm"] = adjusted
+        rows += block
+    return pd.DataFrame(rows, columns=["metric", "setting_a", "setting_b", "runs_a", "runs_b", "U",
+                                       "p", "p_holm", "A12"])
+
+
+METRIC_FORMATS = {"evaluations": "{:.0f}", "num_elites": "{:.0f}", "coverage": "{:.4f}",
+                  "qd_score": "{:,.0f}", "best_objective": "{:.1f}", "mean_objective": "{:.1f}",
+                  SOLVED_CELLS: "{:.0f}", QD_AUC: "{:,.0f}", CQD_SCORE: "{:.2f}"}
 
 
 def format_table(table) -> str:
     """The table as aligned text, with as many digits as a reader compares."""
-    whole, decimals = "{:.0f}".format, "{:.1f}".format
-    formats = {"evaluations": whole, "num_elites": whole, "coverage": "{:.4f}".format,
-               "qd_score": "{:,.0f}".format, "best_objective": decimals, "mean_objective": decimals,
-               SOLVED_CELLS: whole}
     shown = table.drop(columns=["folder"], errors="ignore")
-    return shown.to_string(index=False, formatters={k: v for k, v in formats.items() if k in shown})
+    return shown.to_string(index=False, formatters={k: v.format for k, v in METRIC_FORMATS.items()
+                                                    if k in shown})
+
+
+def markdown_report(stats, tests) -> str:
+    """The statistics as Markdown tables, ready for a README or a paper."""
+    def cell(row) -> str:
+        number = METRIC_FORMATS[row["metric"]].format
+        interval = ("" if math.isnan(row["ci95_low"]) else
+                    f" [{number(row['ci95_low'])}, {number(row['ci95_high'])}]")
+        return f"{number(row['mean'])}{interval}"
+
+    lines = ["| setting | runs | " + " | ".join(SUMMARISED) + " |",
+             "| --- | --- |" + " --- |" * len(SUMMARISED)]
+    for setting, group in stats.groupby("setting", sort=False):
+        cells = {row["metric"]: cell(row) for row in group.to_dict("records")}
+        lines.append(f"| {setting} | {group['runs'].max()} | "
+                     + " | ".join(cells[m] for m in SUMMARISED) + " |")
+    lines += ["", "Mean [95% bootstrap confidence interval of the mean, BCa] over each setting's runs.",
+              f"CQD score: {CQD}.", ""]
+    if len(tests):
+        lines += ["| metric | A | B | U | p (Holm) | A12 |", "| --- | --- | --- | --- | --- | --- |"]
+        lines += [f"| {t['metric']} | {t['setting_a']} | {t['setting_b']} | {t['U']:.1f} | "
+                  f"{t['p_holm']:.3g} | {t['A12']:.2f} |" for t in tests.to_dict("records")]
+        lines += ["", "Two-sided Mann-Whitney U tests, Holm-adjusted over the pairs of each metric; "
+                  "A12: the chance that a run of A beats a run of B (0.5: even; 0.71 or more, or "
+                  "0.29 or less: a large effect)."]
+    return "\n".join(lines) + "\n"
+
+
+def expand_folders(paths: list[Path]) -> list[Path]:
+    """Run folders, each experiment folder replaced by its runs that have metrics."""
+    expanded = []
+    for path in paths:
+        if (path / "experiment.json").is_file():
+            runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]
+            expanded += [run for run in runs if (run / "metrics.json").is_file()]
+        else:
+            expanded.append(path)
+    return expanded
 
 
 def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
     """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
     table of their final values (printed, and written as CSV next to the PNG).
 
-    Runs of the same batch, iterations and env seed give an equal-budget comparison.
+    Runs of one setting (the same algorithm and flags, other seeds; an experiment's runs) are
+    grouped: the PNG shows their mean with a 95% confidence band, and per setting the number of
+    runs, mean, median and 95% bootstrap interval of QD score, coverage, best objective, solved
+    cells, QD-score AUC and CQD score are printed and written (OUT_settings.csv); between
+    settings, Mann-Whitney U tests on QD score and CQD score, Holm-adjusted, with Vargha-Delaney
+    A12 (OUT_tests.csv); and both as Markdown (OUT.md). Runs of the same batch, iterations and
+    env seed give an equal-budget comparison.
 
     Args:
-        run_dirs: Run folders written by this script (each needs config.json and metrics.json).
-        out: The PNG to write (the CSV gets the same name with .csv); default: a new
+        run_dirs: Run folders or experiment folders written by this script.
+        out: The PNG to write (the other files get the same name); default: a new
             outputs/compare_<timestamp>.png.
-        overwrite: Replace the PNG and CSV if they already exist.
+        overwrite: Replace those files if they already exist.
     """
     if not run_dirs:
         raise UsageError("compare needs at least one run folder: "
                          "python lunar_lander.py compare RUN_A RUN_B ...")
     overwrite = boolean("overwrite", overwrite)
-    paths = [Path(str(run_dir)) for run_dir in run_dirs]
+    paths = expand_folders([Path(str(run_dir)) for run_dir in run_dirs])
+    if not paths:
+        raise UsageError(f"no run with metrics in {', '.join(map(str, run_dirs))}")
     configs, runs = zip(*(load_run_metrics(path) for path in paths))
-    png, csv = comparison_outputs(None if out is None else str(out), overwrite)
+    files = comparison_outputs(None if out is None else str(out), overwrite)
     labels = run_labels(paths, list(configs))
     table = comparison_table(labels, paths, list(configs), list(runs))
-    save_metric_panels(dict(zip(labels, runs)), "evaluations", "Evaluations", png)
-    atomic_write(csv, lambda f: table.to_csv(f, index=False), mode="w")
+    grouped = table["setting"].duplicated().any()
+    groups: dict[str, list] = {}
+    for label, setting, metrics in zip(labels, table["setting"], runs):
+        groups.setdefault(setting if grouped else label, []).append(metrics)
+    save_metric_panels(groups, "evaluations", "Evaluations", files["png"])
+    write_csv(files["csv"], table)
     print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
     if table["evaluations"].nunique() > 1:
         print("note: the runs end at different numbers of evaluations; compare at an equal budget")
-    if table["setting"].duplicated().any():
-        numbers = [*COMPARED, SOLVED_CELLS]
-        means = table.groupby("setting", sort=False)[numbers].mean().reset_index()
-        print("\nmean over the runs of each setting (the seeds of one algorithm and flags):\n"
-              + format_table(means))
-    print(f"wrote {png} and {csv}")
+    written = [files["png"], files["csv"]]
+    if grouped:
+        stats, tests = setting_statistics(table), pairwise_tests(table)
+        write_csv(files["settings"], stats)
+        write_csv(files["tests"], tests)
+        atomic_write(files["md"], lambda f: f.write(markdown_report(stats, tests)), mode="w")
+        print("\nper setting: mean [95% bootstrap interval of the mean] over its runs\n"
+              + markdown_report(stats, tests))
+        sizes = table["setting"].value_counts()
+        if (few := sizes[sizes < FEW_RUNS]).size:
+            print(f"note: {', '.join(f'{s} ({n} runs)' for s, n in few.items())}: fewer than "
+                  f"{FEW_RUNS} runs; the intervals are wide and the tests can hardly reject anything")
+        written += [files["settings"], files["tests"], files["md"]]
+    print(f"wrote {', '.join(map(str, written))}")
 
 
 # ================================================================================================
@@ -1651,12 +2188,13 @@ def holds_files(folder: Path) -> bool:
 
 
 @contextlib.contextmanager
-def new_run_folder(outdir: str | None, seed: int) -> Iterator[Path]:
-    """A new, empty run folder, locked for this process: an existing run is never written over,
-    not even by a second search started into the same --outdir at the same moment."""
+def new_folder(outdir: str | None, name: str) -> Iterator[Path]:
+    """A new, empty run (or experiment) folder, locked for this process: an existing one is never
+    written over, not even by a second command started into the same --outdir at the same moment.
+    By default outputs/<timestamp>_<name>."""
     if outdir is None:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-        run_dir = Path("outputs") / f"{stamp}_seed{seed}"
+        run_dir = Path("outputs") / f"{stamp}_{name}"
         run_dir = next(p for p in [run_dir, *(Path(f"{run_dir}_{i}") for i in range(2, 1000))]
                        if not p.exists())
     else:
@@ -1754,20 +2292,24 @@ class QuietFileHandler(logging.FileHandler):
         pass
 
 
-def make_logger(run_dir: Path) -> logging.Logger:
-    """Messages go to the console and, appended, to the run folder's run.log."""
-    log = logging.getLogger("lunar_lander")
+def make_logger(path: Path, name: str = "lunar_lander", console: bool = True) -> logging.Logger:
+    """Messages go to the console (if asked) and, appended, to the file `path`."""
+    log = logging.getLogger(name)
     log.setLevel(logging.INFO)
     log.propagate = False
+    close_logger(log)
+    logfile = QuietFileHandler(path, encoding="utf-8", delay=True)
+    logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+    log.addHandler(logfile)
+    if console:
+        log.addHandler(logging.StreamHandler(sys.stdout))
+    return log
+
+
+def close_logger(log: logging.Logger) -> None:
     for handler in list(log.handlers):
         log.removeHandler(handler)
         handler.close()
-    console = logging.StreamHandler(sys.stdout)
-    logfile = QuietFileHandler(run_dir / "run.log", encoding="utf-8")
-    logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
-    for handler in (console, logfile):
-        log.addHandler(handler)
-    return log
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1925,7 +2467,7 @@ class FastLunarLander(upstream.LunarLander):
 
 
 COMMANDS: dict[str, Callable] = {
-    "search": search, "resume": resume, "video": video, "elites": elites,
+    "search": search, "resume": resume, "experiment": experiment, "video": video, "elites": elites,
     "trajectories": trajectories, "evaluate": evaluate_robustness, "compare": compare,
 }
 
@@ -1934,7 +2476,9 @@ def reject_unknown_flags(command: Callable, args: list[str]) -> None:
     """Fire would print a page of usage for a mistyped flag; one line naming it is clearer."""
     import inspect
 
-    known = set(inspect.signature(command).parameters)
+    known = set(inspect.signature(command).parameters) - {"search_flags"}
+    if command is experiment:
+        known |= set(inspect.signature(search).parameters) - EXPERIMENT_OWN
     for arg in args:
         if arg.startswith("--") and arg not in ("--help", "--"):
             name = arg[2:].split("=", 1)[0].replace("-", "_")

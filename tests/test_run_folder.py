@@ -14,7 +14,16 @@ import uuid
 import pytest
 
 import lunar_lander as ll
-from util import checkpoint_iteration, folder_state, launch, load_pickle, run_archive, run_metrics, wait_for
+from util import (
+    assert_one_line_fault,
+    checkpoint_iteration,
+    folder_state,
+    launch,
+    load_pickle,
+    run_archive,
+    run_metrics,
+    wait_for,
+)
 
 FLAGS = dict(iterations=12, workers=2, seed=3, env_seed=52, algorithm="cma_me", n_emitters=2,
              sigma0=1.0, batch_size=6, log_every=1)
@@ -55,17 +64,6 @@ def fill(folder):
             while True:
                 file.write(b"\0" * 65536)
                 file.flush()
-
-
-def assert_one_line_fault(code, stderr, *fragments):
-    """Exit code 1 and one line of error, the last one printed (a search's progress bar may
-    precede it on stderr)."""
-    assert code == 1, stderr
-    lines = [line for line in stderr.strip().splitlines() if line.strip()]
-    assert lines[-1].startswith("error: ") and "Traceback" not in stderr, stderr
-    assert sum(line.startswith("error: ") for line in lines) == 1
-    for fragment in fragments:
-        assert fragment in lines[-1], lines[-1]
 
 
 def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path, dask_cluster,

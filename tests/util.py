@@ -63,3 +63,14 @@ def checkpoint_iteration(run_dir: Path) -> int:
         return load_pickle(Path(run_dir) / "checkpoint.pkl")["iteration"]
     except (OSError, EOFError, pickle.UnpicklingError):
         return -1
+
+
+def assert_one_line_fault(code, stderr, *fragments):
+    """Exit code 1 and one line of error, the last one printed (a search's progress bar may
+    precede it on stderr)."""
+    assert code == 1, stderr
+    lines = [line for line in stderr.strip().splitlines() if line.strip()]
+    assert lines[-1].startswith("error: ") and "Traceback" not in stderr, stderr
+    assert sum(line.startswith("error: ") for line in lines) == 1
+    for fragment in fragments:
+        assert fragment in lines[-1], lines[-1]

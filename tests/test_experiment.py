@@ -1,0 +1,186 @@
+"""Experiments: many runs interleaved on one cluster, each equal to its lone `search` twin; stop
+and resume; a failing run; bad input; statistics across seeds with `compare`."""
+
+import json
+import os
+import shutil
+import signal
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.stats import mannwhitneyu
+from test_cli import assert_one_line_error
+
+import lunar_lander as ll
+from util import (
+    assert_one_line_fault,
+    checkpoint_iteration,
+    folder_state,
+    launch,
+    run_archive,
+    run_metrics,
+    wait_for,
+)
+
+TINY = dict(iterations=4, n_emitters=2, batch_size=6, log_every=2)
+
+
+@pytest.fixture(scope="module")
+def experiment_dir(tmp_path_factory, dask_cluster):
+    """cma_me, map_elites and cma_mae at two learning rates, two seeds each: 8 runs in one go."""
+    folder = tmp_path_factory.mktemp("experiment") / "exp"
+    ll.experiment(algorithms="cma_me,map_elites,cma_mae", seeds="1-2", learning_rate=[0.01, 0.5],
+                  outdir=str(folder), scheduler_address=dask_cluster.scheduler_address, **TINY)
+    return folder
+
+
+def plan_of(folder):
+    return json.loads((folder / "experiment.json").read_text())
+
+
+def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
+    plan = plan_of(experiment_dir)
+    settings = [run["setting"] for run in plan["runs"]]
+    assert list(dict.fromkeys(settings)) == [  # learning_rate is cma_mae's own: no duplicates
+        "cma_me n_emitters=2 batch_size=6", "map_elites n_emitters=2 batch_size=6",
+        "cma_mae n_emitters=2 batch_size=6", "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5"]
+    assert [run["seed"] for run in plan["runs"]] == [1, 2] * 4
+    assert all(run["state"] == "done" for run in plan["runs"])
+    assert plan["axes"] == {"algorithm": ["cma_me", "map_elites", "cma_mae"], "learning_rate": [0.01, 0.5]}
+    for run in plan["runs"]:
+        run_dir = experiment_dir / run["name"]
+        assert {"config.json", "checkpoint.pkl", "archive.pkl", "metrics.json", "heatmap.png",
+                "progress.png", "run.log"} <= {p.name for p in run_dir.iterdir()}
+        assert [row["iteration"] for row in run_metrics(run_dir)] == [1, 2, 3, 4]
+    assert "Done: 8 of 8 runs" in (experiment_dir / "experiment.log").read_text()
+
+
+@pytest.mark.parametrize("which", [1, 6])
+def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_cluster, which):
+    run = plan_of(experiment_dir)["runs"][which]
+    flags = {k: v for k, v in run["config"].items() if k in ll.search_defaults()}
+    ll.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
+    assert run_archive(experiment_dir / run["name"]).equals(run_archive(tmp_path / "twin"))
+    assert run_metrics(experiment_dir / run["name"]) == run_metrics(tmp_path / "twin")
+
+
+def test_one_run_at_a_time_gives_the_same_runs(experiment_dir, tmp_path, dask_cluster):
+    ll.experiment(algorithms="cma_mae", seeds="2", learning_rate=[0.5], max_in_flight=1,
+                  outdir=str(tmp_path / "exp"), scheduler_address=dask_cluster.scheduler_address, **TINY)
+    [run] = plan_of(tmp_path / "exp")["runs"]
+    assert run_archive(tmp_path / "exp" / run["name"]).equals(run_archive(experiment_dir / run["name"]))
+
+
+def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_cluster, experiment_dir):
+    folder = tmp_path / "exp"
+    process = launch("experiment", algorithms="cma_me,map_elites", seeds="1-2", iterations=12,
+                     n_emitters=2, batch_size=6, log_every=2, outdir=folder,
+                     scheduler_address=dask_cluster.scheduler_address)
+    wait_for(lambda: (folder / "experiment.json").exists() and all(
+        checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+        process, "every run past iteration 2")
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    assert f"resume {folder}" in out and "Traceback" not in err
+    states = {run["state"] for run in plan_of(folder)["runs"]}
+    assert states <= {"stopped", "done"} and "stopped" in states
+
+    ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+
+    whole = tmp_path / "whole"
+    ll.experiment(algorithms="cma_me,map_elites", seeds="1-2", iterations=12, n_emitters=2,
+                  batch_size=6, log_every=2, outdir=str(whole),
+                  scheduler_address=dask_cluster.scheduler_address)
+    for run in plan_of(folder)["runs"]:
+        assert run["state"] == "done"
+        assert run_archive(folder / run["name"]).equals(run_archive(whole / run["name"]))
+        assert run_metrics(folder / run["name"]) == run_metrics(whole / run["name"])
+
+
+def test_a_failing_run_is_recorded_and_the_others_go_on(tmp_path, dask_cluster, experiment_dir, capsys):
+    folder = tmp_path / "exp"
+    shutil.copytree(experiment_dir, folder)
+    broken = plan_of(folder)["runs"][2]["name"]
+    shutil.rmtree(folder / broken / "heatmaps")
+    (folder / broken / "heatmaps").write_text("not a folder")  # its next save cannot write there
+
+    code = ll.main(["resume", str(folder), "--iterations", "6",
+                    "--scheduler_address", dask_cluster.scheduler_address])
+
+    assert_one_line_fault(code, capsys.readouterr().err, "1 of 8 runs failed", broken)
+    runs = plan_of(folder)["runs"]
+    assert runs[2]["state"] == "failed" and "heatmaps" in runs[2]["error"]
+    for run in runs[:2] + runs[3:]:
+        assert run["state"] == "done" and run_metrics(folder / run["name"])[-1]["iteration"] == 6
+    assert checkpoint_iteration(folder / broken) >= 4  # its checkpoint is intact
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["--algorithms", "cma_me,cma_es"], ["--algorithms", "cma_es"]),
+    (["--algorithms", "[]"], ["empty"]),
+    (["--seeds", "5-2"], ["--seeds"]),
+    (["--learning_rate", "[]"], ["empty"]),
+    (["--learning_rate", "[0.1, 2]"], ["--learning_rate"]),
+    (["--seed", "3"], ["--seed", "--seeds"]),
+    (["--iteratons", "3"], ["--iteratons"]),
+])
+def test_bad_experiments_are_refused_before_writing(run_cli, tmp_path, args, fragments):
+    assert_one_line_error(run_cli("experiment", *args, "--outdir", tmp_path / "exp"), *fragments)
+    assert not (tmp_path / "exp").exists()
+
+
+def test_an_existing_folder_is_not_touched(run_cli, tmp_path):
+    (tmp_path / "exp").mkdir()
+    (tmp_path / "exp" / "notes.txt").write_text("mine")
+    before = folder_state(tmp_path / "exp")
+    assert_one_line_error(run_cli("experiment", "--outdir", tmp_path / "exp"), "not empty")
+    assert folder_state(tmp_path / "exp") == before
+
+
+def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
+    ll.compare(str(experiment_dir), out=str(tmp_path / "cmp"))
+
+    table = pd.read_csv(tmp_path / "cmp.csv")
+    stats = pd.read_csv(tmp_path / "cmp_settings.csv")
+    tests = pd.read_csv(tmp_path / "cmp_tests.csv")
+    assert len(table) == 8 and table["setting"].nunique() == 4
+    qd = stats[stats["metric"] == "qd_score"]
+    for row in qd.to_dict("records"):
+        values = table.loc[table["setting"] == row["setting"], "qd_score"]
+        assert row["runs"] == 2 and row["mean"] == pytest.approx(values.mean())
+        assert row["ci95_low"] <= row["mean"] <= row["ci95_high"]
+    assert len(tests) == 2 * 6  # two metrics, every pair of 4 settings
+    first = tests.iloc[0]
+    x, y = (table.loc[table["setting"] == first[side], "qd_score"] for side in ("setting_a", "setting_b"))
+    assert first["p"] == pytest.approx(mannwhitneyu(x, y, alternative="two-sided").pvalue)
+    assert first["A12"] == pytest.approx(np.mean([(a > b) + 0.5 * (a == b) for a in x for b in y]))
+    assert (tests["p_holm"] >= tests["p"]).all()
+    assert table["cqd_score"].notna().all() and table["qd_auc"].gt(0).all()
+    out = capsys.readouterr().out
+    assert "fewer than 5 runs" in out and "| setting | runs |" in out
+    assert (tmp_path / "cmp.md").read_text().startswith("| setting | runs |")
+    assert (tmp_path / "cmp.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_holm_and_auc_by_hand():
+    assert ll.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    metrics = [{"evaluations": 10, "qd_score": 100.0}, {"evaluations": 20, "qd_score": 300.0}]
+    assert ll.qd_auc(metrics) == pytest.approx((0.5 * 10 * 100 + 10 * 200) / 20)
+
+
+def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
+    folder = tmp_path / "exp"
+    process = launch("experiment", algorithms="cma_me", seeds="1-2", iterations=8, n_emitters=2,
+                     batch_size=6, log_every=2, outdir=folder,
+                     scheduler_address=dask_cluster.scheduler_address)
+    wait_for(lambda: (folder / "experiment.json").exists() and any(
+        checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+        process, "a run past iteration 2")
+    os.killpg(process.pid, signal.SIGKILL)
+    process.communicate(timeout=60)
+
+    ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+    assert all(run["state"] == "done" for run in plan_of(folder)["runs"])
+    assert all(run_metrics(folder / run["name"])[-1]["iteration"] == 8 for run in plan_of(folder)["runs"])
