@@ -89,3 +89,23 @@ def run_process(tmp_path):
         return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=tmp_path,
                               capture_output=True, text=True, timeout=timeout)
     return run
+
+
+CHROMIUM = "/usr/bin/chromium"  # Debian's package; .ci/run installs it when it is missing
+CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-quic",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """A real headless Chromium driven by Playwright, or a skip that says what is missing."""
+    if not os.path.exists(CHROMIUM):
+        pytest.skip(f"no Chromium at {CHROMIUM} (apt-get install chromium); browser tests skipped")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("Playwright is not installed (pip install playwright); browser tests skipped")
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+        yield browser
+        browser.close()

@@ -137,7 +137,8 @@ class Measure:
     range: tuple[float, float]
     short: str
     of: Callable[[Flight], float]
-    descending: bool = False  # drawn top to bottom (the tutorial puts faster impacts at the bottom)
+    descending: bool = False  # its axis drawn from the lower bound at the top (the tutorial puts the
+    # fastest impacts, the most negative y-velocities, on top)
 
 
 # The measures a search can use (--measures picks 1 to 3, in order). Each is computed per terrain
@@ -165,11 +166,16 @@ MEASURES: dict[str, Measure] = {
 TUTORIAL_MEASURES = ("impact_x", "impact_y_velocity")  # the default, and what old run folders used
 
 
-def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None) -> Flight:
+def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
+        on_step: Callable[[int, np.ndarray], None] | None = None) -> Flight:
     """Fly the policy action = argmax(W @ obs) for one episode on the terrain of `env_seed`.
 
-    With a `trajectory` list, each step's (x, y) position is appended to it.
+    With a `trajectory` list, each step's (x, y) position is appended to it; `on_step` is called
+    with each step's action and observation (the explorer records poses with it).
     """
+    if trajectory is not None:
+        def on_step(action: int, obs: np.ndarray) -> None:
+            trajectory.append((float(obs[0]), float(obs[1])))
     weights = np.asarray(solution, dtype=np.float64).reshape(ACTION_DIM, OBS_DIM)
     # W.dot(obs) makes the same BLAS call as W @ obs (same bits) for less overhead; a strided W
     # would take matmul's non-BLAS path, so it keeps matmul.
@@ -190,8 +196,8 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
             max_tilt = max(max_tilt, abs(float(obs[4])))
             if obs[6] or obs[7]:
                 touchdown, flight.touchdown_step = obs, steps
-        if trajectory is not None:
-            trajectory.append((float(obs[0]), float(obs[1])))
+        if on_step is not None:
+            on_step(action, obs)
     flight.reward, flight.steps, flight.touchdown, flight.last = total_reward, steps, touchdown, obs
     flight.min_y_velocity, flight.max_tilt, flight.firings = float(min_y_velocity), max_tilt, firings
     return flight
@@ -717,7 +723,7 @@ HEATMAP_RANGE = (-300, 300)
 
 
 def save_heatmap(archive, measures: list[str], path: Path, title: str) -> None:
-    """The tutorial's heatmap: objective per cell (faster impacts at the bottom). One measure
+    """The tutorial's heatmap: objective per cell (the fastest impacts on top). One measure
     gives a strip; with three, each cell of the first two shows the best elite over the third."""
     import matplotlib.pyplot as plt
     from ribs.archives import GridArchive
@@ -1672,6 +1678,123 @@ def console_log() -> logging.Logger:
     return log
 
 
+# The explorer page: every elite's flight, recorded as poses and packed into the page.
+# Per step, five numbers give the drawing: the lander's x, y and angle and its two legs' angles (a
+# leg hangs from the lander's centre by its joint, so its position follows from its angle), plus
+# the action (which engine fires). They are quantised to int16, 1 mm and 0.1 mrad (angles wrapped
+# to [-pi, pi]), and sent as base64: ~11 bytes a step, ~9 MB for a full 300-iteration archive
+# (~615,000 steps). The page decodes them with atob into an Int16Array.
+POSE_SCALE = (1000.0, 1000.0, 10000.0, 10000.0, 10000.0)  # int16 units per metre or radian
+
+
+def record_poses(solutions: np.ndarray, env_seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Runs on a worker: each solution's flight as quantised poses (steps + 1, 5) and actions,
+    the reset's pose first (action 0), flown in the streamlined env as `rollout` flies it."""
+    env = _WORKER_ENVS.get(True) or _WORKER_ENVS.setdefault(True, make_env(True))
+    return [record_flight(solution, env_seed, env) for solution in solutions]
+
+
+def record_flight(solution: np.ndarray, env_seed: int, env: FastLunarLander) -> tuple[np.ndarray, np.ndarray]:
+    def pose() -> list[float]:
+        return [env.lander.position.x, env.lander.position.y, env.lander.angle,
+                env.legs[0].angle, env.legs[1].angle]
+
+    env.reset(seed=env_seed)
+    poses, actions = [pose()], [0]
+    fly(solution, env_seed, env, on_step=lambda action, obs: (poses.append(pose()), actions.append(action)))
+    values = np.array(poses)  # the first pose is reset's; fly resets again, to the same pose
+    values[:, 2:] = (values[:, 2:] + np.pi) % (2 * np.pi) - np.pi
+    quantised = np.clip(np.round(values * POSE_SCALE), -32767, 32767).astype("<i2")
+    return quantised, np.array(actions, dtype=np.uint8)
+
+
+def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: int,
+                  run_dir: Path) -> dict:
+    """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
+    import base64
+
+    import matplotlib
+
+    offsets = np.cumsum([0, *(len(actions) for _, actions in flights)])
+    grid = archive.int_to_grid_index(rows["index"])
+    robust = {}
+    if (run_dir / "robustness.csv").is_file():
+        import pandas as pd
+
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            table = pd.read_csv(run_dir / "robustness.csv")
+            robust = {int(r["cell_index"]): (float(r["mean_objective"]), float(r["landed_share"]))
+                      for r in table.to_dict("records")}
+    elites = [{"index": int(index), "gx": int(cell[0]), "gy": int(cell[1]) if len(cell) > 1 else 0,
+               "objective": float(objective), "measures": [float(m) for m in measures],
+               "offset": int(offset), "steps": int(len(actions) - 1),
+               **({"robust": robust[int(index)]} if int(index) in robust else {})}
+              for index, cell, objective, measures, offset, (_, actions)
+              in zip(rows["index"], grid, rows["objective"], rows["measures"], offsets, flights)]
+    edges, _, _ = _seeded_randoms(env_seed)
+    magma = matplotlib.colormaps["magma"]
+    metrics = read_run_json(run_dir, "metrics.json")
+    return {
+        "run": str(run_dir), "algorithm": config["algorithm"], "env_seed": env_seed,
+        "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
+                      "range": [float(lo), float(hi)]}
+                     for name, lo, hi in zip(config["measures"], archive.lower_bounds, archive.upper_bounds)],
+        "dims": [int(d) for d in archive.dims], "heat_range": list(HEATMAP_RANGE),
+        "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
+        "elites": elites, "pose_scale": list(POSE_SCALE),
+        "poses": base64.b64encode(np.concatenate([p for p, _ in flights]).tobytes()).decode(),
+        "actions": base64.b64encode(np.concatenate([a for _, a in flights]).tobytes()).decode(),
+        "world": {"width": _W, "height": _H, "scale": _S, "helipad_y": _HELIPAD_Y,
+                  "helipad_x": [edges[3][1][0], edges[5][1][0]],
+                  "ground": [edges[0][0], *(end for _, end in edges)],
+                  "lander": [[x / _S, y / _S] for x, y in upstream.LANDER_POLY],
+                  "leg": [upstream.LEG_AWAY / _S, upstream.LEG_DOWN / _S, upstream.LEG_W / _S,
+                          upstream.LEG_H / _S], "fps": _FPS},
+        "metrics": [{k: row.get(k) for k in ("iteration", "evaluations", "qd_score", "coverage",
+                                             "best_objective")} for row in metrics],
+        "robustness": bool(robust),
+    }
+
+
+def explore(run_dir: str, workers: int = 2, scheduler_address: str | None = None,
+            env_seed: int | None = None) -> None:
+    """Write RUN_DIR/explorer.html: one self-contained page to browse the archive and watch any
+    landing. It opens offline in any current browser (no server, nothing fetched): the heatmap
+    (hover a cell for its numbers, click it to watch its elite land), a sortable table of the best
+    elites, and the run's progress curves. Every elite is flown again on the cluster to record its
+    poses, so the page plays exactly the flight that `video` renders.
+
+    Args:
+        run_dir: A run folder written by this script.
+        workers: Number of Dask worker processes flying the elites.
+        scheduler_address: Address of a running Dask scheduler to evaluate on instead.
+        env_seed: The terrain to fly on; default: the run's first.
+    """
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    archive, config = load_run(run_dir)
+    shown = config["env_seed"][0] if env_seed is None else non_negative_int("env_seed", env_seed)
+    workers, run = positive_int("workers", workers), Path(str(run_dir))
+    check_writable(run)
+    rows = elite_rows(archive)
+    with dask_client(workers, scheduler_address, console_log()) as client:
+        chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
+        futures = [client.submit(by_reference(record_poses), chunk, shown, pure=False, retries=3)
+                   for chunk in chunks]
+        with STOP.interruptible():
+            for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
+                          dynamic_ncols=True):
+                pass
+            flights = [flight for chunk in client.gather(futures) for flight in chunk]
+    data = explorer_data(archive, config, rows, flights, shown, run)
+    page = EXPLORER_PAGE.replace("/*DATA*/null", json.dumps(data, separators=(",", ":")))
+    atomic_write(run / "explorer.html", lambda f: f.write(page), mode="w")
+    size = (run / "explorer.html").stat().st_size
+    print(f"{len(rows['index'])} elites, {sum(len(a) for _, a in flights):,} poses: wrote "
+          f"{run / 'explorer.html'} ({size / 1e6:.1f} MB); open it in a browser")
+
+
 def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
                      objectives: np.ndarray):
     """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
@@ -2217,6 +2340,16 @@ UMASK = os.umask(0o022)
 os.umask(UMASK)
 
 
+def check_writable(folder: Path) -> None:
+    """Refuse, before any work, a folder where nothing can be written (a read-only disk)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as error:
+        raise UsageError(f"cannot write in {folder}: {error.strerror or error}") from None
+
+
 def atomic_write(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
     """Write `path` via a temporary file and os.replace, so a crash never leaves half a file.
 
@@ -2466,9 +2599,294 @@ class FastLunarLander(upstream.LunarLander):
 
 
 
+# The explorer's page (see `explore`): plain HTML, CSS and JavaScript, no library, nothing fetched.
+# The Python side replaces /*DATA*/null with the run's data (explorer_data).
+EXPLORER_PAGE = r"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8">
+<title>Lunar Lander archive explorer</title>
+<style>
+  body { font: 14px system-ui, sans-serif; margin: 16px; background: #f6f6f8; color: #222; }
+  h1 { font-size: 20px; margin: 0 0 4px; } h2 { font-size: 15px; margin: 0 0 8px; }
+  .row { display: flex; gap: 16px; flex-wrap: wrap; align-items: flex-start; margin-bottom: 16px; }
+  .panel { background: #fff; border: 1px solid #ddd; border-radius: 6px; padding: 12px; }
+  #tip { position: fixed; pointer-events: none; background: #222; color: #fff; padding: 6px 8px;
+         border-radius: 4px; font-size: 12px; white-space: pre; display: none; z-index: 2; }
+  #info { font-size: 13px; margin-top: 8px; min-height: 3em; white-space: pre-line; }
+  table { border-collapse: collapse; font-size: 13px; }
+  th, td { padding: 3px 10px; text-align: right; border-bottom: 1px solid #eee; }
+  th { cursor: pointer; background: #f0f0f4; user-select: none; } tbody tr { cursor: pointer; }
+  tbody tr:hover td, tr.playing td { background: #e8e8ff; }
+  .axis { font-size: 12px; color: #555; }
+</style></head>
+<body>
+<h1>Lunar Lander archive explorer</h1>
+<div class="axis" id="subtitle"></div>
+<div class="row">
+  <div class="panel"><h2>Archive: objective per cell (hover for numbers, click to watch)</h2>
+    <canvas id="heatmap"></canvas>
+    <div id="switch" style="display:none">Colour by:
+      <label><input type="radio" name="colour" value="objective" checked> objective</label>
+      <label><input type="radio" name="colour" value="robust"> mean objective on other terrains</label>
+    </div></div>
+  <div class="panel"><h2>Landing</h2>
+    <canvas id="flight" width="600" height="400"></canvas>
+    <div><button id="play">Play</button> <button id="restart">Restart</button>
+      <input type="range" id="slider" min="0" max="0" value="0" style="width:330px">
+      <span id="step" class="axis"></span></div>
+    <div id="info">Click a cell of the archive or a row of the table to watch its elite land.</div>
+  </div>
+</div>
+<div class="row"><div class="panel"><h2>Progress</h2>
+  <canvas id="curves" width="960" height="220"></canvas></div></div>
+<div class="row"><div class="panel"><h2>Best elites (click a header to sort, a row to watch)</h2>
+  <table id="elites"><thead></thead><tbody></tbody></table></div></div>
+<div id="tip"></div>
+<script>
+"use strict";
+const DATA = /*DATA*/null;
+
+// ---- data: the packed flights (see POSE_SCALE in lunar_lander.py) ----
+function bytes(base64) {
+  const text = atob(base64), out = new Uint8Array(text.length);
+  for (let i = 0; i < text.length; i++) out[i] = text.charCodeAt(i);
+  return out;
+}
+const POSES = new Int16Array(bytes(DATA.poses).buffer), ACTIONS = bytes(DATA.actions);
+const SCALE = DATA.pose_scale, W = DATA.world;
+function pose(elite, step) {  // [x, y, angle, left leg angle, right leg angle], metres and radians
+  const at = (elite.offset + step) * 5;
+  return [0, 1, 2, 3, 4].map(k => POSES[at + k] / SCALE[k]);
+}
+const fmt = (v, d = 2) => (v === null || v === undefined) ? "-" : Number(v).toFixed(d);
+
+// ---- the heatmap: cells of the first two measures (the best elite over a third) ----
+const [NX, NY] = [DATA.dims[0], DATA.dims[1] || 1];
+const CELL = Math.max(4, Math.floor(400 / Math.max(NX, NY)));
+const PAD = 50, heat = document.getElementById("heatmap");
+heat.width = NX * CELL + PAD + 70; heat.height = NY * CELL + PAD;
+const cells = new Map();  // "gx,gy" -> the elite drawn there
+for (const e of DATA.elites) {
+  const key = e.gx + "," + e.gy, there = cells.get(key);
+  if (!there || e.objective > there.objective) cells.set(key, e);
+}
+const yDown = DATA.measures.length > 1 && DATA.measures[1].descending;
+const cellRow = gy => yDown ? gy : NY - 1 - gy;
+let colourBy = "objective";
+function colour(value) {
+  const [lo, hi] = DATA.heat_range;
+  const i = Math.round(255 * Math.min(1, Math.max(0, (value - lo) / (hi - lo))));
+  return DATA.colormap[i];
+}
+function drawHeatmap() {
+  const g = heat.getContext("2d");
+  g.fillStyle = "#fff"; g.fillRect(0, 0, heat.width, heat.height);
+  g.fillStyle = "#eee"; g.fillRect(PAD, 0, NX * CELL, NY * CELL);
+  for (const e of cells.values()) {
+    const value = colourBy === "robust" ? (e.robust ? e.robust[0] : null) : e.objective;
+    g.fillStyle = value === null ? "#ccc" : colour(value);
+    g.fillRect(PAD + e.gx * CELL, cellRow(e.gy) * CELL, CELL, CELL);
+  }
+  g.fillStyle = "#333"; g.font = "12px sans-serif"; g.textAlign = "center";
+  const [mx, my] = DATA.measures;
+  g.fillText(mx.label + "  [" + mx.range.join(", ") + "]", PAD + NX * CELL / 2, NY * CELL + 30);
+  if (my) {
+    g.save(); g.translate(14, NY * CELL / 2); g.rotate(-Math.PI / 2);
+    const span = yDown ? "  (" + my.range[0] + " on top)" : "  [" + my.range.join(", ") + "]";
+    g.fillText(my.label + span, 0, 0);
+    g.restore();
+  }
+  for (let i = 0; i < 100; i++) {  // the colour bar
+    g.fillStyle = colour(DATA.heat_range[0] + (i / 99) * (DATA.heat_range[1] - DATA.heat_range[0]));
+    g.fillRect(PAD + NX * CELL + 16, NY * CELL * (1 - (i + 1) / 100), 14, NY * CELL / 100 + 1);
+  }
+  g.textAlign = "left"; g.fillStyle = "#333";
+  g.fillText(DATA.heat_range[1], PAD + NX * CELL + 34, 10);
+  g.fillText(DATA.heat_range[0], PAD + NX * CELL + 34, NY * CELL);
+}
+function cellAt(event) {
+  const box = heat.getBoundingClientRect();
+  const gx = Math.floor((event.clientX - box.left - PAD) / CELL);
+  const row = Math.floor((event.clientY - box.top) / CELL);
+  if (gx < 0 || gx >= NX || row < 0 || row >= NY) return null;
+  return cells.get(gx + "," + (yDown ? row : NY - 1 - row)) || null;
+}
+function describe(e) {
+  const lines = ["cell " + e.index, "objective " + fmt(e.objective)];
+  DATA.measures.forEach((m, i) => lines.push(m.name + " " + fmt(e.measures[i], 3)));
+  if (e.robust) {
+    lines.push("other terrains: mean " + fmt(e.robust[0]) + ", landed " + fmt(100 * e.robust[1], 0) + "%");
+  }
+  return lines.join("\n");
+}
+const tip = document.getElementById("tip");
+heat.addEventListener("mousemove", event => {
+  const e = cellAt(event);
+  if (!e) { tip.style.display = "none"; return; }
+  tip.textContent = describe(e); tip.style.display = "block";
+  tip.style.left = (event.clientX + 14) + "px"; tip.style.top = (event.clientY + 14) + "px";
+});
+heat.addEventListener("mouseleave", () => { tip.style.display = "none"; });
+heat.addEventListener("click", event => { const e = cellAt(event); if (e) watch(e); });
+if (DATA.robustness) {
+  document.getElementById("switch").style.display = "block";
+  for (const radio of document.getElementsByName("colour"))
+    radio.addEventListener("change", () => { colourBy = radio.value; drawHeatmap(); });
+}
+
+// ---- the landing: terrain, flight path, lander and legs at their recorded poses ----
+const flight = document.getElementById("flight"), fg = flight.getContext("2d");
+const PX = flight.width / W.width;  // pixels per metre: the env's own view, 600 x 400
+const toX = x => x * PX, toY = y => flight.height - y * PX;
+let current = null, step = 0, playing = false, last = 0;
+const slider = document.getElementById("slider");
+function drawFlight() {
+  fg.fillStyle = "#000"; fg.fillRect(0, 0, flight.width, flight.height);
+  fg.fillStyle = "#fff"; fg.beginPath(); fg.moveTo(0, flight.height);  // the ground
+  for (const [x, y] of W.ground) fg.lineTo(toX(x), toY(y));
+  fg.lineTo(flight.width, flight.height); fg.closePath(); fg.fill();
+  for (const x of W.helipad_x) {  // the helipad's flags
+    fg.strokeStyle = "#fff"; fg.beginPath(); fg.moveTo(toX(x), toY(W.helipad_y));
+    fg.lineTo(toX(x), toY(W.helipad_y) - 50); fg.stroke();
+    fg.fillStyle = "#cccc00"; fg.beginPath(); fg.moveTo(toX(x), toY(W.helipad_y) - 50);
+    fg.lineTo(toX(x), toY(W.helipad_y) - 40); fg.lineTo(toX(x) + 25, toY(W.helipad_y) - 45); fg.fill();
+  }
+  if (!current) return;
+  fg.strokeStyle = "#6cf"; fg.lineWidth = 1.5; fg.beginPath();  // the flight path so far
+  for (let i = 0; i <= step; i++) {
+    const [x, y] = pose(current, i);
+    i ? fg.lineTo(toX(x), toY(y)) : fg.moveTo(toX(x), toY(y));
+  }
+  fg.stroke(); fg.lineWidth = 1;
+  const [x, y, angle, ...legs] = pose(current, step);
+  const action = ACTIONS[current.offset + step];
+  [-1, 1].forEach((side, i) => drawLeg(x, y, legs[i], side));
+  drawBody(x, y, angle, action);
+}
+function rotate(px, py, angle) {
+  return [px * Math.cos(angle) - py * Math.sin(angle), px * Math.sin(angle) + py * Math.cos(angle)];
+}
+function polygon(points, fill, stroke) {
+  fg.beginPath();
+  points.forEach(([px, py], i) => i ? fg.lineTo(toX(px), toY(py)) : fg.moveTo(toX(px), toY(py)));
+  fg.closePath(); fg.fillStyle = fill; fg.fill(); fg.strokeStyle = stroke; fg.stroke();
+}
+function drawLeg(x, y, angle, side) {  // the joint holds the leg's anchor at the lander's centre
+  const [away, down, w, h] = W.leg, [ax, ay] = rotate(side * away, down, angle);
+  const cx = x - ax, cy = y - ay;
+  polygon([[-w, -h], [w, -h], [w, h], [-w, h]].map(([px, py]) => {
+    const [rx, ry] = rotate(px, py, angle); return [cx + rx, cy + ry]; }), "#8066e6", "#4d4d80");
+}
+function drawBody(x, y, angle, action) {
+  if (action) {  // the firing engine's flame: main below, sides (1: left engine, 3: right)
+    const flame = action === 2 ? [[-0.15, -0.25], [0.15, -0.25], [0, -0.9]]
+      : action === 1 ? [[0.45, 0.05], [0.45, 0.25], [0.95, 0.15]]
+      : [[-0.45, 0.05], [-0.45, 0.25], [-0.95, 0.15]];
+    polygon(flame.map(([px, py]) => { const [rx, ry] = rotate(px, py, angle); return [x + rx, y + ry]; }),
+            "#ff9a1f", "#ff5a00");
+  }
+  polygon(W.lander.map(([px, py]) => { const [rx, ry] = rotate(px, py, angle); return [x + rx, y + ry]; }),
+          "#8066e6", "#4d4d80");
+}
+function show(newStep) {
+  step = Math.max(0, Math.min(newStep, current ? current.steps : 0));
+  slider.value = step;
+  document.getElementById("step").textContent = current ? "step " + step + " / " + current.steps : "";
+  drawFlight();
+}
+function watch(e) {
+  current = e; slider.max = e.steps;
+  document.getElementById("info").textContent = describe(e).replace(/\n/g, ", ")
+    + "\nepisode: " + e.steps + " steps on terrain " + DATA.env_seed;
+  for (const tr of document.querySelectorAll("tbody tr")) tr.classList.toggle("playing", tr.elite === e);
+  show(0); play(true);
+}
+function play(on) {
+  playing = on && current !== null && step < current.steps;
+  document.getElementById("play").textContent = playing ? "Pause" : "Play";
+  if (playing) { last = performance.now(); requestAnimationFrame(tick); }
+}
+function tick(now) {  // the env's 50 steps a second
+  if (!playing) return;
+  const steps = Math.floor((now - last) * W.fps / 1000);
+  if (steps > 0) { last += steps * 1000 / W.fps; show(step + steps); }
+  if (step >= current.steps) { play(false); return; }
+  requestAnimationFrame(tick);
+}
+document.getElementById("play").addEventListener("click", () => {
+  if (current && step >= current.steps) show(0);
+  play(!playing);
+});
+document.getElementById("restart").addEventListener("click", () => { show(0); play(true); });
+slider.addEventListener("input", () => { play(false); show(Number(slider.value)); });
+
+// ---- the table of the best elites ----
+const columns = [["cell", e => e.index], ["objective", e => e.objective],
+  ...DATA.measures.map((m, i) => [m.name, e => e.measures[i]]), ["steps", e => e.steps]];
+if (DATA.robustness) columns.push(["mean other terrains", e => e.robust ? e.robust[0] : null]);
+const best = [...DATA.elites].sort((a, b) => b.objective - a.objective).slice(0, 200);
+let sortBy = 1, ascending = false;
+function drawTable() {
+  const head = document.querySelector("#elites thead"), body = document.querySelector("#elites tbody");
+  head.innerHTML = ""; body.innerHTML = "";
+  const tr = head.insertRow();
+  columns.forEach(([name], i) => {
+    const th = document.createElement("th");
+    th.textContent = name + (i === sortBy ? (ascending ? " \u25b2" : " \u25bc") : "");
+    th.addEventListener("click", () => {
+      ascending = i === sortBy ? !ascending : false; sortBy = i; drawTable();
+    });
+    tr.appendChild(th);
+  });
+  const key = columns[sortBy][1];
+  const rows = [...best].sort(
+    (a, b) => (ascending ? 1 : -1) * ((key(a) ?? -Infinity) - (key(b) ?? -Infinity)));
+  for (const e of rows) {
+    const row = body.insertRow(); row.elite = e; row.classList.toggle("playing", e === current);
+    columns.forEach(([name, value], i) => {
+      row.insertCell().textContent = i === 0 ? value(e) : fmt(value(e), name === "steps" ? 0 : 2);
+    });
+    row.addEventListener("click", () => watch(e));
+  }
+}
+
+// ---- the run's progress: QD score, coverage and best objective against iterations ----
+function drawCurves() {
+  const canvas = document.getElementById("curves"), g = canvas.getContext("2d");
+  const panels = [["qd_score", "QD score"], ["coverage", "Coverage"], ["best_objective", "Best objective"]];
+  const w = canvas.width / 3, M = DATA.metrics;
+  g.fillStyle = "#fff"; g.fillRect(0, 0, canvas.width, canvas.height); g.font = "12px sans-serif";
+  panels.forEach(([key, title], p) => {
+    const points = M.filter(r => r[key] !== null).map(r => [r.iteration, r[key]]);
+    if (!points.length) return;
+    const xs = points.map(q => q[0]), ys = points.map(q => q[1]);
+    const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+    const left = p * w + 50, right = (p + 1) * w - 14, top = 24, bottom = canvas.height - 30;
+    const sx = x => left + (right - left) * (x1 > x0 ? (x - x0) / (x1 - x0) : 0.5);
+    const sy = y => bottom - (bottom - top) * (y1 > y0 ? (y - y0) / (y1 - y0) : 0.5);
+    g.strokeStyle = "#999"; g.strokeRect(left, top, right - left, bottom - top);
+    g.fillStyle = "#333"; g.textAlign = "center"; g.fillText(title, (left + right) / 2, 16);
+    g.fillText("iteration", (left + right) / 2, canvas.height - 8);
+    g.textAlign = "right"; g.fillText(fmt(y1, key === "coverage" ? 3 : 0), left - 4, top + 8);
+    g.fillText(fmt(y0, key === "coverage" ? 3 : 0), left - 4, bottom);
+    g.strokeStyle = "#1f77b4"; g.lineWidth = 2; g.beginPath();
+    points.forEach(([x, y], i) => i ? g.lineTo(sx(x), sy(y)) : g.moveTo(sx(x), sy(y)));
+    g.stroke(); g.lineWidth = 1;
+  });
+}
+
+document.getElementById("subtitle").textContent = DATA.run + ": " + DATA.algorithm + ", "
+  + DATA.elites.length + " elites, flown on terrain " + DATA.env_seed;
+drawHeatmap(); drawTable(); drawCurves(); drawFlight();
+window.explorerReady = true;
+</script>
+</body></html>
+"""
+
+
 COMMANDS: dict[str, Callable] = {
     "search": search, "resume": resume, "experiment": experiment, "video": video, "elites": elites,
-    "trajectories": trajectories, "evaluate": evaluate_robustness, "compare": compare,
+    "trajectories": trajectories, "evaluate": evaluate_robustness, "explore": explore,
+    "compare": compare,
 }
 
 

@@ -1,0 +1,153 @@
+"""The explorer page: the poses it packs are the rollouts' flights, and a real headless Chromium
+loads it from file:// without errors, shows a cell's numbers on hover, plays a landing on click
+(the lander drawn where the poses put it) and plays a table row."""
+
+import base64
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from test_run_folder import small_disk
+
+import lunar_lander as ll
+from util import folder_state, load_pickle
+
+LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
+
+
+@pytest.fixture(scope="module")
+def explored(tmp_path_factory, dask_cluster):
+    """A tiny run (a few dozen elites) and its explorer page."""
+    run_dir = tmp_path_factory.mktemp("explorer") / "run"
+    ll.search(iterations=3, workers=2, seed=7, env_seed=52, n_emitters=2, batch_size=8, log_every=3,
+              outdir=str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    ll.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    return run_dir
+
+
+def page_data(run_dir) -> dict:
+    html = (run_dir / "explorer.html").read_text()
+    start = html.index("const DATA = ") + len("const DATA = ")
+    return json.loads(html[start:html.index(";\n", start)])
+
+
+def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
+    html = (explored / "explorer.html").read_text()
+    assert "<script src" not in html and "http" not in html.split("const DATA")[0]  # nothing fetched
+    data = page_data(explored)
+    archive = load_pickle(explored / "archive.pkl")
+    assert len(data["elites"]) == len(archive)
+    poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, 5)
+    actions = np.frombuffer(base64.b64decode(data["actions"]), dtype=np.uint8)
+    assert len(poses) == len(actions) == sum(e["steps"] + 1 for e in data["elites"])
+    solutions = dict(zip(archive.data("index"), archive.data("solution")))
+    env = ll.make_env(fast=False)
+    for elite in data["elites"][:5]:
+        trajectory = []
+        objective, *measures = ll.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory)
+        assert elite["objective"] == objective and elite["measures"] == measures
+        assert elite["steps"] == len(trajectory)
+        flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / np.array(ll.POSE_SCALE)
+        x = (flown[:, 0] - ll._HALF_W) / ll._HALF_W  # the observation's x and y, from the body's pose
+        y = (flown[:, 1] - ll._PAD_Y) / ll._HALF_H
+        assert np.abs(x - np.array(trajectory)[:, 0]).max() < 1e-4  # 1 mm of quantisation
+        assert np.abs(y - np.array(trajectory)[:, 1]).max() < 1e-4
+
+
+@pytest.mark.parametrize("case", ["no archive", "empty archive", "read-only folder"])
+def test_bad_folders_are_refused_and_untouched(explored, tmp_path, run_cli, case):
+    from ribs.archives import GridArchive
+
+    run_dir = tmp_path / "run"
+    if case == "no archive":
+        run_dir.mkdir()
+        (run_dir / "notes.txt").write_text("mine")
+        words = "archive.pkl: no such file"
+    elif case == "empty archive":
+        shutil.copytree(explored, run_dir)
+        ll.write_pickle(run_dir / "archive.pkl", GridArchive(solution_dim=32, dims=(50, 50),
+                                                             ranges=[(-1, 1), (-3, 0)]))
+        words = "empty"
+    else:
+        with small_disk(tmp_path, "8m") as disk:
+            run_dir = disk / "run"
+            shutil.copytree(explored, run_dir)
+            (run_dir / "explorer.html").unlink()
+            subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+            result = run_cli("explore", run_dir)
+            assert result.returncode == 2 and "cannot write" in result.stderr
+            assert not (run_dir / "explorer.html").exists()
+        return
+    before = folder_state(run_dir)
+    result = run_cli("explore", run_dir)
+    assert result.returncode == 2 and words in result.stderr and result.stderr.count("\n") == 1
+    assert folder_state(run_dir) == before
+
+
+@pytest.fixture
+def page(browser, explored):
+    page = browser.new_page(viewport={"width": 1300, "height": 1000})
+    errors = []
+    page.on("console", lambda message: message.type == "error" and errors.append(message.text))
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto((explored / "explorer.html").as_uri())
+    page.wait_for_function("window.explorerReady === true", timeout=20000)
+    page.errors = errors
+    yield page
+    page.close()
+
+
+def cell_centre(page, elite_index: int) -> tuple[float, float]:
+    box = page.locator("#heatmap").bounding_box()
+    gx, row, size, pad = page.evaluate(f"""(() => {{
+        const e = DATA.elites.find(e => e.index === {elite_index});
+        return [e.gx, cellRow(e.gy), CELL, PAD]; }})()""")
+    return box["x"] + pad + (gx + 0.5) * size, box["y"] + (row + 0.5) * size
+
+
+def best_elite(explored) -> dict:
+    return max(page_data(explored)["elites"], key=lambda e: e["objective"])
+
+
+def test_loads_without_errors_and_hover_shows_the_cells_numbers(page, explored):
+    assert page.errors == []
+    elite = best_elite(explored)
+    page.mouse.move(*cell_centre(page, elite["index"]))
+    tip = page.inner_text("#tip")
+    assert f"cell {elite['index']}" in tip and f"objective {elite['objective']:.2f}" in tip
+    assert f"impact_x {elite['measures'][0]:.3f}" in tip
+
+
+def canvas_pixels(page) -> str:
+    return page.evaluate("document.getElementById('flight').toDataURL()")
+
+
+def test_a_click_plays_the_landing_where_the_poses_put_the_lander(page, explored):
+    elite = best_elite(explored)
+    page.mouse.click(*cell_centre(page, elite["index"]))
+    first = canvas_pixels(page)
+    page.wait_for_timeout(400)  # 20 steps at 50 per second
+    assert canvas_pixels(page) != first  # it moves
+    page.click("#play")  # pause
+    step = page.evaluate("step")
+    assert 0 < step <= elite["steps"]
+    x, y = page.evaluate("(() => { const p = pose(current, step); return [toX(p[0]), toY(p[1])]; })()")
+    pixel = page.evaluate(f"Array.from(fg.getImageData({round(x)}, {round(y)}, 1, 1).data)")
+    assert pixel[:3] == LANDER_FILL  # the lander's body at the recorded pose
+    assert f"cell {elite['index']}" in page.inner_text("#info")
+    assert page.errors == []
+
+
+def test_the_table_sorts_and_a_row_plays_its_elite(page, explored):
+    rows = page.locator("#elites tbody tr")
+    objectives = [float(rows.nth(i).locator("td").nth(1).inner_text()) for i in range(rows.count())]
+    assert objectives == sorted(objectives, reverse=True)
+    page.click("#elites th:nth-child(1)")  # sort by cell
+    cells = [int(rows.nth(i).locator("td").nth(0).inner_text()) for i in range(rows.count())]
+    assert cells == sorted(cells, reverse=True)
+    rows.nth(2).click()
+    assert page.evaluate("current.index") == cells[2]
+    assert f"cell {cells[2]}" in page.inner_text("#info")
+    assert "playing" in rows.nth(2).get_attribute("class")
