@@ -2877,7 +2877,7 @@ function drawCurves() {
 document.getElementById("subtitle").textContent = DATA.run + ": " + DATA.algorithm + ", "
   + DATA.elites.length + " elites, flown on terrain " + DATA.env_seed;
 drawHeatmap(); drawTable(); drawCurves(); drawFlight();
-window.explorerReady = true;
+window.explorerReady = performance.now();  // ms since the page was opened: interactive from here
 </script>
 </body></html>
 """

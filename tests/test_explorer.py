@@ -8,6 +8,7 @@ import shutil
 import subprocess
 
 import numpy as np
+import pandas as pd
 import pytest
 from test_run_folder import small_disk
 
@@ -93,7 +94,7 @@ def page(browser, explored):
     page.on("console", lambda message: message.type == "error" and errors.append(message.text))
     page.on("pageerror", lambda error: errors.append(str(error)))
     page.goto((explored / "explorer.html").as_uri())
-    page.wait_for_function("window.explorerReady === true", timeout=20000)
+    page.wait_for_function("window.explorerReady > 0", timeout=20000)
     page.errors = errors
     yield page
     page.close()
@@ -151,3 +152,25 @@ def test_the_table_sorts_and_a_row_plays_its_elite(page, explored):
     assert page.evaluate("current.index") == cells[2]
     assert f"cell {cells[2]}" in page.inner_text("#info")
     assert "playing" in rows.nth(2).get_attribute("class")
+
+
+def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
+        browser, explored, tmp_path, dask_cluster):
+    run_dir = tmp_path / "run"
+    shutil.copytree(explored, run_dir)
+    ll.evaluate_robustness(str(run_dir), env_seeds="3,4", scheduler_address=dask_cluster.scheduler_address)
+    ll.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    robust = {int(r["cell_index"]): r for r in pd.read_csv(run_dir / "robustness.csv").to_dict("records")}
+
+    page = browser.new_page(viewport={"width": 1300, "height": 1000})
+    page.goto((run_dir / "explorer.html").as_uri())
+    page.wait_for_function("window.explorerReady > 0", timeout=20000)
+    elite = best_elite(run_dir)
+    page.mouse.move(*cell_centre(page, elite["index"]))
+    row = robust[elite["index"]]
+    assert (f"other terrains: mean {row['mean_objective']:.2f}, landed {100 * row['landed_share']:.0f}%"
+            in page.inner_text("#tip"))
+    before = page.evaluate("document.getElementById('heatmap').toDataURL()")
+    page.check("input[value=robust]")
+    assert page.evaluate("document.getElementById('heatmap').toDataURL()") != before
+    page.close()
