@@ -9,11 +9,13 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
     python lunar_lander.py --algorithm cma_mae               # or map_elites; default cma_me
     python lunar_lander.py --measures fuel,flight_time --env_seed 0-4   # other axes, 5 terrains
     python lunar_lander.py resume outputs/RUN                # continue a run from its checkpoint
+    python lunar_lander.py experiment --algorithms "[cma_me, cma_mae]" --seeds 1-5   # many runs
     python lunar_lander.py video outputs/RUN --cells "[(-0.4, -0.1)]"   # or --best, --top K
     python lunar_lander.py elites outputs/RUN --min_objective 200       # table of elites
     python lunar_lander.py trajectories outputs/RUN --top 10            # flight paths picture
     python lunar_lander.py evaluate outputs/RUN --env_seeds 0-19        # robustness on terrains
-    python lunar_lander.py compare outputs/RUN_A outputs/RUN_B          # runs side by side
+    python lunar_lander.py explore outputs/RUN                          # browse, watch landings
+    python lunar_lander.py compare outputs/RUN_A outputs/EXPERIMENT     # statistics across seeds
     python lunar_lander.py COMMAND --help                    # every flag of a command
 
 Where to change what (the file reads top to bottom in this order):
@@ -24,8 +26,10 @@ Where to change what (the file reads top to bottom in this order):
   runs on the workers; `evaluate_batch` averages each solution over the run's terrains.
 - The run: `Run` holds one search between iterations and is the one place a checkpoint is built
   and written; `run_loop` is ask -> evaluate -> tell; `save_outputs` writes the run folder's files.
-- The commands: `search` and `resume`, then the results commands (video, elites, trajectories,
-  evaluate, compare). A flag is declared, documented and defaulted in its command's signature
+- The commands: `search` and `resume`; `experiment` (`Experiment` drives many `Run`s on one
+  cluster with as_completed); then the results commands (video, elites, trajectories, evaluate,
+  explore with its page EXPLORER_PAGE near the end, compare with the statistics). A flag is
+  declared, documented and defaulted in its command's signature
   and docstring; FLAG_CHECKS says how it is checked; COMMANDS lists the commands.
 - The machinery: flag checks, folder locks, atomic file writes, logs, the streamlined env
   (FastLunarLander), and `main`, which turns bad input into one line and exit code 2.
@@ -415,6 +419,32 @@ def ship_script(client) -> None:
         client.upload_file(str(path))
 
 
+# What a run imports after its cluster is up (ribs alone brings numba, scipy and pandas: ~2 s).
+RUN_IMPORTS = ("ribs.archives", "ribs.emitters", "ribs.schedulers", "ribs.visualize",
+               "matplotlib.pyplot", "tqdm")
+
+
+@contextlib.contextmanager
+def preloading(modules: tuple[str, ...]) -> Iterator[None]:
+    """Import `modules` in a thread while the block runs. A local cluster's start is mostly the
+    main process waiting for its worker processes to spawn and import: time to import what comes
+    next. An import that fails here (even one of Python's rare cross-thread import deadlocks)
+    costs nothing: the module is imported again where it is used."""
+    import threading
+
+    def load() -> None:
+        for module in modules:
+            with contextlib.suppress(Exception):
+                importlib.import_module(module)
+
+    thread = threading.Thread(target=load, name="preload", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        thread.join()
+
+
 @contextlib.contextmanager
 def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
     """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
@@ -438,7 +468,7 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
         return
     # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
     warnings.filterwarnings("ignore", message="Port 8787 is already in use")
-    with LocalCluster(
+    with preloading(RUN_IMPORTS), LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
         processes=True,
@@ -1125,6 +1155,7 @@ class Experiment:
         done = sum(e["config"]["iterations"] for e in runs if e["state"] == "done")
         self.bar = tqdm(total=total, initial=done, unit="it", desc="experiment", dynamic_ncols=True)
         every, logged = self.plan["common"]["log_every"] * len(runs), done
+        wall, cpu = time.perf_counter(), time.process_time()
         try:
             self.start_more()
             while self.live:
@@ -1148,8 +1179,14 @@ class Experiment:
             raise
         finally:
             self.bar.close()
+        # The driving loop's own cost: how much of a core the main process took while it ran.
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        self.plan["timing"] = {"drive_s": round(wall, 3), "main_cpu_s": round(cpu, 3),
+                               "iterations": self.bar.n - done}
+        write_json(self.folder / "experiment.json", self.plan)
         failed = [e["name"] for e in runs if e["state"] == "failed"]
-        self.log.info(f"Done: {len(runs) - len(failed)} of {len(runs)} runs finished in {self.folder}")
+        self.log.info(f"Done: {len(runs) - len(failed)} of {len(runs)} runs finished in {self.folder} "
+                      f"({wall:.1f} s, main process {cpu / max(wall, 1e-9):.0%} of a core)")
         if failed:
             raise RunsFailed(f"{len(failed)} of {len(runs)} runs failed ({', '.join(failed)}): their "
                            f"causes are in {self.folder / 'experiment.json'}; the others finished. "

@@ -1,0 +1,106 @@
+#!/usr/bin/env python
+"""Many runs at once: the same N seeded searches one after another with `search`, and as one
+`experiment` on one cluster, each timed from start to exit, in one invocation on one machine.
+
+    python benchmarks/bench_experiment.py                  # 4 seeds x 20 iterations, 2 workers
+    python benchmarks/bench_experiment.py --runs 8 --iterations 30
+
+Prints and writes benchmarks/experiment_results.json:
+- both wall times and their ratio;
+- the experiment's parallel efficiency: the serial rollout time of its rollouts (the same runs
+  flown again in one process, timing only the rollouts) / (workers x its search time, the driving
+  loop's wall time as experiment.json records it);
+- the main process's CPU share while it drove the runs;
+- whether every experiment run equals its lone `search` twin (archive and metrics).
+Run it on a quiet machine: another heavy job spoils both timings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import fire
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "lunar_lander.py"
+sys.path.insert(0, str(ROOT))
+import lunar_lander as ll  # noqa: E402  (the product)
+
+
+def timed(*args: str) -> float:
+    """Wall seconds of the script run as a user runs it, start to exit."""
+    tic = time.perf_counter()
+    subprocess.run([sys.executable, str(SCRIPT), *args], check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    return time.perf_counter() - tic
+
+
+def serial_rollout_seconds(configs: list[dict]) -> float:
+    """The runs again, in this process: only their rollouts are timed, one after another."""
+    env, total = ll.make_env(), 0.0
+    for config in configs:
+        scheduler = ll.build_scheduler(config)
+        for _ in range(config["iterations"]):
+            solutions = scheduler.ask()
+            tic = time.perf_counter()
+            rows = np.array([ll.rollout(s, config["env_seed"][0], env, config["measures"])
+                             for s in solutions])
+            total += time.perf_counter() - tic
+            scheduler.tell(rows[:, 0], rows[:, 1:])
+    return total
+
+
+def same_run(a: Path, b: Path) -> bool:
+    def archive(run):
+        table = ll.read_pickle(run / "archive.pkl", "archive").data(return_type="pandas")
+        return table.sort_values("index").reset_index(drop=True)
+
+    def metrics(run):
+        return [{k: v for k, v in row.items() if k != "elapsed_s"}
+                for row in json.loads((run / "metrics.json").read_text())]
+    return archive(a).equals(archive(b)) and metrics(a) == metrics(b)
+
+
+def main(runs: int = 4, iterations: int = 20, workers: int = 2,
+         out: str = "benchmarks/experiment_results.json") -> None:
+    seeds = list(range(1, runs + 1))
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        common = ["--iterations", str(iterations), "--workers", str(workers),
+                  "--log_every", str(iterations)]
+        serial = [timed(*common, "--seed", str(seed), "--outdir", str(folder / f"search_{seed}"))
+                  for seed in seeds]
+        experiment = timed("experiment", "--algorithms", "cma_me", "--seeds", f"1-{runs}", *common,
+                           "--outdir", str(folder / "experiment"))
+        plan = json.loads((folder / "experiment" / "experiment.json").read_text())
+        equal = all(same_run(folder / "experiment" / run["name"], folder / f"search_{run['seed']}")
+                    for run in plan["runs"])
+        rollout_s = serial_rollout_seconds([run["config"] for run in plan["runs"]])
+    timing = plan["timing"]
+    result = {
+        "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+        "runs": runs, "iterations": iterations, "workers": workers,
+        "searches_one_after_another_s": round(sum(serial), 2),
+        "search_each_s": [round(s, 2) for s in serial],
+        "experiment_s": round(experiment, 2),
+        "speedup": round(sum(serial) / experiment, 2),
+        "experiment_search_s": timing["drive_s"],
+        "serial_rollout_s": round(rollout_s, 2),
+        "parallel_efficiency": round(rollout_s / (workers * timing["drive_s"]), 3),
+        "main_cpu_share": round(timing["main_cpu_s"] / timing["drive_s"], 3),
+        "every_run_equals_its_lone_twin": equal,
+    }
+    print(json.dumps(result, indent=2))
+    Path(out).write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    fire.Fire(main)
