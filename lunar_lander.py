@@ -29,8 +29,8 @@ Where to change what (the file reads top to bottom in this order):
 - The commands: `search` and `resume`; `experiment` (`Experiment` drives many `Run`s on one
   cluster with as_completed); then the results commands (video, elites, trajectories, evaluate,
   explore with its page EXPLORER_PAGE near the end, compare with the statistics). A flag is
-  declared, documented and defaulted in its command's signature
-  and docstring; FLAG_CHECKS says how it is checked; COMMANDS lists the commands.
+  declared, documented and defaulted in its command's signature and docstring; FLAG_CHECKS
+  says how it is checked; COMMANDS lists the commands.
 - The machinery: flag checks, folder locks, atomic file writes, logs, the streamlined env
   (FastLunarLander), and `main`, which turns bad input into one line and exit code 2.
 """
