@@ -394,7 +394,7 @@ def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndar
 def ship_script(client) -> None:
     """Make this exact script importable by the scheduler and every worker of a cluster.
 
-    Tasks refer to `lunar_lander.evaluate_chunk` by name, so the scheduler (which unpickles task
+    Tasks refer to `lunar_lander.fly_chunk` by name, so the scheduler (which unpickles task
     graphs) and the workers must import this script. Machines elsewhere have the libraries but not
     the script, or an older copy: then it is uploaded (to workers that join later too). Where all
     already import this very file (a local cluster), nothing is reloaded.
