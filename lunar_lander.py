@@ -159,7 +159,7 @@ MEASURES: dict[str, Measure] = {
     # Angles are not wrapped: a lander that tumbles goes past pi, into the edge cells.
     "impact_angle": Measure("Impact angle (rad)", (-math.pi, math.pi), "angle", lambda f: f.impact[4]),
     # Fuel in main-engine firings: a side firing costs a tenth of one, as in the env's reward.
-    "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 500.0), "fuel",
+    "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 600.0), "fuel",
                     lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT])),
     # A lander falling freely touches down after ~51 steps; one that hovers flies all 1000.
     "flight_time": Measure("Steps to touchdown", (50.0, 1000.0), "steps",
