@@ -1123,7 +1123,7 @@ class LiveRun:
     run: Run
     log: logging.Logger
     lock: contextlib.ExitStack
-    futures: list = dataclasses.field(default_factory=list)
+    results: list = dataclasses.field(default_factory=list)  # the current batch's chunks, in order
     waiting: int = 0  # chunks of the current batch not back yet
 
     @property
@@ -1142,9 +1142,11 @@ class Experiment:
         self.folder, self.plan, self.client, self.log = folder, plan, client, log
         self.todo = collections.deque(e for e in plan["runs"] if e["state"] != "done")
         self.live: dict[str, LiveRun] = {}
-        self.owner: dict[str, str] = {}  # future key -> run name
+        self.owner: dict[str, tuple[str, int]] = {}  # future key -> run name, chunk position
         self.latest: dict[str, dict] = {}  # run name -> its last metrics row
-        self.finished = as_completed()
+        # Results come with their futures (no second round trip to fetch them); a chunk that
+        # failed comes as its exception, and fails its run alone.
+        self.finished = as_completed(with_results=True, raise_errors=False)
         self.limit = plan.get("max_in_flight") or len(plan["runs"])
 
     def drive(self) -> None:
@@ -1160,10 +1162,12 @@ class Experiment:
             self.start_more()
             while self.live:
                 with STOP.interruptible():
-                    future = next(self.finished)
-                live = self.live.get(self.owner.pop(future.key, ""))
+                    future, result = next(self.finished)
+                name, position = self.owner.pop(future.key, ("", 0))
+                live = self.live.get(name)
                 if live is None:  # a chunk of a run that has failed meanwhile
                     continue
+                live.results[position] = result
                 live.waiting -= 1
                 if live.waiting == 0:
                     self.advance(live)
@@ -1238,27 +1242,28 @@ class Experiment:
     def launch(self, live: LiveRun) -> None:
         """Ask the run's next batch and send it to the cluster."""
         config = live.run.config
-        live.futures = submit_flights(self.client, live.run.ask(), config["env_seed"],
-                                      config["measures"], config["fast_env"])
-        live.waiting = len(live.futures)
-        for future in live.futures:
-            self.owner[future.key] = live.entry["name"]
+        futures = submit_flights(self.client, live.run.ask(), config["env_seed"],
+                                 config["measures"], config["fast_env"])
+        live.results, live.waiting = [None] * len(futures), len(futures)
+        for position, future in enumerate(futures):
+            self.owner[future.key] = (live.entry["name"], position)
             self.finished.add(future)
 
     def advance(self, live: LiveRun) -> None:
         """The run's batch is whole: tell it, save it at its log interval, ask again or finish."""
         try:
-            results = self.client.gather(live.futures)
-            row = live.run.tell(*averaged(per_terrain(results, live.run.config["env_seed"])))
+            if failed := next((r for r in live.results if isinstance(r, BaseException)), None):
+                raise failed
+            row = live.run.tell(*averaged(per_terrain(live.results, live.run.config["env_seed"])))
             self.latest[live.entry["name"]] = row
             self.bar.update(1)
             if row["iteration"] >= live.target:
                 self.finish(live)
             else:
+                self.launch(live)  # first: the workers fly the next batch while the run is saved
                 if row["iteration"] % live.run.config["log_every"] == 0:
                     live.log.info(describe_progress(row, live.target))
                     live.run.save()
-                self.launch(live)
         except Exception as error:  # this run's fault (a task that failed, a write): it alone stops
             with contextlib.suppress(RunError):
                 live.run.save_checkpoint()
