@@ -380,6 +380,19 @@ def averaged(flights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return means[:, 0], means[:, 1:]
 
 
+def gather_with_progress(client, futures: list) -> list:
+    """The futures' results in their order, with a progress bar while they come back (for the
+    long batches of the results commands); Ctrl-C stops the wait."""
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    with STOP.interruptible():
+        for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
+                      dynamic_ncols=True):
+            pass
+        return client.gather(futures)
+
+
 def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndarray, np.ndarray]:
     """Objectives and measures of `solutions` in the run's setting, flown on the Dask cluster.
 
@@ -1527,8 +1540,13 @@ def load_chosen_elites(run_dir: Any, env_seed: Any, *selection: Any) -> tuple[di
     """The run's config, the elites `selection` (select_elites' flags) picks from its archive, and
     the terrain to show them on: --env_seed, by default the run's first."""
     archive, config = load_run(run_dir)
-    shown = config["env_seed"][0] if env_seed is None else non_negative_int("env_seed", env_seed)
+    shown = shown_terrain(config, env_seed)
     return config, select_elites(archive, *selection, measures=config["measures"]), shown
+
+
+def shown_terrain(config: dict, env_seed: Any) -> int:
+    """The terrain a results command shows a run on: --env_seed, by default the run's first."""
+    return config["env_seed"][0] if env_seed is None else non_negative_int("env_seed", env_seed)
 
 
 def reflown(elite: dict, config: dict) -> tuple[float, list[float]]:
@@ -1812,11 +1830,9 @@ def explore(run_dir: str, workers: int = 2, scheduler_address: str | None = None
         scheduler_address: Address of a running Dask scheduler to evaluate on instead.
         env_seed: The terrain to fly on; default: the run's first.
     """
-    from dask.distributed import as_completed
-    from tqdm import tqdm
 
     archive, config = load_run(run_dir)
-    shown = config["env_seed"][0] if env_seed is None else non_negative_int("env_seed", env_seed)
+    shown = shown_terrain(config, env_seed)
     workers, run = positive_int("workers", workers), Path(str(run_dir))
     check_writable(run)
     rows = elite_rows(archive)
@@ -1824,11 +1840,7 @@ def explore(run_dir: str, workers: int = 2, scheduler_address: str | None = None
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
         futures = [client.submit(by_reference(record_poses), chunk, shown, pure=False, retries=3)
                    for chunk in chunks]
-        with STOP.interruptible():
-            for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
-                          dynamic_ncols=True):
-                pass
-            flights = [flight for chunk in client.gather(futures) for flight in chunk]
+        flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
     data = explorer_data(archive, config, rows, flights, shown, run)
     page = EXPLORER_PAGE.replace("/*DATA*/null", json.dumps(data, separators=(",", ":")))
     atomic_write(run / "explorer.html", lambda f: f.write(page), mode="w")
@@ -1869,9 +1881,7 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
         workers: Number of Dask worker processes.
         scheduler_address: Address of a running Dask scheduler to evaluate on instead.
     """
-    from dask.distributed import as_completed
     from ribs.archives import GridArchive
-    from tqdm import tqdm
 
     archive, config = load_run(run_dir)
     seeds, workers = seed_list("env_seeds", env_seeds), positive_int("workers", workers)
@@ -1882,11 +1892,7 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
     with dask_client(workers, scheduler_address, console_log()) as client:
         futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"])
-        with STOP.interruptible():
-            for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
-                          dynamic_ncols=True):
-                pass
-            objectives = per_terrain(client.gather(futures), seeds)[:, :, 0]
+        objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
     run = Path(str(run_dir))
     table = robustness_table(rows, config["measures"], seeds, objectives)
     write_csv(run / "robustness.csv", table)
