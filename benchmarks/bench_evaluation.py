@@ -122,7 +122,7 @@ def local_client(workers: int):
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
     client.gather(client.map(ll.by_reference(ll.fly_chunk), [np.zeros((1, 32))] * workers,
-                             env_seed=52, pure=False))
+                             env_seeds=[52], measures=ll.TUTORIAL_MEASURES, pure=False))
     return cluster, client
 
 
