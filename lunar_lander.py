@@ -58,6 +58,7 @@ import sys
 import tempfile
 import time
 import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -353,19 +354,23 @@ def by_reference(function: Callable) -> Callable:
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
-                   fast_env: bool = True) -> list:
+                   fast_env: bool = True, sharing: int = 1) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
 
     The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
-    the number of terrains, so the workers stay evenly loaded. Tasks of a dead worker are retried.
+    the number of terrains, so the workers stay evenly loaded. A batch alone on the cluster is
+    split in CHUNKS_PER_WORKER chunks per worker; when `sharing` runs keep the workers busy
+    together, each batch needs only its share of that, and fewer tasks cost the scheduler less.
+    The chunks go in one message (client.map); tasks of a dead worker are retried.
     """
     workers = max(1, sum(client.nthreads().values()))
     pairs = len(solutions) * len(env_seeds)
-    n_chunks = min(max(CHUNKS_PER_WORKER * workers, -(-pairs // MAX_CHUNK)), max(1, pairs // MIN_CHUNK))
-    chunks = np.array_split(np.arange(pairs), n_chunks)
+    wanted = max(-(-CHUNKS_PER_WORKER * workers // max(1, sharing)), -(-pairs // MAX_CHUNK))
+    chunks = np.array_split(np.arange(pairs), min(wanted, max(1, pairs // MIN_CHUNK)))
     seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
-    return [client.submit(by_reference(fly_chunk), solutions[chunk // len(env_seeds)], seeds[chunk],
-                          tuple(measures), fast_env, pure=False, retries=3) for chunk in chunks]
+    return client.map(by_reference(fly_chunk), [solutions[chunk // len(env_seeds)] for chunk in chunks],
+                      [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
+                      [fast_env] * len(chunks), pure=False, retries=3)
 
 
 def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int]) -> np.ndarray:
@@ -552,6 +557,25 @@ def iteration_metrics(archive, iteration: int, evaluations: int, elapsed: float)
     }
 
 
+class Saver(ThreadPoolExecutor):
+    """The thread run folders are written in while the search goes on (one thread: the plots'
+    matplotlib is not thread-safe). Leaving it waits for the writes and raises the first fault."""
+
+    def __init__(self) -> None:
+        super().__init__(1, thread_name_prefix="save")
+        self.writes: list[Future] = []
+
+    def submit(self, function: Callable, /, *args: Any) -> Future:
+        self.writes.append(super().submit(function, *args))
+        return self.writes[-1]
+
+    def __exit__(self, *exc_info: Any) -> None:
+        super().__exit__(*exc_info)
+        if exc_info[0] is None:
+            for write in self.writes:
+                write.result()
+
+
 class Run:
     """One search between two iterations, and the folder it is saved to.
 
@@ -560,12 +584,16 @@ class Run:
     and a stop or a fault while the cluster evaluates writes that snapshot. The iteration in flight
     is abandoned, never half-recorded. The scheduler is pickled as one object (its emitters share
     its archive; CMA-ES state and RNGs come along), so a resumed run asks exactly the same.
+
+    The folder's files may be written in a thread while the search goes on (`save(saver)`):
+    they are built from that snapshot, so nothing the run does next can change them.
     """
 
     def __init__(self, run_dir: Path, config: dict, scheduler, metrics: list[dict]) -> None:
         self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
         self.snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
         self.saved = self.iteration
+        self.pending: Future | None = None  # a save being written by the saver thread
         self._asked_at = 0.0
 
     @classmethod
@@ -619,22 +647,43 @@ class Run:
                 "metrics": list(self.metrics), "iteration": self.iteration, "config": self.config}
 
     def save_checkpoint(self, force: bool = False) -> None:
-        """Write the checkpoint if iterations were completed since the last save."""
-        if force or self.iteration > self.saved:
-            write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
-            self.saved = self.iteration
+        """Write the checkpoint if iterations were completed since the last save (after the save
+        in the saver thread, whose fault, if any, is raised once the checkpoint is written)."""
+        try:
+            self.settle()
+        finally:
+            if force or self.iteration > self.saved:
+                write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
+                self.saved = self.iteration
 
-    def save(self) -> None:
-        """Refresh every file of the run folder; the checkpoint goes first."""
+    def save(self, saver: Saver | None = None) -> None:
+        """Refresh every file of the run folder, the checkpoint first; with a `saver`, in its
+        thread, so the workers are fed meanwhile."""
+        self.settle()
         checkpoint = self.checkpoint()
+        if saver is None:
+            self.write(checkpoint)
+        else:
+            self.pending = saver.submit(self.write, checkpoint)
+
+    def write(self, checkpoint: dict) -> None:
         write_pickle(self.dir / "checkpoint.pkl", checkpoint)
-        self.saved = self.iteration
+        self.saved = checkpoint["iteration"]
         save_outputs(self.dir, checkpoint)
 
+    def settle(self, wait: bool = True) -> None:
+        """Wait for the save in the saver thread (without `wait`: only if it is over); raise its
+        fault, so a full disk stops the run at once."""
+        if self.pending is not None and (wait or self.pending.done()):
+            pending, self.pending = self.pending, None
+            pending.result()
 
-def run_loop(run: Run, client, iterations: int, log: logging.Logger) -> None:
+
+def run_loop(run: Run, client, iterations: int, log: logging.Logger, saver: Saver) -> None:
     """Iterate ask -> evaluate -> tell up to `iterations`, refreshing the run folder every
-    log_every iterations and at the end. A stop or a fault keeps the last completed iteration."""
+    log_every iterations and at the end, in the saver's thread: the workers fly the next
+    iterations meanwhile, and the cluster shuts down during the last write. A stop or a fault
+    keeps the last completed iteration."""
     from tqdm import tqdm
 
     bar = tqdm(range(run.iteration + 1, iterations + 1), initial=run.iteration, total=iterations,
@@ -646,11 +695,12 @@ def run_loop(run: Run, client, iterations: int, log: logging.Logger) -> None:
             with STOP.interruptible():
                 objectives, measures = evaluate_batch(client, solutions, run.config)
             row = run.tell(objectives, measures)
+            run.settle(wait=False)  # a fault of the last write (a full disk) stops the run now
             bar.set_postfix(coverage=f"{row['coverage']:.3f}", qd=f"{row['qd_score']:.4g}",
                             best=f"{row['best_objective'] or float('nan'):.1f}", refresh=False)
             if iteration % run.config["log_every"] == 0 and iteration < iterations:
                 log.info(describe_progress(row, iterations))
-                run.save()
+                run.save(saver)
     except BaseException as error:
         bar.close()
         try:
@@ -660,7 +710,7 @@ def run_loop(run: Run, client, iterations: int, log: logging.Logger) -> None:
                 raise
         raise
     bar.close()
-    run.save()
+    run.save(saver)
     if run.metrics:
         log.info("Done. " + describe_progress(run.metrics[-1], iterations))
 
@@ -929,9 +979,9 @@ def search(
         if from_archive:
             config["from_archive"] = str(Path(from_archive).resolve())
         write_json(run_dir / "config.json", config)
-        with run_session(run_dir, config["workers"], scheduler_address) as (client, log):
+        with run_session(run_dir, config["workers"], scheduler_address) as (client, log, saver):
             run = Run.start(run_dir, config, client, log, seed_archive)
-            run_loop(run, client, config["iterations"], log)
+            run_loop(run, client, config["iterations"], log, saver)
 
 
 def resume(run_dir: str, iterations: int | None = None, workers: int | None = None,
@@ -965,17 +1015,18 @@ def resume(run_dir: str, iterations: int | None = None, workers: int | None = No
                       "at": datetime.datetime.now().isoformat(), "from_iteration": done,
                       "to_iteration": iterations, "workers": workers}]}
         write_json(path / "config.json", config)
-        with run_session(path, workers, scheduler_address) as (client, log):
+        with run_session(path, workers, scheduler_address) as (client, log, saver):
             if checkpoint is None:
                 run = Run.start(path, config, client, log, seed_archive)
             else:
                 run = Run.from_checkpoint(path, {**checkpoint, "config": config})
-            run_loop(run, client, iterations, log)
+            run_loop(run, client, iterations, log, saver)
 
 
 @contextlib.contextmanager
 def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> Iterator[tuple]:
-    """The Dask client and the log of a command writing `run_dir`, shut down however it ends.
+    """The Dask client, the log and the saver of a command writing `run_dir`, shut down however
+    it ends: the cluster first, while the saver finishes writing the folder.
 
     A stop or a fault (a full disk, a lost cluster) ends with one line that says which iteration
     the folder's checkpoint holds and the command that continues from it.
@@ -986,8 +1037,8 @@ def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> I
     with logging_redirect_tqdm(loggers=[log]):
         log.info(f"Run folder: {run_dir}")
         try:
-            with dask_client(workers, scheduler_address, log) as client:
-                yield client, log
+            with Saver() as saver, dask_client(workers, scheduler_address, log) as client:
+                yield client, log, saver
         except KeyboardInterrupt:
             log.info(f"Stopped; {checkpoint_state(run_dir)}")
             raise
@@ -1157,6 +1208,9 @@ class Experiment:
         self.live: dict[str, LiveRun] = {}
         self.owner: dict[str, tuple[str, int]] = {}  # future key -> run name, chunk position
         self.latest: dict[str, dict] = {}  # run name -> its last metrics row
+        self.told = 0  # iterations done in this drive
+        self.closing: list[LiveRun] = []  # finished runs whose last save is being written
+        self.saver = Saver()  # each run's faults are its own: see reap()
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and fails its run alone.
         self.finished = as_completed(with_results=True, raise_errors=False)
@@ -1178,28 +1232,31 @@ class Experiment:
                     future, result = next(self.finished)
                 name, position = self.owner.pop(future.key, ("", 0))
                 live = self.live.get(name)
-                if live is None:  # a chunk of a run that has failed meanwhile
-                    continue
-                live.results[position] = result
-                live.waiting -= 1
-                if live.waiting == 0:
-                    self.advance(live)
+                if live is not None:  # else a chunk of a run that has failed meanwhile
+                    live.results[position] = result
+                    live.waiting -= 1
+                    if live.waiting == 0:
+                        self.advance(live)
+                self.reap(wait=False)
                 if self.bar.n - logged >= every or not self.live:
                     logged = self.bar.n
                     for line in self.describe_settings():
                         self.log.info(line)
+            self.reap(wait=True)
         except BaseException:
             for live in list(self.live.values()):
-                with contextlib.suppress(RunError):
+                with contextlib.suppress(Exception):
                     live.run.save_checkpoint()
                 self.close(live, "stopped")
+            self.reap(wait=True)
             raise
         finally:
+            self.saver.shutdown()
             self.bar.close()
         # The driving loop's own cost: how much of a core the main process took while it ran.
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         self.plan["timing"] = {"drive_s": round(wall, 3), "main_cpu_s": round(cpu, 3),
-                               "iterations": self.bar.n - done}
+                               "iterations": self.told}
         write_json(self.folder / "experiment.json", self.plan)
         failed = [e["name"] for e in runs if e["state"] == "failed"]
         self.log.info(f"Done: {len(runs) - len(failed)} of {len(runs)} runs finished in {self.folder} "
@@ -1221,6 +1278,7 @@ class Experiment:
                 continue
             self.live[entry["name"]] = live
             self.latest[entry["name"]] = live.run.metrics[-1] if live.run.metrics else {}
+            self.bar.update(live.run.iteration)  # what it did before a stop
             self.record(entry, "running")
             if live.run.iteration >= live.target:
                 self.finish(live)
@@ -1255,8 +1313,8 @@ class Experiment:
     def launch(self, live: LiveRun) -> None:
         """Ask the run's next batch and send it to the cluster."""
         config = live.run.config
-        futures = submit_flights(self.client, live.run.ask(), config["env_seed"],
-                                 config["measures"], config["fast_env"])
+        futures = submit_flights(self.client, live.run.ask(), config["env_seed"], config["measures"],
+                                 config["fast_env"], sharing=len(self.live))
         live.results, live.waiting = [None] * len(futures), len(futures)
         for position, future in enumerate(futures):
             self.owner[future.key] = (live.entry["name"], position)
@@ -1268,28 +1326,46 @@ class Experiment:
             if failed := next((r for r in live.results if isinstance(r, BaseException)), None):
                 raise failed
             row = live.run.tell(*averaged(per_terrain(live.results, live.run.config["env_seed"])))
+            live.run.settle(wait=False)
             self.latest[live.entry["name"]] = row
+            self.told += 1
             self.bar.update(1)
             if row["iteration"] >= live.target:
                 self.finish(live)
             else:
-                self.launch(live)  # first: the workers fly the next batch while the run is saved
+                self.launch(live)
                 if row["iteration"] % live.run.config["log_every"] == 0:
                     live.log.info(describe_progress(row, live.target))
-                    live.run.save()
+                    live.run.save(self.saver)
         except Exception as error:  # this run's fault (a task that failed, a write): it alone stops
-            with contextlib.suppress(RunError):
-                live.run.save_checkpoint()
-            self.close(live, "failed", error)
-            self.log.info(f"run {live.entry['name']} failed: {fault_text(error)}")
+            self.fail(live, error)
             self.start_more()
 
+    def fail(self, live: LiveRun, error: BaseException) -> None:
+        with contextlib.suppress(Exception):
+            live.run.save_checkpoint()
+        self.close(live, "failed", error)
+        self.log.info(f"run {live.entry['name']} failed: {fault_text(error)}")
+
     def finish(self, live: LiveRun) -> None:
-        live.run.save()
-        if live.run.metrics:
-            live.log.info("Done. " + describe_progress(live.run.metrics[-1], live.target))
-        self.close(live, "done")
+        """The run is complete: its folder is written in the saver thread (reap() closes it)
+        while another run takes its place."""
+        live.run.save(self.saver)
+        self.live.pop(live.entry["name"], None)
+        self.closing.append(live)
         self.start_more()
+
+    def reap(self, wait: bool) -> None:
+        """Close the finished runs whose last save is written (with `wait`, all of them)."""
+        for live in [live for live in self.closing if wait or live.run.pending.done()]:
+            self.closing.remove(live)
+            try:
+                live.run.settle()
+            except Exception as error:
+                self.fail(live, error)
+                continue
+            live.log.info("Done. " + describe_progress(live.run.metrics[-1], live.target))
+            self.close(live, "done")
 
     def close(self, live: LiveRun, state: str, error: BaseException | None = None) -> None:
         self.live.pop(live.entry["name"], None)
@@ -2976,5 +3052,21 @@ def main(argv: list[str]) -> int:
     return 0
 
 
+def exit_now(code: Any) -> None:
+    """Leave as sys.exit would, without the interpreter's teardown of ribs, dask, matplotlib and
+    the rest (most of a second here): every file is written and closed, the cluster is down."""
+    if not isinstance(code, int):
+        if code is not None:
+            print(code, file=sys.stderr)
+        code = 0 if code is None else 1
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    try:
+        exit_now(main(sys.argv[1:]))
+    except SystemExit as done:  # fire's --help and its own usage messages
+        exit_now(done.code)
