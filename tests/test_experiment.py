@@ -74,7 +74,7 @@ def test_one_run_at_a_time_gives_the_same_runs(experiment_dir, tmp_path, dask_cl
 
 def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_cluster, experiment_dir):
     folder = tmp_path / "exp"
-    process = launch("experiment", algorithms="cma_me,map_elites", seeds="1-2", iterations=8,
+    process = launch("experiment", algorithms="cma_me,map_elites", seeds="1", iterations=8,
                      n_emitters=2, batch_size=6, log_every=2, outdir=folder,
                      scheduler_address=dask_cluster.scheduler_address)
     wait_for(lambda: (folder / "experiment.json").exists() and all(
@@ -90,7 +90,7 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
     ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
 
     whole = tmp_path / "whole"
-    ll.experiment(algorithms="cma_me,map_elites", seeds="1-2", iterations=8, n_emitters=2,
+    ll.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
                   batch_size=6, log_every=2, outdir=str(whole),
                   scheduler_address=dask_cluster.scheduler_address)
     for run in plan_of(folder)["runs"]:

@@ -48,18 +48,23 @@ def fast_rollout(solution, env_seed, env):
     return (*ll.rollout(solution, env_seed, env, trajectory=path), len(path), path)
 
 
+RANDOM_PER_SCALE = 32
+
+
 def make_policies() -> list[np.ndarray]:
     """Random W ~ N(0, sigma^2) at several scales, the lander and hover and their neighbours."""
     rng = np.random.default_rng(12345)
-    ws = [rng.normal(0.0, sigma, 32) for sigma in (0.03, 0.3, 1.0, 3.0, 10.0) for _ in range(64)]
+    ws = [rng.normal(0.0, sigma, 32) for sigma in (0.03, 0.3, 1.0, 3.0, 10.0)
+          for _ in range(RANDOM_PER_SCALE)]
     for base in (LANDER_W, HOVER_W):
         ws += [np.array(base)] + [np.array(base) + rng.normal(0.0, 0.05, 32) for _ in range(12)]
     return ws
 
 
 POLICIES = make_policies()
+RANDOM = 5 * RANDOM_PER_SCALE  # the random policies come first, then the lander's and hover's families
 # Long flights cost the most: every neighbour of the lander/hover on seed 52, a few elsewhere.
-CASES = [(i, s) for s in SEEDS for i in range(len(POLICIES)) if i < 320 or s == 52 or i % 6 == 0]
+CASES = [(i, s) for s in SEEDS for i in range(len(POLICIES)) if i < RANDOM or s == 52 or i % 6 == 0]
 
 
 @pytest.fixture(scope="module")
@@ -70,13 +75,13 @@ def expected():
 
 def test_the_cases_cover_crashes_landings_and_hovers(expected):
     results = list(expected.values())
-    lander, hover = expected[320, 52], expected[333, 52]
+    lander, hover = expected[RANDOM, 52], expected[RANDOM + 13, 52]
     assert lander[0] >= 200 and lander[3] < ll.MAX_STEPS
     assert hover[3] == ll.MAX_STEPS and not any(r[3] > ll.MAX_STEPS for r in results)
     assert sum(r[3] == ll.MAX_STEPS for r in results) >= 3
     assert sum(r[0] >= 100 for r in results) >= 5
-    assert sum(r[3] <= 70 for r in results) >= 500
-    assert sum(abs(r[1]) >= 1.0 for r in results) >= 100
+    assert sum(r[3] <= 70 for r in results) >= 250
+    assert sum(abs(r[1]) >= 1.0 for r in results) >= 50
 
 
 def test_a_fresh_fast_env_per_rollout(expected):
