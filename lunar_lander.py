@@ -934,8 +934,8 @@ def search(
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:
     checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
-    config.json and run.log. Other commands: resume RUN_DIR (see: lunar_lander.py resume --help),
-    compare RUN_DIR... (see: lunar_lander.py compare --help).
+    config.json and run.log. Other commands (each with --help): resume, experiment, video, elites,
+    trajectories, evaluate, explore, compare.
 
     Args:
         iterations: Number of ask-evaluate-tell iterations.
