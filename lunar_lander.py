@@ -839,6 +839,7 @@ def save_heatmap(archive, measures: list[str], path: Path, title: str) -> None:
     else:
         shown = archive
     fig, ax = plt.subplots(figsize=(8, 6))
+    fig.subplots_adjust(left=0.1, right=0.99, bottom=0.09, top=0.94)  # a fixed layout draws once
     grid_archive_heatmap(shown, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
     ax.set_xlabel(MEASURES[measures[0]].label)
     if len(measures) > 1:
@@ -846,7 +847,7 @@ def save_heatmap(archive, measures: list[str], path: Path, title: str) -> None:
         if MEASURES[measures[1]].descending:
             ax.invert_yaxis()
     ax.set_title(title)
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
     plt.close(fig)
 
 

@@ -10,6 +10,8 @@ Prints and writes benchmarks/experiment_results.json:
 - the experiment's parallel efficiency: the serial rollout time of its rollouts (the same runs
   flown again in one process, timing only the rollouts) / (workers x its search time, the driving
   loop's wall time as experiment.json records it);
+- the ceiling of that efficiency on this machine: the same serial rollouts run in two processes
+  at once are slower than in one alone (two busy cores share caches, or are hyperthreads);
 - the main process's CPU share while it drove the runs;
 - whether every experiment run equals its lone `search` twin (archive and metrics).
 Run it on a quiet machine: another heavy job spoils both timings.
@@ -58,6 +60,17 @@ def serial_rollout_seconds(configs: list[dict]) -> float:
     return total
 
 
+def two_at_once_seconds(configs: list[dict]) -> float:
+    """The same serial rollouts in two processes at once: the slower one's rollout seconds. Two
+    busy processes on two cores each run slower than one alone (shared caches, hyperthreads):
+    serial / this is the most any 2-worker evaluation can reach here."""
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); import bench_experiment as b; "
+            "print(b.serial_rollout_seconds(json.loads(sys.argv[2])))")
+    args = [sys.executable, "-c", code, str(Path(__file__).parent), json.dumps(configs)]
+    processes = [subprocess.Popen(args, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    return max(float(process.communicate()[0]) for process in processes)
+
+
 def same_run(a: Path, b: Path) -> bool:
     def archive(run):
         table = ll.read_pickle(run / "archive.pkl", "archive").data(return_type="pandas")
@@ -83,7 +96,9 @@ def main(runs: int = 4, iterations: int = 20, workers: int = 2,
         plan = json.loads((folder / "experiment" / "experiment.json").read_text())
         equal = all(same_run(folder / "experiment" / run["name"], folder / f"search_{run['seed']}")
                     for run in plan["runs"])
-        rollout_s = serial_rollout_seconds([run["config"] for run in plan["runs"]])
+        configs = [run["config"] for run in plan["runs"]]
+        rollout_s = serial_rollout_seconds(configs)
+        two_s = two_at_once_seconds(configs)
     timing = plan["timing"]
     result = {
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
@@ -95,6 +110,8 @@ def main(runs: int = 4, iterations: int = 20, workers: int = 2,
         "experiment_search_s": timing["drive_s"],
         "serial_rollout_s": round(rollout_s, 2),
         "parallel_efficiency": round(rollout_s / (workers * timing["drive_s"]), 3),
+        "serial_rollout_two_at_once_s": round(two_s, 2),
+        "efficiency_ceiling_two_processes": round(rollout_s / two_s, 3),
         "main_cpu_share": round(timing["main_cpu_s"] / timing["drive_s"], 3),
         "every_run_equals_its_lone_twin": equal,
     }
