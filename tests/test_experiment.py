@@ -23,7 +23,7 @@ from util import (
     wait_for,
 )
 
-TINY = dict(iterations=4, n_emitters=2, batch_size=6, log_every=2)
+TINY = dict(iterations=4, n_emitters=2, batch_size=6, log_every=4)  # each run saved at its end
 
 
 @pytest.fixture(scope="module")

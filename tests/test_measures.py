@@ -19,7 +19,7 @@ RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "met
 
 def tiny(dask_cluster, **overrides):
     return dict(dict(iterations=2, workers=2, seed=4, n_emitters=2, sigma0=1.0, batch_size=6,
-                     log_every=1, scheduler_address=dask_cluster.scheduler_address), **overrides)
+                     log_every=2, scheduler_address=dask_cluster.scheduler_address), **overrides)
 
 
 @pytest.fixture(scope="module")

@@ -111,7 +111,8 @@ def test_every_writing_command_reports_a_full_disk_in_one_line(tmp_path, referen
 def test_killed_before_its_first_checkpoint_resume_starts_from_the_config(tmp_path, dask_cluster,
                                                                           reference):
     run_dir = tmp_path / "run"
-    process = launch(**{**FLAGS, "workers": 1}, outdir=run_dir)  # starts a cluster of its own: slow
+    process = launch(**{**FLAGS, "workers": 1, "log_every": FLAGS["iterations"]},  # saved at its end
+                     outdir=run_dir)  # starts a cluster of its own: slow
     wait_for(lambda: (run_dir / "config.json").exists(), process, "config.json")
     os.killpg(process.pid, signal.SIGKILL)
     process.communicate(timeout=60)
