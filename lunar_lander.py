@@ -2221,7 +2221,21 @@ def markdown_report(stats, tests) -> str:
         lines += ["", "Two-sided Mann-Whitney U tests, Holm-adjusted over the pairs of each metric; "
                   "A12: the chance that a run of A beats a run of B (0.5: even; 0.71 or more, or "
                   "0.29 or less: a large effect)."]
+        floor = holm_floor(tests)
+        if floor > 0.05:
+            lines += ["", f"With so few runs per setting, no pair can reach p < 0.05 after Holm's "
+                          f"adjustment: the smallest adjusted p possible here is {floor:.3g} (a "
+                          f"complete separation, A12 of 0 or 1). Read the effect sizes and the "
+                          f"intervals; more seeds give the tests power."]
     return "\n".join(lines) + "\n"
+
+
+def holm_floor(tests) -> float:
+    """The smallest Holm-adjusted p-value any pair of a metric could reach: the exact two-sided
+    Mann-Whitney p of a complete separation, 2 / C(n_a + n_b, n_a), times the number of pairs."""
+    pairs = tests[tests["metric"] == tests["metric"].iloc[0]]
+    return min(1.0, len(pairs) * min(2 / math.comb(int(a + b), int(a))
+                                     for a, b in zip(pairs["runs_a"], pairs["runs_b"])))
 
 
 def expand_folders(paths: list[Path]) -> list[Path]:

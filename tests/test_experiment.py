@@ -160,6 +160,8 @@ def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
     assert table["cqd_score"].notna().all() and table["qd_auc"].gt(0).all()
     out = capsys.readouterr().out
     assert "fewer than 5 runs" in out and "| setting | runs |" in out
+    # 2 runs a setting, 6 pairs: a complete separation has p = 2 / C(4, 2), times 6 after Holm
+    assert "smallest adjusted p possible here is 1 " in out
     assert (tmp_path / "cmp.md").read_text().startswith("| setting | runs |")
     assert (tmp_path / "cmp.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -168,6 +170,8 @@ def test_holm_and_auc_by_hand():
     assert ll.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
     metrics = [{"evaluations": 10, "qd_score": 100.0}, {"evaluations": 20, "qd_score": 300.0}]
     assert ll.qd_auc(metrics) == pytest.approx((0.5 * 10 * 100 + 10 * 200) / 20)
+    five_each = pd.DataFrame([{"metric": "qd_score", "runs_a": 5, "runs_b": 5}] * 10)
+    assert ll.holm_floor(five_each) == pytest.approx(10 * 2 / 252)  # 5 seeds, 5 settings: 0.079
 
 
 def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
