@@ -21,6 +21,19 @@ import pytest
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"
 
+# The files whose tests take longest (real processes, signals, full experiments), longest first.
+# pytest-xdist hands whole files to its workers in collection order (see pyproject.toml): the long
+# ones first keeps the two workers' loads even, as the short files fill in at the end.
+LONGEST_FIRST = ["test_resume.py", "test_experiment.py", "test_run_folder.py", "test_fast_env.py",
+                 "test_scale_out.py", "test_algorithms.py"]
+
+
+def pytest_collection_modifyitems(items):
+    def rank(item):
+        name = item.path.name
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+    items.sort(key=rank)  # stable: each file's tests keep their order
+
 
 @pytest.fixture(scope="session")
 def dask_cluster():

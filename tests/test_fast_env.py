@@ -85,7 +85,9 @@ def test_the_cases_cover_crashes_landings_and_hovers(expected):
 
 
 def test_a_fresh_fast_env_per_rollout(expected):
-    for i, s in CASES:
+    # Every episode's start state comes from its reset alone: a quarter of the cases, with the
+    # lander and the hover, show it (the reused env below flies them all).
+    for i, s in dict.fromkeys(CASES[::4] + [(RANDOM, 52), (RANDOM + 13, 52)]):
         assert fast_rollout(POLICIES[i], s, ll.FastLunarLander()) == expected[i, s], (i, s)
 
 

@@ -1,7 +1,6 @@
 """Reruns: exact resume, crash safety (Ctrl-C, SIGTERM, kill -9, lost workers) and warm starts."""
 
 import json
-import logging
 import os
 import pickle
 import signal
@@ -97,8 +96,8 @@ def test_kill_9_leaves_a_loadable_checkpoint(tmp_path, dask_cluster, reference):
     assert_same_run(run_dir, reference)
 
 
-def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, reference):
-    from dask.distributed import Client, LocalCluster
+def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, dask_cluster, reference):
+    from dask.distributed import Client
 
     killed = []
 
@@ -112,13 +111,12 @@ def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, reference):
                 return
             time.sleep(0.001)
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                      silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+    with Client(dask_cluster) as client:  # the session's cluster: its nanny restarts the worker
         stop = threading.Event()
         killer = threading.Thread(target=kill_a_busy_worker, args=(client, stop))
         killer.start()
         try:
-            ll.search(**run_flags(cluster), outdir=str(tmp_path / "run"))
+            ll.search(**run_flags(dask_cluster), outdir=str(tmp_path / "run"))
         finally:
             stop.set()
             killer.join()
