@@ -25,14 +25,16 @@ Where to change what (the file reads top to bottom in this order):
 - The evaluation engine: `submit_flights` chunks (solution, terrain) pairs for Dask; `fly_chunk`
   runs on the workers; `evaluate_batch` averages each solution over the run's terrains.
 - The run: `Run` holds one search between iterations and is the one place a checkpoint is built
-  and written; `run_loop` is ask -> evaluate -> tell; `save_outputs` writes the run folder's files.
+  and written; `run_loop` is ask -> evaluate -> tell; `save_outputs` writes the run folder's files,
+  in a `Saver` thread while the search goes on.
 - The commands: `search` and `resume`; `experiment` (`Experiment` drives many `Run`s on one
   cluster with as_completed); then the results commands (video, elites, trajectories, evaluate,
   explore with its page EXPLORER_PAGE near the end, compare with the statistics). A flag is
   declared, documented and defaulted in its command's signature and docstring; FLAG_CHECKS
   says how it is checked; COMMANDS lists the commands.
 - The machinery: flag checks, folder locks, atomic file writes, logs, the streamlined env
-  (FastLunarLander), and `main`, which turns bad input into one line and exit code 2.
+  (FastLunarLander), and `main`, which turns bad input into one line and exit code 2 (and
+  `exit_now`, which skips the interpreter's teardown).
 """
 
 from __future__ import annotations
