@@ -2215,7 +2215,9 @@ def markdown_report(stats, tests) -> str:
         lines.append(f"| {setting} | {group['runs'].max()} | "
                      + " | ".join(cells[m] for m in SUMMARISED) + " |")
     lines += ["", "Mean [95% bootstrap confidence interval of the mean, BCa] over each setting's runs.",
-              f"CQD score: {CQD}.", ""]
+              f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
+              f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
+              f"normalised over [{CQD['obj_min']:g}, {CQD['obj_max']:g}].", ""]
     if len(tests):
         lines += ["| metric | A | B | U | p (Holm) | A12 |", "| --- | --- | --- | --- | --- | --- |"]
         lines += [f"| {t['metric']} | {t['setting_a']} | {t['setting_b']} | {t['U']:.1f} | "
