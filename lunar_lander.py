@@ -439,7 +439,8 @@ def ship_script(client) -> None:
         client.upload_file(str(path))
 
 
-# What a run imports after its cluster is up (ribs alone brings numba, scipy and pandas: ~2 s).
+# What a run imports while its cluster starts (ribs alone brings scikit-learn, scipy, numba and
+# pandas: ~2 s of the main process).
 RUN_IMPORTS = ("ribs.archives", "ribs.emitters", "ribs.schedulers", "ribs.visualize",
                "matplotlib.pyplot", "matplotlib.backends.backend_agg", "pandas.io.formats.csvs", "tqdm")
 
