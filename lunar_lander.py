@@ -788,11 +788,15 @@ def search_defaults() -> dict[str, Any]:
     return {name: parameter.default for name, parameter in inspect.signature(search).parameters.items()}
 
 
+# What runs recorded before a flag existed ran with, where that is not the flag's default today.
+BEFORE_THE_FLAG = {"learning_rate": 0.01}
+
+
 def check_run_config(config: Any) -> dict:
     """A run's recorded config, every flag valid (a UsageError says which is not); a config from
-    before a flag existed ran with that flag's default."""
+    before a flag existed ran with what that flag now sets it to (BEFORE_THE_FLAG, or the default)."""
     try:
-        config = {**search_defaults(), **config}
+        config = {**search_defaults(), **BEFORE_THE_FLAG, **config}
         config.update(check_flags({name: config[name] for name in FLAG_CHECKS}))
     except TypeError as error:
         raise UsageError(str(error)) from None
