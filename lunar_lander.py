@@ -476,6 +476,7 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     import dask
     from dask.distributed import Client, LocalCluster
 
+    logging.getLogger("asyncio").addFilter(not_dask_stop)  # once: the same filter is kept once
     if scheduler_address:
         try:
             client = Client(scheduler_address, timeout="20s")
@@ -499,6 +500,12 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     with cluster, Client(cluster) as client:
         log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
         yield client
+
+
+def not_dask_stop(record: logging.LogRecord) -> bool:
+    """Ctrl-C during a gather leaves Dask's wait task with its AllExit, which asyncio would print
+    with a traceback when it is collected: the stop is ours, and is reported in one line."""
+    return not (record.exc_info and type(record.exc_info[1]).__name__ == "AllExit")
 
 
 # Dask's housekeeping runs in the main process (the scheduler, and the nannies of the local
