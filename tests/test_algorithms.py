@@ -113,12 +113,12 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
     scheduler = load_pickle(run_dir / "checkpoint.pkl")["scheduler"]
     saved = load_pickle(run_dir / "archive.pkl")
 
-    assert saved.learning_rate == 1.0  # the result archive, not the soft archive (0.01)
+    assert saved.learning_rate == 1.0  # the result archive, not the soft archive
     assert archive_table(saved).equals(archive_table(scheduler.result_archive))
     result_qd_score = float(scheduler.result_archive.stats.qd_score)
     assert run_metrics(run_dir)[-1]["qd_score"] == pytest.approx(result_qd_score)
     # The soft archive keeps later, worse solutions that passed a threshold: the best are elsewhere.
-    assert scheduler.archive.learning_rate == 0.01
+    assert scheduler.archive.learning_rate == ll.search_defaults()["learning_rate"]
     assert saved.stats.obj_max >= scheduler.archive.stats.obj_max
 
 
@@ -230,6 +230,6 @@ def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_runs):
 def test_runs_are_labelled_by_the_flags_that_shape_them():
     defaults = ll.search_defaults()
     assert ll.run_setting({**defaults, "algorithm": "cma_mae"}) == "cma_mae"
-    assert ll.run_setting({**defaults, "algorithm": "cma_mae", "learning_rate": 0.1, "seed": 3,
-                           "iterations": 9}) == "cma_mae learning_rate=0.1"
+    assert ll.run_setting({**defaults, "algorithm": "cma_mae", "learning_rate": 0.3, "seed": 3,
+                           "iterations": 9}) == "cma_mae learning_rate=0.3"
     assert ll.run_setting({"algorithm": "cma_me", "seed": 1}) == "cma_me"  # older config.json
