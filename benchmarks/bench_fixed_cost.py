@@ -1,0 +1,93 @@
+#!/usr/bin/env python
+"""The fixed cost of a search: what a short run spends outside its search loop, and the part of it
+that no change to this script can remove (importing the libraries a search needs).
+
+    python benchmarks/bench_fixed_cost.py                           # this checkout, 5 runs
+    python benchmarks/bench_fixed_cost.py --baseline OLD/lunar_lander.py --repeats 5
+
+Each run is `lunar_lander.py --iterations 20 --workers 2`, timed from start to exit as a user runs
+it. Its search loop is the `elapsed_s` its metrics.json records (first ask to last tell); the fixed
+cost is the rest: imports, the cluster's start, the final outputs and the shutdown. With
+--baseline, the other script's runs alternate with this checkout's, so both see the same noise.
+
+The import floor is a fresh process importing what a search imports before its first ask (this
+script, its run imports and dask.distributed), with nothing else running: the search's start
+cannot be shorter than that on this machine.
+
+Prints and writes benchmarks/fixed_cost_results.json. Run it on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import fire
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "lunar_lander.py"
+
+
+def one_search(script: Path, folder: Path) -> dict:
+    """Wall, search loop and fixed cost (seconds) of one 20-iteration search, start to exit."""
+    tic = time.perf_counter()
+    subprocess.run([sys.executable, str(script), "--iterations", "20", "--workers", "2",
+                    "--seed", "1", "--log_every", "25", "--outdir", str(folder)],
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=script.parent)
+    wall = time.perf_counter() - tic
+    loop = json.loads((folder / "metrics.json").read_text())[-1]["elapsed_s"]
+    return {"wall_s": round(wall, 2), "loop_s": round(loop, 2), "fixed_s": round(wall - loop, 2)}
+
+
+def import_floor() -> float:
+    """Wall seconds of a fresh process that only imports what a search imports."""
+    code = ("import importlib, lunar_lander\n"
+            "for name in (*lunar_lander.RUN_IMPORTS, 'dask.distributed'):\n"
+            "    importlib.import_module(name)\n")
+    tic = time.perf_counter()
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+    return time.perf_counter() - tic
+
+
+def summary(rows: list[dict]) -> dict:
+    fixed = [row["fixed_s"] for row in rows]
+    return {"fixed_median_s": round(statistics.median(fixed), 2),
+            "fixed_range_s": [min(fixed), max(fixed)],
+            "wall_median_s": round(statistics.median(row["wall_s"] for row in rows), 2),
+            "runs": rows}
+
+
+def main(repeats: int = 5, baseline: str | None = None,
+         out: str = "benchmarks/fixed_cost_results.json") -> None:
+    scripts = {"now": SCRIPT, **({"baseline": Path(baseline).resolve()} if baseline else {})}
+    rows: dict[str, list[dict]] = {name: [] for name in scripts}
+    with tempfile.TemporaryDirectory() as tmp:
+        for repeat in range(repeats):
+            for name, script in scripts.items():
+                rows[name].append(one_search(script, Path(tmp) / f"{name}_{repeat}"))
+                print(name, rows[name][-1], flush=True)
+    floors = [import_floor() for _ in range(repeats)]
+    result = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+              "search": "--iterations 20 --workers 2 --seed 1",
+              **{name: summary(found) for name, found in rows.items()},
+              "import_floor_median_s": round(statistics.median(floors), 2),
+              "import_floor_s": [round(f, 2) for f in floors]}
+    if baseline:
+        pairs = [now["wall_s"] / old["wall_s"] for now, old in zip(rows["now"], rows["baseline"])]
+        result["wall_ratio_now_over_baseline_median"] = round(statistics.median(pairs), 3)
+        result["fixed_ratio_now_over_baseline"] = round(
+            result["now"]["fixed_median_s"] / result["baseline"]["fixed_median_s"], 3)
+    print(json.dumps({k: v for k, v in result.items() if k not in ("now", "baseline")} | {
+        name: {k: v for k, v in result[name].items() if k != "runs"} for name in rows}, indent=2))
+    Path(out).write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    fire.Fire(main)
