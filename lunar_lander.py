@@ -1220,6 +1220,14 @@ class LiveRun:
         return self.run.config["iterations"]
 
 
+def count_as_done_before(bar, iterations: int) -> None:
+    """Put a resumed run's earlier iterations on the tqdm bar as its starting point, not as work
+    done now, so its rate and time left reflect only this drive."""
+    bar.n, bar.last_print_n, bar.initial = (
+        count + iterations for count in (bar.n, bar.last_print_n, bar.initial))
+    bar.refresh()
+
+
 class Experiment:
     """Drives many runs on one client: Dask's as_completed hands back chunks in whatever order
     they finish, and each run goes on as soon as its own batch is whole. A run's results depend on
@@ -1303,20 +1311,12 @@ class Experiment:
                 continue
             self.live[entry["name"]] = live
             self.latest[entry["name"]] = live.run.metrics[-1] if live.run.metrics else {}
-            self.count_resumed(live.run.iteration)
+            count_as_done_before(self.bar, live.run.iteration)
             self.record(entry, "running")
             if live.run.iteration >= live.target:
                 self.finish(live)
             else:
                 self.launch(live)
-
-    def count_resumed(self, iterations: int) -> None:
-        """Put what a run did before a stop on the bar as its starting point, not as work done
-        now, so the rate and time left reflect only this drive."""
-        bar = self.bar
-        bar.n, bar.last_print_n, bar.initial = (
-            count + iterations for count in (bar.n, bar.last_print_n, bar.initial))
-        bar.refresh()
 
     def open(self, entry: dict) -> LiveRun:
         """A run's folder (made on first use), locked, and its run from checkpoint or config."""

@@ -174,6 +174,21 @@ def test_holm_and_auc_by_hand():
     assert ll.holm_floor(five_each) == pytest.approx(10 * 2 / 252)  # 5 seeds, 5 settings: 0.079
 
 
+def test_a_resumed_runs_earlier_iterations_do_not_count_in_the_bar_rate():
+    import io
+    import time
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=1000, initial=10, file=io.StringIO(), mininterval=0)
+    ll.count_as_done_before(bar, 500)
+    time.sleep(0.05)
+    bar.update(1)
+    assert bar.n == 511 and bar.format_dict["initial"] == 510
+    assert bar.format_dict["rate"] < 100  # one iteration in 0.05 s, not 501
+    bar.close()
+
+
 def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
     folder = tmp_path / "exp"
     process = launch("experiment", algorithms="cma_me", seeds="1-2", iterations=8, n_emitters=2,
