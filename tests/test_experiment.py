@@ -151,7 +151,8 @@ def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
         values = table.loc[table["setting"] == row["setting"], "qd_score"]
         assert row["runs"] == 2 and row["mean"] == pytest.approx(values.mean())
         assert row["ci95_low"] <= row["mean"] <= row["ci95_high"]
-    assert len(tests) == 2 * 6  # two metrics, every pair of 4 settings
+    assert len(tests) == 3 * 6  # three metrics, every pair of 4 settings
+    assert list(tests["metric"].unique()) == ["qd_score", "qd_auc", "cqd_score"]
     first = tests.iloc[0]
     x, y = (table.loc[table["setting"] == first[side], "qd_score"] for side in ("setting_a", "setting_b"))
     assert first["p"] == pytest.approx(mannwhitneyu(x, y, alternative="two-sided").pvalue)
