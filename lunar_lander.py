@@ -2054,16 +2054,20 @@ SETTING_FLAGS = ("env_seed", "measures", "grid", "n_emitters", "batch_size", "si
 
 
 def run_setting(config: dict) -> str:
-    """The algorithm, and the flags shaping it that differ from their defaults: runs of one
-    setting with different seeds are repeats of one experiment."""
+    """The algorithm with its own flags, and the other flags shaping it that differ from their
+    defaults: runs of one setting with different seeds are repeats of one experiment. An
+    algorithm's own flags are always named (cma_mae at 0.01 and at 0.5 are different algorithms
+    in effect), so a label means the same whatever the defaults become."""
     defaults, changed = check_flags(search_defaults()), []
+    config = {**BEFORE_THE_FLAG, **config}  # a config.json from before a flag: what it ran with
     algorithm = config.get("algorithm")
+    own = ALGORITHMS[algorithm]["flags"] if algorithm in ALGORITHMS else ()
     for flag in (flag for flag in SETTING_FLAGS if flag in config):
         if algorithm in ALGORITHMS and ignores(algorithm, flag):
             continue
         with contextlib.suppress(UsageError):
             value = check_flags({flag: config[flag]})[flag]  # 52 and [52] are one terrain
-            if value != defaults[flag]:
+            if value != defaults[flag] or flag in own:
                 changed.append(f"{flag}={','.join(map(str, value)) if isinstance(value, list) else value}")
     return " ".join([str(config.get("algorithm", "?")), *changed])
 

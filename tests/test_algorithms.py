@@ -196,7 +196,8 @@ def test_compare_writes_png_and_table(run_cli, tmp_path, tiny_runs):
     assert len(pngs) == 1 and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with open(pngs[0].with_suffix(".csv")) as file:
         rows = list(csv.DictReader(file))
-    labels = ["cma_me n_emitters=2 batch_size=6 seed 5", "cma_mae n_emitters=2 batch_size=6 seed 5"]
+    labels = ["cma_me n_emitters=2 batch_size=6 seed 5",
+              "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5 seed 5"]
     assert [row["run"] for row in rows] == labels
     for row, run_dir in zip(rows, runs):
         final = run_metrics(run_dir)[-1]
@@ -229,7 +230,12 @@ def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_runs):
 
 def test_runs_are_labelled_by_the_flags_that_shape_them():
     defaults = ll.search_defaults()
-    assert ll.run_setting({**defaults, "algorithm": "cma_mae"}) == "cma_mae"
+    # An algorithm's own flag is always named: the label does not change with the default.
+    assert ll.run_setting({**defaults, "algorithm": "cma_mae"}) == (
+        f"cma_mae learning_rate={defaults['learning_rate']}")
+    assert ll.run_setting({**defaults, "algorithm": "cma_me"}) == "cma_me"
     assert ll.run_setting({**defaults, "algorithm": "cma_mae", "learning_rate": 0.3, "seed": 3,
                            "iterations": 9}) == "cma_mae learning_rate=0.3"
     assert ll.run_setting({"algorithm": "cma_me", "seed": 1}) == "cma_me"  # older config.json
+    # from before --learning_rate: it ran at 0.01, not at today's default
+    assert ll.run_setting({"algorithm": "cma_mae", "seed": 1}) == "cma_mae learning_rate=0.01"

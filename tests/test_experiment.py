@@ -44,7 +44,8 @@ def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
     settings = [run["setting"] for run in plan["runs"]]
     assert list(dict.fromkeys(settings)) == [  # learning_rate is cma_mae's own: no duplicates
         "cma_me n_emitters=2 batch_size=6", "map_elites n_emitters=2 batch_size=6",
-        "cma_mae n_emitters=2 batch_size=6 learning_rate=0.01", "cma_mae n_emitters=2 batch_size=6"]
+        "cma_mae n_emitters=2 batch_size=6 learning_rate=0.01",
+        "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5"]
     assert [run["seed"] for run in plan["runs"]] == [1, 2] * 4
     assert all(run["state"] == "done" for run in plan["runs"])
     assert plan["axes"] == {"algorithm": ["cma_me", "map_elites", "cma_mae"], "learning_rate": [0.01, 0.5]}
