@@ -1,4 +1,5 @@
-"""Shared fixtures: one real Dask LocalCluster for the session, and tiny search configurations.
+"""Shared fixtures: one real Dask LocalCluster for the session, the tiny run and the reference run
+(util.py has their flags), the command line in-process or as a process, and a headless browser.
 
 numba would compile ribs' CMA-ES code in every process that runs a search (5-8 s each);
 NUMBA_DISABLE_JIT gives bitwise-identical results, so the tests (and the processes they start)
@@ -6,7 +7,6 @@ run with it.
 """
 
 import contextlib
-import dataclasses
 import io
 import logging
 import os
@@ -53,19 +53,29 @@ def dask_client(dask_cluster):
         yield client
 
 
-@pytest.fixture
-def tiny_config(dask_cluster):
-    """Keyword arguments of `search` for a seconds-long run on the session cluster."""
-    return dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
-                sigma0=1.0, batch_size=6, log_every=2,
-                scheduler_address=dask_cluster.scheduler_address)
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory, dask_cluster):
+    """A tiny finished run folder (3 iterations, a few dozen elites), shared: only read it; a test
+    that writes in a run folder copies it first."""
+    import lunar_lander as ll
+    from util import tiny_flags
+
+    run_dir = tmp_path_factory.mktemp("tiny") / "run"
+    ll.search(**tiny_flags(dask_cluster), outdir=str(run_dir))
+    return run_dir
 
 
-@dataclasses.dataclass
-class Result:
-    returncode: int
-    stdout: str
-    stderr: str
+@pytest.fixture(scope="session")
+def reference(tmp_path_factory, dask_cluster):
+    """The uninterrupted run every stopped-and-resumed (or faulted) run must end equal to: the tiny
+    run carried on to REFERENCE_ITERATIONS, saved once at its end (only the end is compared)."""
+    import lunar_lander as ll
+    from util import REFERENCE_ITERATIONS, tiny_flags
+
+    run_dir = tmp_path_factory.mktemp("reference") / "run"
+    ll.search(**tiny_flags(dask_cluster, iterations=REFERENCE_ITERATIONS,
+                           log_every=REFERENCE_ITERATIONS), outdir=str(run_dir))
+    return run_dir
 
 
 @pytest.fixture
@@ -73,6 +83,7 @@ def run_cli(tmp_path, monkeypatch):
     """The command line as a user types it, run in-process through main() (no interpreter start,
     no re-import): the exit code, stdout and stderr, from tmp_path as the working folder."""
     import lunar_lander as ll
+    from util import Result
 
     monkeypatch.chdir(tmp_path)
 

@@ -34,7 +34,9 @@ import gymnasium as gym
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import fast_env  # noqa: E402
 import lunar_lander as ll  # noqa: E402  (the product, imported by name so workers import it too)
+import run_files  # noqa: E402
 
 CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
               measures=list(ll.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True)
@@ -101,7 +103,7 @@ def run_search(evaluate: Callable, client, iterations: int) -> dict:
 
 def count_steps(iterations: int) -> int:
     """Environment steps the benchmark's search takes (counted once, untimed)."""
-    scheduler, env, steps = ll.build_scheduler(CONFIG), ll.FastLunarLander(), 0
+    scheduler, env, steps = ll.build_scheduler(CONFIG), fast_env.FastLunarLander(), 0
     for _ in range(iterations):
         solutions, results = scheduler.ask(), []
         for solution in solutions:
@@ -121,7 +123,7 @@ def local_client(workers: int):
     client = Client(cluster)
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
-    client.gather(client.map(ll.by_reference(ll.fly_chunk), [np.zeros((1, 32))] * workers,
+    client.gather(client.map(ll.fly_chunk, [np.zeros((1, 32))] * workers,
                              env_seeds=[52], measures=ll.TUTORIAL_MEASURES, pure=False))
     return cluster, client
 
@@ -136,7 +138,7 @@ def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]
         ("serial tutorial rollout, gym.make env", 0):
             run_search(serial_evaluate(tutorial_simulate), None, iterations),
         ("serial project rollout, streamlined env", 0): run_search(
-            serial_evaluate(functools.partial(streamlined_rollout, env=ll.FastLunarLander())),
+            serial_evaluate(functools.partial(streamlined_rollout, env=fast_env.FastLunarLander())),
             None, iterations),
     }
     for n in workers:
@@ -192,7 +194,7 @@ def main(iterations: int = 20, workers: tuple = (1, 2), repeats: int = 3,
     }
     print_table(rows, summary)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
-    ll.write_json(Path(out), {"summary": summary, "rows": rows})
+    run_files.write_json(Path(out), {"summary": summary, "rows": rows})
     print(f"written: {out}")
 
 

@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 sys.path.insert(0, str(ROOT))
 import lunar_lander as ll  # noqa: E402  (the product)
+import run_files  # noqa: E402
 
 
 def timed(*args: str) -> float:
@@ -73,7 +74,7 @@ def two_at_once_seconds(configs: list[dict]) -> float:
 
 def same_run(a: Path, b: Path) -> bool:
     def archive(run):
-        table = ll.read_pickle(run / "archive.pkl", "archive").data(return_type="pandas")
+        table = run_files.read_pickle(run / "archive.pkl", "archive").data(return_type="pandas")
         return table.sort_values("index").reset_index(drop=True)
 
     def metrics(run):

@@ -10,10 +10,18 @@ from ribs.archives import GridArchive
 from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter
 from ribs.emitters.rankers import ImprovementRanker, TwoStageImprovementRanker
 from ribs.schedulers import Scheduler
-from test_cli import assert_one_line_error
 
 import lunar_lander as ll
-from util import archive_table, folder_state, load_pickle, run_archive, run_metrics
+import results
+import run_files
+from util import (
+    archive_table,
+    assert_one_line_error,
+    load_pickle,
+    run_archive,
+    run_metrics,
+    tiny_flags,
+)
 
 ALGORITHMS = ["cma_me", "cma_mae", "map_elites"]
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
@@ -55,10 +63,9 @@ def test_seed_fixes_the_proposals_and_emitters_differ():
     assert not np.array_equal(per_emitter[0], per_emitter[1])  # each emitter has its own seed
 
 
-def tiny_flags(dask_cluster, algorithm, **overrides):
-    return dict(dict(iterations=2, workers=2, seed=5, env_seed=52, algorithm=algorithm,
-                     n_emitters=2, sigma0=1.0, batch_size=6, log_every=2,
-                     scheduler_address=dask_cluster.scheduler_address), **overrides)
+def algorithm_flags(dask_cluster, algorithm, **overrides):
+    """The tiny run's flags for 2 iterations of `algorithm`."""
+    return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **overrides})
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +73,7 @@ def tiny_runs(tmp_path_factory, dask_cluster):
     """A 2-iteration run folder of each algorithm."""
     root = tmp_path_factory.mktemp("algorithms")
     for algorithm in ALGORITHMS:
-        ll.search(**tiny_flags(dask_cluster, algorithm), outdir=str(root / algorithm))
+        ll.search(**algorithm_flags(dask_cluster, algorithm), outdir=str(root / algorithm))
     return {algorithm: root / algorithm for algorithm in ALGORITHMS}
 
 
@@ -125,7 +132,7 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 @pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_runs, algorithm):
     run_dir = tmp_path / "run"
-    ll.search(**tiny_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
+    ll.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
     ll.resume(str(run_dir), iterations=2, scheduler_address=dask_cluster.scheduler_address)
 
     reference = tiny_runs[algorithm]
@@ -140,7 +147,7 @@ def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_
 def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algorithm):
     source = tiny_runs["cma_me"] / "archive.pkl"
     run_dir = tmp_path / "warm"
-    ll.search(**tiny_flags(dask_cluster, algorithm, iterations=1),
+    ll.search(**algorithm_flags(dask_cluster, algorithm, iterations=1),
               outdir=str(run_dir), from_archive=str(source))
 
     elites = len(load_pickle(source))
@@ -159,8 +166,8 @@ def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorith
     shutil.copytree(tiny_runs[algorithm], run_dir)
     best = load_pickle(run_dir / "archive.pkl").best_elite
 
-    ll.video(str(run_dir), best=True)
-    ll.elites(str(run_dir), top=3)
+    results.video(str(run_dir), best=True)
+    results.elites(str(run_dir), top=3)
 
     with open(run_dir / "videos" / "index.csv") as file:
         [row] = list(csv.DictReader(file))
@@ -173,7 +180,7 @@ def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorith
 def test_checkpoint_from_before_learning_rate_still_resumes(tmp_path, tiny_runs):
     checkpoint = load_pickle(tiny_runs["cma_me"] / "checkpoint.pkl")
     del checkpoint["config"]["learning_rate"]
-    ll.write_pickle(tmp_path / "checkpoint.pkl", checkpoint)
+    run_files.write_pickle(tmp_path / "checkpoint.pkl", checkpoint)
 
     assert ll.load_checkpoint(tmp_path / "checkpoint.pkl")["config"]["learning_rate"] == 0.01
 
@@ -185,57 +192,3 @@ def test_unknown_algorithm_and_bad_learning_rate_are_one_line_errors(run_cli, tm
         assert_one_line_error(run_cli(f"--learning_rate={value}", "--outdir", tmp_path / "run"),
                               "--learning_rate", "(0, 1]")
     assert not (tmp_path / "run").exists()
-
-
-def test_compare_writes_png_and_table(run_cli, tmp_path, tiny_runs):
-    runs = [tiny_runs["cma_me"], tiny_runs["cma_mae"]]
-    result = run_cli("compare", *runs)
-
-    assert result.returncode == 0, result.stderr
-    pngs = list((tmp_path / "outputs").glob("compare_*.png"))
-    assert len(pngs) == 1 and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    with open(pngs[0].with_suffix(".csv")) as file:
-        rows = list(csv.DictReader(file))
-    labels = ["cma_me n_emitters=2 batch_size=6 seed 5",
-              "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5 seed 5"]
-    assert [row["run"] for row in rows] == labels
-    for row, run_dir in zip(rows, runs):
-        final = run_metrics(run_dir)[-1]
-        assert int(row["evaluations"]) == final["evaluations"] == 24
-        assert float(row["qd_score"]) == pytest.approx(final["qd_score"])
-        assert float(row["coverage"]) == pytest.approx(final["coverage"])
-        assert float(row["best_objective"]) == pytest.approx(final["best_objective"])
-        objectives = load_pickle(run_dir / "archive.pkl").data("objective")
-        assert int(row["cells_200+"]) == int((objectives >= 200).sum())
-    assert labels[0] in result.stdout and labels[1] in result.stdout
-    assert f"{final['qd_score']:,.0f}" in result.stdout
-
-    before = folder_state(tmp_path / "outputs")
-    assert_one_line_error(run_cli("compare", *runs, "--out", pngs[0]), "already exist", "--overwrite")
-    assert folder_state(tmp_path / "outputs") == before
-    assert run_cli("compare", *runs, "--out", pngs[0], "--overwrite").returncode == 0
-
-
-def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_runs):
-    (tmp_path / "empty").mkdir()
-    (tmp_path / "no_metrics").mkdir()
-    (tmp_path / "no_metrics" / "config.json").write_text("{}")
-    (tmp_path / "no_metrics" / "metrics.json").write_text("[]")
-    for bad, words in [("missing", "no such run folder"), ("empty", "config.json"),
-                       ("no_metrics", "no metrics")]:
-        assert_one_line_error(run_cli("compare", tiny_runs["cma_me"], tmp_path / bad), bad, words)
-    assert_one_line_error(run_cli("compare"), "at least one run folder")
-    assert not (tmp_path / "outputs").exists()
-
-
-def test_runs_are_labelled_by_the_flags_that_shape_them():
-    defaults = ll.search_defaults()
-    # An algorithm's own flag is always named: the label does not change with the default.
-    assert ll.run_setting({**defaults, "algorithm": "cma_mae"}) == (
-        f"cma_mae learning_rate={defaults['learning_rate']}")
-    assert ll.run_setting({**defaults, "algorithm": "cma_me"}) == "cma_me"
-    assert ll.run_setting({**defaults, "algorithm": "cma_mae", "learning_rate": 0.3, "seed": 3,
-                           "iterations": 9}) == "cma_mae learning_rate=0.3"
-    assert ll.run_setting({"algorithm": "cma_me", "seed": 1}) == "cma_me"  # older config.json
-    # from before --learning_rate: it ran at 0.01, not at today's default
-    assert ll.run_setting({"algorithm": "cma_mae", "seed": 1}) == "cma_mae learning_rate=0.01"

@@ -5,15 +5,7 @@ import inspect
 import pytest
 
 import lunar_lander as ll
-
-
-def assert_one_line_error(result, *fragments):
-    assert result.returncode != 0
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("error: ") and "Traceback" not in result.stderr
-    for fragment in fragments:
-        assert fragment in lines[0]
+from util import assert_one_line_error
 
 
 def test_help_documents_every_flag(run_cli):

@@ -10,11 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 from scipy.stats import mannwhitneyu
-from test_cli import assert_one_line_error
 
+import comparison
+import experiments
 import lunar_lander as ll
 from util import (
-    assert_one_line_fault,
+    Result,
+    assert_one_line_error,
     checkpoint_iteration,
     folder_state,
     launch,
@@ -30,7 +32,7 @@ TINY = dict(iterations=4, n_emitters=2, batch_size=6, log_every=4)  # each run s
 def experiment_dir(tmp_path_factory, dask_cluster):
     """cma_me, map_elites and cma_mae at two learning rates, two seeds each: 8 runs in one go."""
     folder = tmp_path_factory.mktemp("experiment") / "exp"
-    ll.experiment(algorithms="cma_me,map_elites,cma_mae", seeds="1-2", learning_rate=[0.01, 0.5],
+    experiments.experiment(algorithms="cma_me,map_elites,cma_mae", seeds="1-2", learning_rate=[0.01, 0.5],
                   outdir=str(folder), scheduler_address=dask_cluster.scheduler_address, **TINY)
     return folder
 
@@ -67,7 +69,7 @@ def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_clu
 
 
 def test_one_run_at_a_time_gives_the_same_runs(experiment_dir, tmp_path, dask_cluster):
-    ll.experiment(algorithms="cma_mae", seeds="2", learning_rate=[0.5], max_in_flight=1,
+    experiments.experiment(algorithms="cma_mae", seeds="2", learning_rate=[0.5], max_in_flight=1,
                   outdir=str(tmp_path / "exp"), scheduler_address=dask_cluster.scheduler_address, **TINY)
     [run] = plan_of(tmp_path / "exp")["runs"]
     assert run_archive(tmp_path / "exp" / run["name"]).equals(run_archive(experiment_dir / run["name"]))
@@ -91,7 +93,7 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
     ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
 
     whole = tmp_path / "whole"
-    ll.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
+    experiments.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
                   batch_size=6, log_every=2, outdir=str(whole),
                   scheduler_address=dask_cluster.scheduler_address)
     for run in plan_of(folder)["runs"]:
@@ -110,7 +112,7 @@ def test_a_failing_run_is_recorded_and_the_others_go_on(tmp_path, dask_cluster, 
     code = ll.main(["resume", str(folder), "--iterations", "6",
                     "--scheduler_address", dask_cluster.scheduler_address])
 
-    assert_one_line_fault(code, capsys.readouterr().err, "1 of 8 runs failed", broken)
+    assert_one_line_error(Result(code, "", capsys.readouterr().err), "1 of 8 runs failed", broken, code=1)
     runs = plan_of(folder)["runs"]
     assert runs[2]["state"] == "failed" and "heatmaps" in runs[2]["error"]
     for run in runs[:2] + runs[3:]:
@@ -141,7 +143,7 @@ def test_an_existing_folder_is_not_touched(run_cli, tmp_path):
 
 
 def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
-    ll.compare(str(experiment_dir), out=str(tmp_path / "cmp"))
+    comparison.compare(str(experiment_dir), out=str(tmp_path / "cmp"))
 
     table = pd.read_csv(tmp_path / "cmp.csv")
     stats = pd.read_csv(tmp_path / "cmp_settings.csv")
@@ -168,14 +170,6 @@ def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
     assert (tmp_path / "cmp.png").read_bytes()[:4] == b"\x89PNG"
 
 
-def test_holm_and_auc_by_hand():
-    assert ll.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
-    metrics = [{"evaluations": 10, "qd_score": 100.0}, {"evaluations": 20, "qd_score": 300.0}]
-    assert ll.qd_auc(metrics) == pytest.approx((0.5 * 10 * 100 + 10 * 200) / 20)
-    five_each = pd.DataFrame([{"metric": "qd_score", "runs_a": 5, "runs_b": 5}] * 10)
-    assert ll.holm_floor(five_each) == pytest.approx(10 * 2 / 252)  # 5 seeds, 5 settings: 0.079
-
-
 def test_a_resumed_runs_earlier_iterations_do_not_count_in_the_bar_rate():
     import io
     import time
@@ -183,7 +177,7 @@ def test_a_resumed_runs_earlier_iterations_do_not_count_in_the_bar_rate():
     from tqdm import tqdm
 
     bar = tqdm(total=1000, initial=10, file=io.StringIO(), mininterval=0)
-    ll.count_as_done_before(bar, 500)
+    experiments.count_as_done_before(bar, 500)
     time.sleep(0.05)
     bar.update(1)
     assert bar.n == 511 and bar.format_dict["initial"] == 510

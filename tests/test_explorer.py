@@ -12,19 +12,21 @@ import pandas as pd
 import pytest
 from test_run_folder import small_disk
 
+import fast_env
 import lunar_lander as ll
+import results
+import run_files
 from util import folder_state, load_pickle
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
 
 
 @pytest.fixture(scope="module")
-def explored(tmp_path_factory, dask_cluster):
-    """A tiny run (a few dozen elites) and its explorer page."""
+def explored(tmp_path_factory, dask_cluster, tiny_run):
+    """A copy of the tiny run (a few dozen elites) and its explorer page."""
     run_dir = tmp_path_factory.mktemp("explorer") / "run"
-    ll.search(iterations=3, workers=2, seed=7, env_seed=52, n_emitters=2, batch_size=8, log_every=3,
-              outdir=str(run_dir), scheduler_address=dask_cluster.scheduler_address)
-    ll.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    shutil.copytree(tiny_run, run_dir)
+    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     return run_dir
 
 
@@ -50,9 +52,10 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
         objective, *measures = ll.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory)
         assert elite["objective"] == objective and elite["measures"] == measures
         assert elite["steps"] == len(trajectory)
-        flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / np.array(ll.POSE_SCALE)
-        x = (flown[:, 0] - ll._HALF_W) / ll._HALF_W  # the observation's x and y, from the body's pose
-        y = (flown[:, 1] - ll._PAD_Y) / ll._HALF_H
+        flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / np.array(results.POSE_SCALE)
+        # the observation's x and y, from the body's pose
+        x = (flown[:, 0] - fast_env.HALF_W) / fast_env.HALF_W
+        y = (flown[:, 1] - fast_env.PAD_Y) / fast_env.HALF_H
         assert np.abs(x - np.array(trajectory)[:, 0]).max() < 1e-4  # 1 mm of quantisation
         assert np.abs(y - np.array(trajectory)[:, 1]).max() < 1e-4
 
@@ -68,7 +71,7 @@ def test_bad_folders_are_refused_and_untouched(explored, tmp_path, run_cli, case
         words = "archive.pkl: no such file"
     elif case == "empty archive":
         shutil.copytree(explored, run_dir)
-        ll.write_pickle(run_dir / "archive.pkl", GridArchive(solution_dim=32, dims=(50, 50),
+        run_files.write_pickle(run_dir / "archive.pkl", GridArchive(solution_dim=32, dims=(50, 50),
                                                              ranges=[(-1, 1), (-3, 0)]))
         words = "empty"
     else:
@@ -158,8 +161,9 @@ def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
         browser, explored, tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
     shutil.copytree(explored, run_dir)
-    ll.evaluate_robustness(str(run_dir), env_seeds="3,4", scheduler_address=dask_cluster.scheduler_address)
-    ll.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    results.evaluate_robustness(str(run_dir), env_seeds="3,4",
+                                scheduler_address=dask_cluster.scheduler_address)
+    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     robust = {int(r["cell_index"]): r for r in pd.read_csv(run_dir / "robustness.csv").to_dict("records")}
 
     page = browser.new_page(viewport={"width": 1300, "height": 1000})

@@ -8,18 +8,19 @@ import numpy as np
 import pandas as pd
 import pytest
 from matplotlib.image import imread
-from test_cli import assert_one_line_error
 
 import lunar_lander as ll
-from util import load_pickle, run_archive, run_metrics
+import results
+from flags import UsageError
+from util import assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
 
 
 def tiny(dask_cluster, **overrides):
-    return dict(dict(iterations=2, workers=2, seed=4, n_emitters=2, sigma0=1.0, batch_size=6,
-                     log_every=2, scheduler_address=dask_cluster.scheduler_address), **overrides)
+    """The tiny run's flags, for 2 iterations."""
+    return tiny_flags(dask_cluster, **{"iterations": 2, **overrides})
 
 
 @pytest.fixture(scope="module")
@@ -56,8 +57,8 @@ def test_results_commands_speak_the_runs_measures(fuel_run, capsys):
     archive = load_pickle(fuel_run / "archive.pkl")
     point = tuple(float(v) for v in archive.data("measures")[0])
 
-    ll.video(str(fuel_run), cells=[point], env_seed=3)
-    ll.elites(str(fuel_run), top=2)
+    results.video(str(fuel_run), cells=[point], env_seed=3)
+    results.elites(str(fuel_run), top=2)
 
     index = pd.read_csv(fuel_run / "videos" / "index.csv")
     [row] = index.to_dict("records")
@@ -77,7 +78,7 @@ def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
     archive = load_pickle(run_dir / "archive.pkl")
     assert tuple(archive.dims) == (grid,) * len(measures.split(","))
     assert imread(run_dir / "heatmap.png").std() > 0.05
-    ll.trajectories(str(run_dir), best=True)
+    results.trajectories(str(run_dir), best=True)
     assert (run_dir / "trajectories.png").is_file()
 
 
@@ -95,7 +96,7 @@ def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_clus
         (old / "config.json").write_text(json.dumps(config))
     (old / "checkpoint.pkl").write_bytes(pickle.dumps(checkpoint))
 
-    ll.elites(str(old))  # results commands read it as the tutorial's measures
+    results.elites(str(old))  # results commands read it as the tutorial's measures
     ll.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address)
 
     assert run_archive(old).equals(run_archive(tmp_path / "whole"))
@@ -116,7 +117,7 @@ def test_bad_measures_grid_and_terrains_are_refused(run_cli, tmp_path, args, fra
 
 
 def test_cells_must_be_points_of_the_runs_measures(fuel_run):
-    with pytest.raises(ll.UsageError, match=r"points of \(fuel, flight_time\)"):
-        ll.video(str(fuel_run), cells="[(0.1, -0.1, 3)]")
-    with pytest.raises(ll.UsageError, match="outside the archive: fuel in"):
-        ll.video(str(fuel_run), cells="[(900, 100)]")
+    with pytest.raises(UsageError, match=r"points of \(fuel, flight_time\)"):
+        results.video(str(fuel_run), cells="[(0.1, -0.1, 3)]")
+    with pytest.raises(UsageError, match="outside the archive: fuel in"):
+        results.video(str(fuel_run), cells="[(900, 100)]")

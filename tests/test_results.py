@@ -1,24 +1,26 @@
 """Looking at a run: videos of chosen cells, the elite table, trajectories, robustness on new terrains."""
 
 import re
+import shutil
 
 import imageio_ffmpeg
 import numpy as np
 import pandas as pd
 import pytest
 from matplotlib.image import imread
-from test_cli import assert_one_line_error
 
+import fast_env
 import lunar_lander as ll
-from util import folder_state, load_pickle
+import results
+from flags import UsageError, seed_list
+from util import assert_one_line_error, folder_state, load_pickle
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory, dask_cluster):
-    """A run folder made by the runner: a tiny search (a few dozen elites, most cells empty)."""
+def run_dir(tmp_path_factory, tiny_run):
+    """A copy of the tiny run (a few dozen elites, most cells empty), for these commands to write in."""
     run_dir = tmp_path_factory.mktemp("results") / "run"
-    ll.search(iterations=3, workers=2, seed=7, env_seed=52, n_emitters=2, batch_size=8, log_every=3,
-              outdir=str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    shutil.copytree(tiny_run, run_dir)
     return run_dir
 
 
@@ -56,7 +58,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
     shortest = int(np.argmin(lengths))
     point = tuple(data["measures"][shortest])
 
-    ll.video(str(run_dir), cells=[point])
+    results.video(str(run_dir), cells=[point])
 
     objective = data["objective"][shortest]
     name = f"cell_x{point[0]:.2f}_v{point[1]:.2f}_obj{objective:.0f}.mp4"
@@ -88,17 +90,17 @@ def test_empty_cell_names_the_nearest_and_nearest_uses_it(archive):
     assert min(distances) == 1
     nearest = min(occupied[np.flatnonzero(np.array(distances) == 1)])
 
-    with pytest.raises(ll.UsageError, match=f"is empty; the nearest occupied cell .*cell {nearest}"
+    with pytest.raises(UsageError, match=f"is empty; the nearest occupied cell .*cell {nearest}"
                                             r"\); add --nearest"):
-        ll.select_elites(archive, cells=[point])
-    [elite] = ll.select_elites(archive, cells=[point], nearest=True)
+        results.select_elites(archive, cells=[point])
+    [elite] = results.select_elites(archive, cells=[point], nearest=True)
     assert elite["index"] == nearest
     assert elite["name"].startswith(f"cell_x{point[0]:.2f}_v{point[1]:.2f}_nearest{nearest}_obj")
 
 
 def test_selection_by_best_top_index_and_cells(archive):
     ranked = archive.data(return_type="pandas").sort_values("objective", ascending=False)["index"]
-    chosen = ll.select_elites(archive, cells="[(0.0, -0.1)]", best=True, top=3,
+    chosen = results.select_elites(archive, cells="[(0.0, -0.1)]", best=True, top=3,
                               index=int(ranked.iloc[-1]), nearest=True)
     assert chosen[0]["name"].startswith("cell_x0.00_v-0.10_")
     assert [elite["index"] for elite in chosen[1:]] == ranked.iloc[[0, 0, 1, 2, -1]].tolist()
@@ -106,17 +108,18 @@ def test_selection_by_best_top_index_and_cells(archive):
         "best", "top01", "top02", "top03", f"index{ranked.iloc[-1]}"]
     # --cells as Fire hands it over: parsed, one tuple alone, or raw text
     tutorial = list(ll.TUTORIAL_MEASURES)
-    assert ll.parse_cells("[(-0.4, -0.1), (0.6, -0.1)]", tutorial) == [(-0.4, -0.1), (0.6, -0.1)]
-    assert ll.parse_cells((0.0, -0.1), tutorial) == ll.parse_cells([(0, -0.1)], tutorial) == [(0.0, -0.1)]
-    assert ll.parse_cells("[(120,), (300,)]", ["fuel"]) == ll.parse_cells((120, 300), ["fuel"]) == [
+    assert results.parse_cells("[(-0.4, -0.1), (0.6, -0.1)]", tutorial) == [(-0.4, -0.1), (0.6, -0.1)]
+    assert results.parse_cells((0.0, -0.1), tutorial) == [(0.0, -0.1)]
+    assert results.parse_cells([(0, -0.1)], tutorial) == [(0.0, -0.1)]
+    assert results.parse_cells("[(120,), (300,)]", ["fuel"]) == results.parse_cells((120, 300), ["fuel"]) == [
         (120.0,), (300.0,)]
-    assert ll.parse_cells("[(1, 2, 3)]", ["fuel", "flight_time", "max_tilt"]) == [(1.0, 2.0, 3.0)]
+    assert results.parse_cells("[(1, 2, 3)]", ["fuel", "flight_time", "max_tilt"]) == [(1.0, 2.0, 3.0)]
 
 
 def test_elite_table_is_archive_data_sorted_and_filtered(run_dir, archive, capsys):
     data = archive.data(return_type="pandas")
     threshold = float(data["objective"].median())
-    ll.elites(str(run_dir), min_objective=threshold, top=5)
+    results.elites(str(run_dir), min_objective=threshold, top=5)
 
     table = read_csv(run_dir / "elites.csv")
     expected = data[data["objective"] >= threshold].nlargest(5, "objective")
@@ -131,15 +134,15 @@ def test_elite_table_is_archive_data_sorted_and_filtered(run_dir, archive, capsy
 
 def test_trajectory_picture_of_the_top_elites(run_dir, archive):
     before = folder_state(run_dir)
-    ll.trajectories(str(run_dir), top=3)
+    results.trajectories(str(run_dir), top=3)
 
     image = imread(run_dir / "trajectories.png")
     assert image.shape[0] > 400 and image.shape[1] > 600 and image.std() > 0.05
     after = folder_state(run_dir)
     assert {name: after[name] for name in before if name in after} == before  # nothing else touched
 
-    top = ll.select_elites(archive, top=3)
-    for elite, (path, step) in zip(top, ll.fly_paths(top, 52)):  # the drawn paths are their flights
+    top = results.select_elites(archive, top=3)
+    for elite, (path, step) in zip(top, results.fly_paths(top, 52)):  # the drawn paths are their flights
         assert path[step, 0] == elite["measures"][0]  # the dot is at touchdown, where impact x is
 
 
@@ -148,15 +151,15 @@ def test_terrain_is_the_envs_ground():
     env.reset(seed=52)
     lander = env.unwrapped
     edges = [fixture.shape.vertices for fixture in lander.moon.fixtures[1:]]
-    ground = ll.terrain(52)
+    ground = results.terrain(52)
     expected = np.array([edges[0][0], *(end for _, end in edges)])
-    assert np.allclose(ground[:, 0], (expected[:, 0] - ll._HALF_W) / ll._HALF_W)
-    assert np.allclose(ground[:, 1], (expected[:, 1] - ll._PAD_Y) / ll._HALF_H)
+    assert np.allclose(ground[:, 0], (expected[:, 0] - fast_env.HALF_W) / fast_env.HALF_W)
+    assert np.allclose(ground[:, 1], (expected[:, 1] - fast_env.PAD_Y) / fast_env.HALF_H)
     env.close()
 
 
 def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, dask_cluster, capsys):
-    ll.evaluate_robustness(str(run_dir), env_seeds="3,4", top=4,
+    results.evaluate_robustness(str(run_dir), env_seeds="3,4", top=4,
                            scheduler_address=dask_cluster.scheduler_address)
 
     table = read_csv(run_dir / "robustness.csv")
@@ -179,13 +182,13 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
 @pytest.mark.parametrize("value, seeds", [
     ("0-3", [0, 1, 2, 3]), ((3, 5), [3, 5]), (7, [7]), ("0-2,5", [0, 1, 2, 5]), ("4,4", [4])])
 def test_env_seed_ranges(value, seeds):
-    assert ll.seed_list("env_seeds", value) == seeds
+    assert seed_list("env_seeds", value) == seeds
 
 
 @pytest.mark.parametrize("value", ["3-1", "a", -1, True, "1-", ""])
 def test_bad_env_seeds(value):
-    with pytest.raises(ll.UsageError, match="--env_seeds"):
-        ll.seed_list("env_seeds", value)
+    with pytest.raises(UsageError, match="--env_seeds"):
+        seed_list("env_seeds", value)
 
 
 @pytest.mark.parametrize("args, fragments", [
@@ -201,30 +204,30 @@ def test_bad_input_is_one_line_and_touches_nothing(run_cli, run_dir, tmp_path, a
 
 
 @pytest.mark.parametrize("command, kwargs, fragment", [
-    (ll.video, dict(cells="[(a, b)]"), "--cells"),
-    (ll.video, dict(cells=[(0.1, -0.1, 3)]), "--cells"),
-    (ll.video, dict(cells=[(0.0, -3.5)]), "outside the archive"),
-    (ll.video, {}, "--cells, --best, --top or --index"),
-    (ll.video, dict(index=2500), "--index"),
-    (ll.trajectories, dict(top=0), "--top"),
-    (ll.trajectories, dict(best="maybe"), "--best"),
-    (ll.elites, dict(top=-2), "--top"),
-    (ll.elites, dict(min_objective="high"), "--min_objective"),
-    (ll.evaluate_robustness, dict(env_seeds="5-2"), "--env_seeds"),
-    (ll.evaluate_robustness, dict(workers=0), "--workers"),
+    (results.video, dict(cells="[(a, b)]"), "--cells"),
+    (results.video, dict(cells=[(0.1, -0.1, 3)]), "--cells"),
+    (results.video, dict(cells=[(0.0, -3.5)]), "outside the archive"),
+    (results.video, {}, "--cells, --best, --top or --index"),
+    (results.video, dict(index=2500), "--index"),
+    (results.trajectories, dict(top=0), "--top"),
+    (results.trajectories, dict(best="maybe"), "--best"),
+    (results.elites, dict(top=-2), "--top"),
+    (results.elites, dict(min_objective="high"), "--min_objective"),
+    (results.evaluate_robustness, dict(env_seeds="5-2"), "--env_seeds"),
+    (results.evaluate_robustness, dict(workers=0), "--workers"),
 ])
 def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fragment):
     before = folder_state(run_dir)
-    with pytest.raises(ll.UsageError, match=re.escape(fragment)):
+    with pytest.raises(UsageError, match=re.escape(fragment)):
         command(str(run_dir), **kwargs)
     assert folder_state(run_dir) == before
 
 
 def test_commands_and_their_flags_are_registered(tmp_path):
     assert {"video", "elites", "trajectories", "evaluate"} <= set(ll.COMMANDS)
-    assert ll.COMMANDS["evaluate"] is ll.evaluate_robustness
-    with pytest.raises(ll.UsageError, match="--cell;"):
+    assert ll.COMMANDS["evaluate"] is results.evaluate_robustness
+    with pytest.raises(UsageError, match="--cell;"):
         ll.reject_unknown_flags(ll.COMMANDS["video"], ["--cell", "[(0, 0)]"])
     (tmp_path / "run").mkdir()
-    with pytest.raises(ll.UsageError, match="archive.pkl: no such file"):
-        ll.load_run(tmp_path / "run")
+    with pytest.raises(UsageError, match="archive.pkl: no such file"):
+        results.load_run(tmp_path / "run")

@@ -13,33 +13,24 @@ import pytest
 from ribs.archives import GridArchive
 
 import lunar_lander as ll
-from util import checkpoint_iteration, folder_state, launch, load_pickle, run_archive, run_metrics, wait_for
+from util import (
+    REFERENCE_ITERATIONS,
+    assert_same_run,
+    checkpoint_iteration,
+    folder_state,
+    launch,
+    load_pickle,
+    tiny_flags,
+    wait_for,
+)
 
 TUTORIAL_RANGES = [ll.MEASURES[name].range for name in ll.TUTORIAL_MEASURES]
-ITERATIONS = 16  # long enough for a process to be stopped part-way, a few seconds in all
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory, dask_cluster):
-    """The uninterrupted run every stopped-and-resumed run must equal."""
-    run_dir = tmp_path_factory.mktemp("reference") / "run"
-    ll.search(**run_flags(dask_cluster), outdir=str(run_dir))
-    return run_dir
+ITERATIONS = REFERENCE_ITERATIONS  # long enough for a process to be stopped part-way
 
 
 def run_flags(dask_cluster, **overrides):
-    return dict(dict(iterations=ITERATIONS, workers=2, seed=7, env_seed=52, algorithm="cma_me",
-                     n_emitters=2, sigma0=1.0, batch_size=6, log_every=3,
-                     scheduler_address=dask_cluster.scheduler_address), **overrides)
-
-
-def assert_same_run(run_dir, reference):
-    """Same archive, same metrics, and the emitters' next proposals are the same too."""
-    assert run_archive(run_dir).equals(run_archive(reference))
-    assert run_metrics(run_dir) == run_metrics(reference)
-    assert [row["iteration"] for row in run_metrics(run_dir)] == list(range(1, ITERATIONS + 1))
-    schedulers = [load_pickle(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
-    assert np.array_equal(schedulers[0].ask(), schedulers[1].ask())
+    """The reference run's flags, saved every 3 iterations."""
+    return tiny_flags(dask_cluster, **{"iterations": ITERATIONS, "log_every": 3, **overrides})
 
 
 @pytest.mark.parametrize("stop_at", [1, 4])

@@ -15,32 +15,20 @@ import pytest
 
 import lunar_lander as ll
 from util import (
-    assert_one_line_fault,
+    REFERENCE_ITERATIONS,
+    Result,
+    assert_one_line_error,
+    assert_same_run,
     checkpoint_iteration,
     folder_state,
     launch,
     load_pickle,
-    run_archive,
-    run_metrics,
+    tiny_flags,
     wait_for,
 )
 
-FLAGS = dict(iterations=12, workers=2, seed=3, env_seed=52, algorithm="cma_me", n_emitters=2,
-             sigma0=1.0, batch_size=6, log_every=1)
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory, dask_cluster):
-    """The uninterrupted run that every interrupted one must end equal to."""
-    run_dir = tmp_path_factory.mktemp("reference") / "run"
-    ll.search(**{**FLAGS, "log_every": FLAGS["iterations"]},  # saved once: only its end is compared
-              outdir=str(run_dir), scheduler_address=dask_cluster.scheduler_address)
-    return run_dir
-
-
-def assert_same_run(run_dir, reference):
-    assert run_archive(run_dir).equals(run_archive(reference))
-    assert run_metrics(run_dir) == run_metrics(reference)
+# The reference run's flags, saved after every iteration: a fault finds a write in progress.
+FLAGS = tiny_flags(iterations=REFERENCE_ITERATIONS, log_every=1)
 
 
 @contextlib.contextmanager
@@ -76,9 +64,9 @@ def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path,
 
         held = checkpoint_iteration(run_dir)
         assert 0 <= held < FLAGS["iterations"]
-        assert_one_line_fault(process.returncode, err, "No space left on device", str(run_dir),
-                              f"its checkpoint holds iteration {held}",
-                              f"python lunar_lander.py resume {run_dir}")
+        assert_one_line_error(Result(process.returncode, out, err), "No space left on device",
+                              str(run_dir), f"its checkpoint holds iteration {held}",
+                              f"python lunar_lander.py resume {run_dir}", code=1)
         assert not list(run_dir.rglob(".*.tmp"))  # no half-written file left behind
         assert json.loads((run_dir / "config.json").read_text())["seed"] == FLAGS["seed"]
 
@@ -104,7 +92,8 @@ def test_every_writing_command_reports_a_full_disk_in_one_line(tmp_path, referen
 
         code = ll.main([arg.format(run=run_dir, address=dask_cluster.scheduler_address) for arg in args])
 
-        assert_one_line_fault(code, capsys.readouterr().err, "No space left on device", str(run_dir))
+        assert_one_line_error(Result(code, "", capsys.readouterr().err), "No space left on device",
+                              str(run_dir), code=1)
         assert folder_state(run_dir) == before
 
 

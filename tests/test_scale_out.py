@@ -7,8 +7,7 @@ import time
 
 import pytest
 
-import lunar_lander as ll
-from util import run_archive, run_metrics
+from util import run_archive, run_metrics, tiny_flags
 
 
 @pytest.fixture
@@ -43,31 +42,47 @@ def external_cluster(tmp_path):
             process.wait(timeout=60)
 
 
-def can_import_the_script(client) -> list[bool]:
+def can_import_the_code(client) -> list[bool]:
+    """Whether each worker can import every module of ours that tasks need."""
     import importlib.util
 
-    return list(client.run(lambda: importlib.util.find_spec("lunar_lander") is not None).values())
+    from lunar_lander import SHIPPED
+
+    def finds_all() -> bool:
+        return all(importlib.util.find_spec(name) is not None for name in SHIPPED)
+    return list(client.run(finds_all).values())
 
 
-def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_config, run_process,
+def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_run, run_process,
                                                            external_cluster):
-    assert can_import_the_script(external_cluster) == [False, False]
+    assert can_import_the_code(external_cluster) == [False, False]
     address = external_cluster.scheduler.address
-    flags = {k: v for k, v in tiny_config.items() if k != "scheduler_address"}
 
-    result = run_process(*[f"--{k}={v}" for k, v in flags.items()], f"--scheduler_address={address}",
-                     f"--outdir={tmp_path / 'remote'}")
+    result = run_process(*[f"--{k}={v}" for k, v in tiny_flags().items()], f"--scheduler_address={address}",
+                         f"--outdir={tmp_path / 'remote'}")
     assert result.returncode == 0, result.stderr
     assert f"Dask cluster at {address}: 2 worker(s)" in result.stdout
 
-    ll.search(**tiny_config, outdir=str(tmp_path / "local"))  # the session's local cluster
-    remote, local = run_archive(tmp_path / "remote"), run_archive(tmp_path / "local")
-    assert len(remote) > 0 and remote.equals(local)
-    assert run_metrics(tmp_path / "remote") == run_metrics(tmp_path / "local")
+    remote = run_archive(tmp_path / "remote")  # tiny_run flew on the session's local cluster
+    assert len(remote) > 0 and remote.equals(run_archive(tiny_run))
+    assert run_metrics(tmp_path / "remote") == run_metrics(tiny_run)
 
-    # The cluster is not ours to shut down: still there, and the script was shipped to it.
+    # The cluster is not ours to shut down: still there, and the code was shipped to it.
     assert len(external_cluster.nthreads()) == 2
-    assert can_import_the_script(external_cluster) == [True, True]
+    assert can_import_the_code(external_cluster) == [True, True]
+
+
+def test_explore_on_an_existing_cluster_ships_the_results_module(tmp_path, tiny_run, run_process,
+                                                                 external_cluster):
+    """The explorer's poses are recorded by results.record_poses, on workers that have never seen
+    results.py (nor the modules it imports)."""
+    import shutil
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny_run, run_dir)
+    result = run_process("explore", run_dir, f"--scheduler_address={external_cluster.scheduler.address}")
+    assert result.returncode == 0, result.stderr
+    assert (run_dir / "explorer.html").stat().st_size > 10_000
 
 
 def test_unreachable_scheduler_is_a_one_line_error(run_cli, tmp_path):

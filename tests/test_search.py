@@ -9,15 +9,15 @@ from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
 import lunar_lander as ll
-from util import archive_table, load_pickle, run_archive, run_metrics
+from util import archive_table, load_pickle, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"]
 
 
-def test_tiny_search_writes_a_complete_run_folder(tmp_path, tiny_config):
+def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys):
     run_dir = tmp_path / "run"
-    ll.search(**tiny_config, outdir=str(run_dir))
+    ll.search(**tiny_flags(dask_cluster, log_every=2), outdir=str(run_dir))
 
     for name in RUN_FILES:
         assert (run_dir / name).is_file(), name
@@ -58,27 +58,31 @@ def test_tiny_search_writes_a_complete_run_folder(tmp_path, tiny_config):
         assert image.ndim == 3 and image.shape[0] > 300 and image.shape[1] > 400
     log = (run_dir / "run.log").read_text()
     assert "iteration 2/3" in log and "Done." in log
+    out = capsys.readouterr().out  # it ends saying where the results are and how to look at them
+    assert out.rstrip().splitlines()[-3:] == [
+        f"Results in {run_dir}: heatmap.png, progress.png, metrics.json, archive.csv. Look at them with:",
+        f"  python lunar_lander.py explore {run_dir}      # a page to browse the archive and watch "
+        f"any landing",
+        f"  python lunar_lander.py video {run_dir} --best   # an mp4 of the best landing"]
 
 
-def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_config, run_cli):
-    ll.search(**tiny_config, outdir=str(tmp_path / "two"))  # the session's 2-worker cluster
-    flags = {k: v for k, v in tiny_config.items() if k != "scheduler_address"}
-    result = run_cli(*[f"--{k}={v}" for k, v in {**flags, "workers": 1}.items()],
+def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_run, run_cli):
+    # tiny_run flew on the session's 2-worker cluster; this one starts a cluster of 1 worker.
+    result = run_cli(*[f"--{k}={v}" for k, v in tiny_flags(workers=1).items()],
                      f"--outdir={tmp_path / 'one'}")
     assert result.returncode == 0, result.stderr
 
-    one, two = run_archive(tmp_path / "one"), run_archive(tmp_path / "two")
-    assert len(one) > 0 and one.equals(two)
-    assert run_metrics(tmp_path / "one") == run_metrics(tmp_path / "two")
+    one = run_archive(tmp_path / "one")
+    assert len(one) > 0 and one.equals(run_archive(tiny_run))
+    assert run_metrics(tmp_path / "one") == run_metrics(tiny_run)
 
 
-def test_another_seed_gives_another_archive(tmp_path, tiny_config):
-    ll.search(**tiny_config, outdir=str(tmp_path / "a"))
-    ll.search(**{**tiny_config, "seed": 8}, outdir=str(tmp_path / "b"))
-    assert not run_archive(tmp_path / "a").equals(run_archive(tmp_path / "b"))
+def test_another_seed_gives_another_archive(tmp_path, dask_cluster, tiny_run):
+    ll.search(**tiny_flags(dask_cluster, seed=8), outdir=str(tmp_path / "b"))
+    assert not run_archive(tiny_run).equals(run_archive(tmp_path / "b"))
 
 
-def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, tiny_config):
-    ll.search(**{**tiny_config, "seed": None, "iterations": 1}, outdir=str(tmp_path / "r"))
+def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, dask_cluster):
+    ll.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
     config = json.loads((tmp_path / "r" / "config.json").read_text())
     assert isinstance(config["seed"], int) and config["seed"] >= 0

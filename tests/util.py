@@ -1,10 +1,27 @@
-"""Helpers shared by the tests."""
+"""Helpers shared by the tests: the tiny run's flags, reading run folders, comparing runs, real
+processes, and the one-line error check."""
 
+import dataclasses
 import json
 import pickle
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
+
+# A seconds-long search: 3 iterations of 2 emitters x 6 policies, saved at its end.
+TINY = dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
+            sigma0=1.0, batch_size=6, log_every=3)
+REFERENCE_ITERATIONS = 12  # the uninterrupted run that stopped-and-resumed runs must equal
+
+
+def tiny_flags(cluster=None, **overrides) -> dict:
+    """Keyword arguments of `search` for a tiny run, on `cluster` (a LocalCluster) if given."""
+    address = {} if cluster is None else {"scheduler_address": cluster.scheduler_address}
+    return {**TINY, **address, **overrides}
 
 
 def load_pickle(path):
@@ -27,16 +44,45 @@ def run_metrics(run_dir: Path) -> list[dict]:
     return [{k: v for k, v in row.items() if k != "elapsed_s"} for row in rows]
 
 
+def assert_same_run(run_dir: Path, reference: Path) -> None:
+    """Same archive, same metrics row by row, and the emitters' next proposals are the same too."""
+    assert run_archive(run_dir).equals(run_archive(reference))
+    assert run_metrics(run_dir) == run_metrics(reference)
+    iterations = [row["iteration"] for row in run_metrics(reference)]
+    assert [row["iteration"] for row in run_metrics(run_dir)] == iterations
+    schedulers = [load_pickle(Path(d) / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
+    assert np.array_equal(schedulers[0].ask(), schedulers[1].ask())
+
+
 def folder_state(path: Path) -> dict:
     """Every file below `path` with its bytes: to check that a failed command touched nothing."""
     return {str(p.relative_to(path)): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
 
 
+@dataclasses.dataclass
+class Result:
+    """What a command left: its exit code, stdout and stderr."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def assert_one_line_error(result: Result, *fragments: str, code: int = 2) -> None:
+    """Exit code `code` (2: bad input, 1: a fault) and one line of error, holding every fragment,
+    with no traceback. It is the last line printed: a search's progress bar may precede it."""
+    assert result.returncode == code, result.stderr
+    lines = [line for line in result.stderr.strip().splitlines() if line.strip()]
+    assert lines and lines[-1].startswith("error: ") and "Traceback" not in result.stderr, result.stderr
+    assert sum(line.startswith("error: ") for line in lines) == 1, result.stderr
+    if code == 2:  # refused before any work: nothing else was printed
+        assert len(lines) == 1, result.stderr
+    for fragment in fragments:
+        assert fragment in lines[-1], lines[-1]
+
+
 def launch(*args, **flags):
     """The script as a real process in a session of its own (so a test can kill its whole group)."""
-    import subprocess
-    import sys
-
     from conftest import SCRIPT
 
     return subprocess.Popen([sys.executable, str(SCRIPT), *map(str, args),
@@ -47,8 +93,6 @@ def launch(*args, **flags):
 
 def wait_for(condition, process, what, timeout=120):
     """Poll `condition` until it holds; fail with the process's output if it ends first."""
-    import time
-
     deadline = time.time() + timeout
     while time.time() < deadline and process.poll() is None:
         if condition():
@@ -63,14 +107,3 @@ def checkpoint_iteration(run_dir: Path) -> int:
         return load_pickle(Path(run_dir) / "checkpoint.pkl")["iteration"]
     except (OSError, EOFError, pickle.UnpicklingError):
         return -1
-
-
-def assert_one_line_fault(code, stderr, *fragments):
-    """Exit code 1 and one line of error, the last one printed (a search's progress bar may
-    precede it on stderr)."""
-    assert code == 1, stderr
-    lines = [line for line in stderr.strip().splitlines() if line.strip()]
-    assert lines[-1].startswith("error: ") and "Traceback" not in stderr, stderr
-    assert sum(line.startswith("error: ") for line in lines) == 1
-    for fragment in fragments:
-        assert fragment in lines[-1], lines[-1]

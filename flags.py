@@ -1,0 +1,166 @@
+"""Flags: how a command's flags are declared once, and how every value a user gives is checked.
+
+A command's flags live in a table of `Flag` entries (lunar_lander.py's SEARCH_FLAGS,
+CLUSTER_FLAGS and SELECTION_FLAGS): each entry holds the default, the --help line, the check,
+and the flag's part in experiments. `takes` gives a command those flags as keyword arguments:
+its signature and its docstring's Args come from the tables, so Fire's --help, Fire's parsing
+and a direct call all see one declaration.
+
+Map:
+- `UsageError`: bad input, reported as one line and exit code 2;
+- the checkers, each `(flag name, value) -> checked value`: `positive_int`, `non_negative_int`,
+  `positive_float`, `fraction`, `boolean`, `one_of`, `seed_list`, `distinct_names`;
+- `Flag`, `check_flags` (values through their entries' checks) and `takes` (the decorator).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import inspect
+import re
+import textwrap
+from typing import Any, Callable
+
+import numpy as np
+
+
+class UsageError(Exception):
+    """Bad input from the user: reported as one line on stderr, exit code 2."""
+
+
+Check = Callable[[str, Any], Any]
+
+
+def positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise UsageError(f"--{name} must be a positive whole number, got {value!r}")
+    return value
+
+
+def non_negative_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise UsageError(f"--{name} must be a whole number >= 0, got {value!r}")
+    return value
+
+
+def positive_float(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise UsageError(f"--{name} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def fraction(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise UsageError(f"--{name} must be a number in (0, 1], got {value!r}")
+    return float(value)
+
+
+def boolean(name: str, value: Any) -> bool:
+    """Fire passes --flag=false as the string 'false' (and --flag alone as True)."""
+    words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if str(value).lower() in words:
+        return words[str(value).lower()]
+    raise UsageError(f"--{name} must be true or false, got {value!r}")
+
+
+def one_of(choices: dict) -> Check:
+    """A check that the value is a key of `choices` (a table such as ALGORITHMS)."""
+    def check(name: str, value: Any) -> str:
+        if value not in choices:
+            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {value!r}")
+        return value
+    return check
+
+
+def seed_list(name: str, value: Any) -> list[int]:
+    """Seeds as a range 0-19, a list 3,5,8 or both (0-4,10); Fire may have made a number or a
+    tuple of it already."""
+    parts = [str(part) for part in value] if isinstance(value, (tuple, list)) else str(value).split(",")
+    seeds: list[int] = []
+    for part in parts:
+        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if isinstance(value, bool) or not match or (match[2] and int(match[2]) < int(match[1])):
+            raise UsageError(f"--{name} takes seeds >= 0 such as 52, 0-19, 3,5,8 or 0-4,10; got {value!r}")
+        seeds += range(int(match[1]), int(match[2] or match[1]) + 1)
+    return list(dict.fromkeys(seeds))
+
+
+def distinct_names(table: dict, noun: str, most: int) -> Check:
+    """A check for 1 to `most` distinct keys of `table` (such as MEASURES), as "a,b" or a list."""
+    def check(name: str, value: Any) -> list[str]:
+        names = [str(v) for v in value] if isinstance(value, (tuple, list)) else str(value).split(",")
+        names = [n.strip() for n in names]
+        unknown = [n for n in names if n not in table]
+        if unknown or not 1 <= len(names) <= most or len(set(names)) != len(names):
+            raise UsageError(f"--{name} takes 1 to {most} different {noun} of {', '.join(table)}; "
+                             f"got {value!r}")
+        return names
+    return check
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag:
+    """One flag, declared once: what it defaults to, what --help says, how a value is checked
+    (None, a drawn seed or a default folder, always passes), and its part in experiments."""
+
+    default: Any
+    help: str
+    check: Check | None = None  # None: any value passes (a path, an address)
+    sweep: bool = False  # experiment: a list of values is one more axis of its grid
+    per_run: bool = False  # experiment sets it for each run itself (the seed, the folder...)
+    label: int = 0  # >0: a value other than the default names a run's setting, at this place
+    only_for: tuple[str, ...] = ()  # the algorithms that use it (empty: every one)
+    before: Any = None  # what runs recorded before the flag existed ran with (None: the default)
+
+
+def check_flags(table: dict[str, Flag], values: dict[str, Any]) -> dict[str, Any]:
+    """The values with each one that has an entry (and a check) in `table` checked."""
+    return {name: value if value is None or name not in table or table[name].check is None
+            else table[name].check(name, value) for name, value in values.items()}
+
+
+def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
+    """Give a command that takes `**flags` the flags of `tables` as ordinary keyword arguments.
+
+    The command's signature becomes its own parameters followed by the tables' flags with their
+    defaults, and its docstring's Args section gains each flag's help line; Fire builds --help
+    and parses the command line from both. A call binds its arguments to that signature (a
+    misspelt keyword is a TypeError, as for any function) and passes every flag, defaulted.
+    """
+    flags = {name: flag for table in tables for name, flag in table.items()}
+
+    def decorate(function: Callable) -> Callable:
+        own = inspect.signature(function)
+        keep = [p for p in own.parameters.values() if not (p.kind is p.VAR_KEYWORD and p.name == "flags")]
+        at = next((i for i, p in enumerate(keep) if p.kind in (p.KEYWORD_ONLY, p.VAR_KEYWORD)), len(keep))
+        added = [inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=flag.default)
+                 for name, flag in flags.items() if name not in own.parameters]
+        signature = own.replace(parameters=keep[:at] + added + keep[at:])
+
+        @functools.wraps(function)
+        def command(*args: Any, **kwargs: Any) -> Any:
+            bound = signature.bind(*args, **kwargs)
+            bound.apply_defaults()
+            arguments = dict(bound.arguments)
+            extra = next((arguments.pop(p.name) for p in keep if p.kind is p.VAR_KEYWORD), {})
+            return function(**arguments, **extra)
+
+        command.__signature__ = signature
+        command.__doc__ = with_flag_help(function.__doc__ or "", {n: flags[n] for n in flags
+                                                                  if n not in own.parameters})
+        return command
+    return decorate
+
+
+def with_flag_help(doc: str, flags: dict[str, Flag]) -> str:
+    """The docstring with a Google-style Args line per flag (Fire shows them in --help)."""
+    doc = inspect.cleandoc(doc)
+    lines = [textwrap.fill(f"{name}: {flag.help}", 96, initial_indent="    ",
+                           subsequent_indent="        ") for name, flag in flags.items()]
+    if "\nArgs:\n" not in doc:
+        doc += "\n\nArgs:"
+    head, _, tail = doc.partition("\nArgs:\n")
+    return "\n".join([head, "Args:", *(tail.splitlines() if tail else []), *lines])

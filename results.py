@@ -1,0 +1,605 @@
+"""Looking at a finished run: videos of chosen elites, the elite table, flight paths, robustness on
+other terrains, and the explorer page. None of these commands changes the run's archive.
+
+Map:
+- `load_run`: a run folder's archive and config, checked against each other;
+- choosing elites (SELECTION_FLAGS of lunar_lander.py): `parse_cells`, `parse_indices`,
+  `select_elites`, `load_chosen_elites`, `shown_terrain`;
+- `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
+  its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
+  `save_trajectory_plot`, `terrain`);
+- `explore`: every elite's flight recorded as poses on the cluster (`record_poses`, which runs
+  on the workers) and packed with the archive into explorer_page.html (`explorer_data`);
+- `evaluate_robustness` (the `evaluate` command): the elites on other terrains, `robustness_table`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.box2d import lunar_lander as upstream
+
+from fast_env import (
+    FPS,
+    HALF_H,
+    HALF_W,
+    HEIGHT,
+    HELIPAD_Y,
+    PAD_Y,
+    SCALE,
+    WIDTH,
+    FastLunarLander,
+    seeded_randoms,
+)
+from flags import UsageError, check_flags, positive_int, seed_list, takes
+from lunar_lander import (
+    _WORKER_ENVS,
+    CLUSTER_FLAGS,
+    HEATMAP_RANGE,
+    LANDED,
+    MEASURES,
+    SELECTION_FLAGS,
+    STOP,
+    TERRAIN_FLAGS,
+    TUTORIAL_MEASURES,
+    averaged,
+    check_run_config,
+    dask_client,
+    fly,
+    gather_with_progress,
+    load_archive,
+    make_env,
+    per_terrain,
+    rollout,
+    save_heatmap,
+    submit_flights,
+)
+from run_files import (
+    RunError,
+    atomic_write,
+    check_writable,
+    console_log,
+    fault_text,
+    read_run_json,
+    write_csv,
+)
+
+
+def load_run(run_dir: Any) -> tuple[Any, dict]:
+    """A run folder's archive and config (checked against each other). Folders written before
+    --measures and --grid existed load with the tutorial's measures on a 50x50 grid."""
+    path = Path(str(run_dir))
+    if not path.is_dir():
+        raise UsageError(f"{path}: no such run folder")
+    if not (path / "archive.pkl").is_file():
+        raise UsageError(f"{path / 'archive.pkl'}: no such file (is {path} a run folder of lunar_lander.py?)")
+    recorded = read_run_json(path, "config.json")
+    try:
+        config = check_run_config(recorded)
+    except UsageError as error:
+        raise UsageError(f"{path / 'config.json'}: not a usable run config ({error})") from None
+    return load_archive(path / "archive.pkl", config), config
+
+
+def is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def parse_cells(cells: Any, measures: list[str]) -> list[tuple[float, ...]]:
+    """--cells as points in the run's measures. Fire hands over what it could parse (a list of
+    tuples, or one tuple) and the raw text otherwise, so both are accepted."""
+    import ast
+
+    points, size = cells, len(measures)
+    if isinstance(points, str):
+        with contextlib.suppress(ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+            points = ast.literal_eval(points)
+    if isinstance(points, (int, float)) and size == 1:
+        points = [(points,)]
+    if isinstance(points, (tuple, list)) and points and all(map(is_number, points)):
+        points = [points] if len(points) == size or size > 1 else [(p,) for p in points]
+    if not (isinstance(points, (tuple, list)) and points and all(
+            isinstance(p, (tuple, list)) and len(p) == size and all(map(is_number, p)) for p in points)):
+        example = "(" + ", ".join(f"{sum(MEASURES[m].range) / 2:g}" for m in measures) + ")"
+        raise UsageError(f"--cells takes points of ({', '.join(measures)}) such as "
+                         f'"[{example}]", got {cells!r}')
+    return [tuple(float(v) for v in point) for point in points]
+
+
+def parse_indices(index: Any, archive) -> list[int]:
+    """--index as one archive cell index or several (the cell_index column of `elites`)."""
+    values = list(index) if isinstance(index, (tuple, list)) else [index]
+    cells = int(np.prod(archive.dims))
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
+            raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
+                             f"command's cell_index), got {index!r}")
+    return values
+
+
+def point_text(point) -> str:
+    return "(" + ", ".join(f"{value:g}" for value in point) + ")"
+
+
+def check_in_archive(archive, point: tuple[float, ...], measures: list[str]) -> None:
+    ranges = ", ".join(f"{name} in [{lo:g}, {hi:g}]" for name, lo, hi in
+                       zip(measures, archive.lower_bounds, archive.upper_bounds))
+    if not all(lo <= p <= hi for p, lo, hi in zip(point, archive.lower_bounds, archive.upper_bounds)):
+        raise UsageError(f"cell {point_text(point)} is outside the archive: {ranges}")
+
+
+def elite_rows(archive) -> dict[str, np.ndarray]:
+    """Every elite (solution, objective, measures, index), best first; ties by cell index."""
+    data = archive.data(["solution", "objective", "measures", "index"])
+    order = np.lexsort((data["index"], -data["objective"]))
+    return {field: values[order] for field, values in data.items()}
+
+
+def pick(rows: dict[str, np.ndarray], i: int, name: str) -> dict:
+    return {"name": name, **{field: values[i] for field, values in rows.items()}}
+
+
+def nearest_occupied(archive, point: tuple[float, ...]) -> dict:
+    """The elite whose cell is nearest the point's cell, counting in cells (ties: lowest index)."""
+    rows = elite_rows(archive)
+    target = archive.int_to_grid_index([archive.index_of_single(point)])[0]
+    distance = np.linalg.norm(archive.int_to_grid_index(rows["index"]) - target, axis=1)
+    return pick(rows, int(np.lexsort((rows["index"], distance))[0]), "")
+
+
+def describe_elite(elite: dict, measures: list[str]) -> str:
+    values = ", ".join(f"{name} {value:.3f}" for name, value in zip(measures, elite["measures"]))
+    return f"objective {elite['objective']:.2f}, {values} (cell {elite['index']})"
+
+
+def file_tag(point, measures: list[str]) -> str:
+    """A point in the measures as a file-name part: x-0.40_v-0.10 (the MEASURES short names)."""
+    return "_".join(f"{MEASURES[name].short}{value:.2f}" for name, value in zip(measures, point))
+
+
+def elite_of_cell(archive, point: tuple[float, ...], measures: list[str], nearest: bool) -> dict:
+    """The elite of the cell holding `point`, as archive.retrieve_single finds it; for an empty
+    cell, the nearest occupied one if asked (else the error names it)."""
+    check_in_archive(archive, point, measures)
+    name = f"cell_{file_tag(point, measures)}"
+    occupied, elite = archive.retrieve_single(point)
+    if occupied:
+        return {"name": name, **elite}
+    near = nearest_occupied(archive, point)
+    empty = f"the cell of {point_text(point)} (index {archive.index_of_single(point)}) is empty"
+    if not nearest:
+        raise UsageError(f"{empty}; the nearest occupied cell holds {describe_elite(near, measures)}; "
+                         f"add --nearest to use it")
+    print(f"{empty}; using the nearest occupied cell: {describe_elite(near, measures)}")
+    return {**near, "name": f"{name}_nearest{near['index']}"}
+
+
+def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None,
+                  index: Any = None, nearest: Any = False,
+                  measures: list[str] = TUTORIAL_MEASURES) -> list[dict]:
+    """The elites a results command shows, each named for its file: the --cells points' cells,
+    the --best, the --top K by objective, the --index cells, in that order."""
+    checked = check_flags(SELECTION_FLAGS, {"best": best, "top": top, "nearest": nearest})
+    best, top, nearest, measures = checked["best"], checked["top"], checked["nearest"], list(measures)
+    if cells is None and not best and top is None and index is None:
+        raise UsageError("choose elites with --cells, --best, --top or --index")
+    rows, chosen = elite_rows(archive), []
+    if cells is not None:
+        chosen += [elite_of_cell(archive, point, measures, nearest)
+                   for point in parse_cells(cells, measures)]
+    if best:
+        chosen.append(pick(rows, 0, "best"))
+    if top is not None:
+        chosen += [pick(rows, i, f"top{i + 1:02d}")
+                   for i in range(min(top, len(rows["index"])))]
+    if index is not None:
+        where = {int(cell): i for i, cell in enumerate(rows["index"])}
+        for cell in parse_indices(index, archive):
+            if cell not in where:
+                raise UsageError(f"cell index {cell} is empty (the elites command lists the occupied ones)")
+            chosen.append(pick(rows, where[cell], f"index{cell}"))
+    for elite in chosen:
+        if not elite["name"].startswith("cell_"):
+            elite["name"] += f"_{file_tag(elite['measures'], measures)}"
+        elite["name"] += f"_obj{elite['objective']:.0f}"
+    return chosen
+
+
+class Mp4Recorder(gym.Wrapper):
+    """Streams the frame after reset and after every step into an mp4 at the env's 50 fps, with
+    imageio-ffmpeg. Not gymnasium's RecordVideo: it keeps every frame in memory, and its moviepy
+    2.2 writer drops the last frame (the landing) whenever 1/fps summed over the frames falls
+    short of their count (212 frames -> 4.2399999 s -> 211 written)."""
+
+    def __init__(self, env: gym.Env, path: Path) -> None:
+        super().__init__(env)
+        self.path, self.frames, self._writer = path, 0, None
+
+    def reset(self, **kwargs):
+        result = self.env.reset(**kwargs)
+        self._write_frame()
+        return result
+
+    def step(self, action):
+        result = self.env.step(action)
+        self._write_frame()
+        return result
+
+    def _write_frame(self) -> None:
+        import imageio_ffmpeg
+
+        frame = self.env.render()
+        if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
+            self._writer = imageio_ffmpeg.write_frames(
+                str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
+                codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8,
+                ffmpeg_log_level="quiet")  # a failure is reported once, in one line (record_video)
+            self._writer.send(None)
+        self._writer.send(np.ascontiguousarray(frame))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        super().close()
+
+
+def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[dict, list[dict], int]:
+    """The run's config, the elites the SELECTION_FLAGS among `flags` pick from its archive, and
+    the terrain to show them on: --env_seed, by default the run's first."""
+    archive, config = load_run(run_dir)
+    shown = shown_terrain(config, flags["env_seed"])
+    selection = {name: flags[name] for name in SELECTION_FLAGS}
+    return config, select_elites(archive, **selection, measures=config["measures"]), shown
+
+
+def shown_terrain(config: dict, env_seed: Any) -> int:
+    """The terrain a results command shows a run on: --env_seed, by default the run's first."""
+    if env_seed is None:
+        return config["env_seed"][0]
+    return check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
+
+
+def reflown(elite: dict, config: dict) -> tuple[float, list[float]]:
+    """The elite flown again in its run's setting (every terrain, averaged as the engine does):
+    rollouts are deterministic, so this is exactly its stored objective and measures."""
+    env, seeds = make_env(config["fast_env"]), config["env_seed"]
+    rows = [np.array([rollout(elite["solution"], seed, env, config["measures"]) for seed in seeds])]
+    objectives, measures = averaged(per_terrain(rows, seeds))
+    return float(objectives[0]), measures[0].tolist()
+
+
+def record_video(solution: np.ndarray, env_seed: int, path: Path) -> None:
+    """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
+    + 1 frames (the reset's frame first); written aside and moved into place whole."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
+            env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
+            try:
+                fly(solution, env_seed, env)
+            finally:
+                env.close()
+            os.replace(env.path, path)
+    except OSError as error:
+        # When ffmpeg fails, Python sees only a broken pipe: a full disk is the usual cause.
+        full = shutil.disk_usage(path.parent).free < 2**20 if path.parent.exists() else False
+        cause = os.strerror(errno.ENOSPC) if full else fault_text(error)
+        raise RunError(f"cannot write {path}: {cause}") from None
+
+
+@takes(SELECTION_FLAGS, TERRAIN_FLAGS)
+def video(run_dir: str, **flags: Any) -> None:
+    """Render an mp4 per chosen elite, flown on one of the run's terrains, into RUN_DIR/videos/.
+
+    Each elite is also flown again in its run's setting and must score exactly its stored
+    objective and measures (a warning says if not). videos/index.csv lists the videos with the
+    elites' objectives and measures.
+
+    Args:
+        run_dir: A run folder written by this script.
+    """
+    import pandas as pd
+
+    config, chosen, shown = load_chosen_elites(run_dir, flags)
+    folder, rows, measures = Path(str(run_dir)) / "videos", [], config["measures"]
+    for elite in chosen:
+        STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
+        path = folder / f"{elite['name']}.mp4"
+        record_video(elite["solution"], shown, path)
+        print(f"{path}: {describe_elite(elite, measures)}")
+        objective, values = reflown(elite, config)
+        reproduced = objective == elite["objective"] and values == list(elite["measures"])
+        if not reproduced:
+            print(f"warning: flown again, {path.name} scored {objective!r} with measures {values}, "
+                  f"not the stored {elite['objective']!r}, {list(elite['measures'])} "
+                  f"(other library versions?)", file=sys.stderr)
+        rows.append({"video": path.name, "env_seed": shown, "cell_index": int(elite["index"]),
+                     "objective": float(elite["objective"]),
+                     **{name: float(value) for name, value in zip(measures, elite["measures"])},
+                     "reflown_objective": objective, "reproduced": reproduced})
+    write_csv(folder / "index.csv", pd.DataFrame(rows))
+
+
+def elite_table(archive, measures: list[str], min_objective: float | None = None,
+                top: int | None = None):
+    """The archive's elites as a table (archive.data), best first, filtered and cut; the columns
+    are named after the run's measures."""
+    table = archive.data(["objective", "measures", "index"], return_type="pandas")
+    table = table.sort_values(["objective", "index"], ascending=[False, True], ignore_index=True)
+    if min_objective is not None:
+        table = table[table["objective"] >= min_objective]
+    if top is not None:
+        table = table.head(top)
+    columns = {"objective": "objective", **{f"measures_{i}": name for i, name in enumerate(measures)},
+               "index": "cell_index"}
+    return table.rename(columns=columns)[list(columns.values())].reset_index(drop=True)
+
+
+def elites(run_dir: str, min_objective: float | None = None, top: int | None = None) -> None:
+    """Print the run's elites sorted by objective, and write them to RUN_DIR/elites.csv.
+
+    Args:
+        run_dir: A run folder written by this script.
+        min_objective: Only elites scoring at least this (200: good landings).
+        top: Only the K best of those.
+    """
+    archive, config = load_run(run_dir)
+    if min_objective is not None and not is_number(min_objective):
+        raise UsageError(f"--min_objective must be a number, got {min_objective!r}")
+    table = elite_table(archive, config["measures"], min_objective,
+                        None if top is None else positive_int("top", top))
+    path = Path(str(run_dir)) / "elites.csv"
+    write_csv(path, table)
+    print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")
+          if len(table) else "no elites match")
+    print(f"{len(table)} of {len(archive)} elites; written to {path}")
+
+
+def terrain(env_seed: int) -> np.ndarray:
+    """The ground line of a terrain, (x, y) in the observation's units (as trajectories)."""
+    edges, _, _ = seeded_randoms(env_seed)
+    points = np.array([edges[0][0], *(end for _, end in edges)])
+    return np.column_stack([(points[:, 0] - HALF_W) / HALF_W, (points[:, 1] - PAD_Y) / HALF_H])
+
+
+def fly_paths(chosen: list[dict], env_seed: int) -> list[tuple[np.ndarray, int]]:
+    """Each elite's (x, y) per step, and the index of its touchdown (its last step if none)."""
+    env, paths = make_env(), []
+    for elite in chosen:
+        STOP.check()
+        path: list = []
+        flight = fly(elite["solution"], env_seed, env, path)
+        paths.append((np.array(path), (flight.touchdown_step or flight.steps) - 1))
+    return paths
+
+
+def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]], env_seed: int,
+                         path: Path) -> None:
+    """The tutorial's "many ways to land" on one page: flight paths over the terrain, coloured by
+    objective, impacts marked. Equal metres on both axes (x and y are scaled differently)."""
+    import matplotlib.pyplot as plt
+    from matplotlib import cm, colors
+
+    objectives = [float(elite["objective"]) for elite in chosen]
+    norm = colors.Normalize(min(objectives) - 1e-9, max(objectives) + 1e-9)
+    cmap = plt.get_cmap("viridis")
+    ground = terrain(env_seed)
+    fig, ax = plt.subplots(figsize=(11, 7))
+    ax.fill_between(ground[:, 0], ground[:, 1], ground[:, 1].min() - 0.2, color="0.75", zorder=0)
+    ax.plot([-0.2, 0.2], [ground[5, 1]] * 2, color="gold", lw=4, label="helipad", zorder=1)
+    for elite, (flight, step) in zip(chosen, paths):
+        colour = cmap(norm(float(elite["objective"])))
+        ax.plot(flight[:, 0], flight[:, 1], color=colour, lw=1.2, alpha=0.9,
+                label=elite["name"] if len(chosen) <= 12 else None)
+        ax.plot(*flight[step], marker="o", ms=7, mec="black", color=colour, zorder=3)
+    ax.set_aspect(HALF_H / HALF_W)
+    ax.set_xlim(-1.05, 1.05)
+    ax.set_ylim(ground[:, 1].min() - 0.2, max(1.5, max(float(f[:, 1].max()) for f, _ in paths) + 0.05))
+    ax.set_xlabel("x (observation units: -1 and 1 are the screen edges)")
+    ax.set_ylabel("y of the lander's centre (0: resting on the helipad)")
+    ax.set_title(f"Flight paths of {len(chosen)} elites on terrain {env_seed} (dots: touchdown)")
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="Objective", shrink=0.8)
+    ax.legend(fontsize=7, loc="upper left")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    plt.close(fig)
+
+
+@takes(SELECTION_FLAGS, TERRAIN_FLAGS)
+def trajectories(run_dir: str, **flags: Any) -> None:
+    """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
+
+    The elites are chosen as for the video command.
+
+    Args:
+        run_dir: A run folder written by this script.
+    """
+    config, chosen, shown = load_chosen_elites(run_dir, flags)
+    path = Path(str(run_dir)) / "trajectories.png"
+    save_trajectory_plot(chosen, fly_paths(chosen, shown), shown, path)
+    for elite in chosen:
+        print(f"{elite['name']}: {describe_elite(elite, config['measures'])}")
+    print(f"written to {path}")
+
+
+# The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
+# replaces its /*DATA*/null with the run's data (explorer_data).
+EXPLORER_PAGE = Path(__file__).with_name("explorer_page.html")
+
+# The explorer page: every elite's flight, recorded as poses and packed into the page.
+# Per step, five numbers give the drawing: the lander's x, y and angle and its two legs' angles (a
+# leg hangs from the lander's centre by its joint, so its position follows from its angle), plus
+# the action (which engine fires). They are quantised to int16, 1 mm and 0.1 mrad (angles wrapped
+# to [-pi, pi]), and sent as base64: ~11 bytes a step, ~9 MB for a full 300-iteration archive
+# (~615,000 steps). The page decodes them with atob into an Int16Array.
+POSE_SCALE = (1000.0, 1000.0, 10000.0, 10000.0, 10000.0)  # int16 units per metre or radian
+
+
+def record_poses(solutions: np.ndarray, env_seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Runs on a worker: each solution's flight as quantised poses (steps + 1, 5) and actions,
+    the reset's pose first (action 0), flown in the streamlined env as `rollout` flies it."""
+    env = _WORKER_ENVS.get(True) or _WORKER_ENVS.setdefault(True, make_env(True))
+    return [record_flight(solution, env_seed, env) for solution in solutions]
+
+
+def record_flight(solution: np.ndarray, env_seed: int, env: FastLunarLander) -> tuple[np.ndarray, np.ndarray]:
+    def pose() -> list[float]:
+        return [env.lander.position.x, env.lander.position.y, env.lander.angle,
+                env.legs[0].angle, env.legs[1].angle]
+
+    env.reset(seed=env_seed)
+    poses, actions = [pose()], [0]
+    fly(solution, env_seed, env, on_step=lambda action, obs: (poses.append(pose()), actions.append(action)))
+    values = np.array(poses)  # the first pose is reset's; fly resets again, to the same pose
+    values[:, 2:] = (values[:, 2:] + np.pi) % (2 * np.pi) - np.pi
+    quantised = np.clip(np.round(values * POSE_SCALE), -32767, 32767).astype("<i2")
+    return quantised, np.array(actions, dtype=np.uint8)
+
+
+def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: int,
+                  run_dir: Path) -> dict:
+    """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
+    import base64
+
+    import matplotlib
+
+    offsets = np.cumsum([0, *(len(actions) for _, actions in flights)])
+    grid = archive.int_to_grid_index(rows["index"])
+    robust = {}
+    if (run_dir / "robustness.csv").is_file():
+        import pandas as pd
+
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            table = pd.read_csv(run_dir / "robustness.csv")
+            robust = {int(r["cell_index"]): (float(r["mean_objective"]), float(r["landed_share"]))
+                      for r in table.to_dict("records")}
+    elites = [{"index": int(index), "gx": int(cell[0]), "gy": int(cell[1]) if len(cell) > 1 else 0,
+               "objective": float(objective), "measures": [float(m) for m in measures],
+               "offset": int(offset), "steps": int(len(actions) - 1),
+               **({"robust": robust[int(index)]} if int(index) in robust else {})}
+              for index, cell, objective, measures, offset, (_, actions)
+              in zip(rows["index"], grid, rows["objective"], rows["measures"], offsets, flights)]
+    edges, _, _ = seeded_randoms(env_seed)
+    magma = matplotlib.colormaps["magma"]
+    metrics = read_run_json(run_dir, "metrics.json")
+    return {
+        "run": str(run_dir), "algorithm": config["algorithm"], "env_seed": env_seed,
+        "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
+                      "range": [float(lo), float(hi)]}
+                     for name, lo, hi in zip(config["measures"], archive.lower_bounds, archive.upper_bounds)],
+        "dims": [int(d) for d in archive.dims], "heat_range": list(HEATMAP_RANGE),
+        "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
+        "elites": elites, "pose_scale": list(POSE_SCALE),
+        "poses": base64.b64encode(np.concatenate([p for p, _ in flights]).tobytes()).decode(),
+        "actions": base64.b64encode(np.concatenate([a for _, a in flights]).tobytes()).decode(),
+        "world": {"width": WIDTH, "height": HEIGHT, "scale": SCALE, "helipad_y": HELIPAD_Y,
+                  "helipad_x": [edges[3][1][0], edges[5][1][0]],
+                  "ground": [edges[0][0], *(end for _, end in edges)],
+                  "lander": [[x / SCALE, y / SCALE] for x, y in upstream.LANDER_POLY],
+                  "leg": [upstream.LEG_AWAY / SCALE, upstream.LEG_DOWN / SCALE, upstream.LEG_W / SCALE,
+                          upstream.LEG_H / SCALE], "fps": FPS},
+        "metrics": [{k: row.get(k) for k in ("iteration", "evaluations", "qd_score", "coverage",
+                                             "best_objective")} for row in metrics],
+        "robustness": bool(robust),
+    }
+
+
+@takes(CLUSTER_FLAGS, TERRAIN_FLAGS)
+def explore(run_dir: str, **flags: Any) -> None:
+    """Write RUN_DIR/explorer.html: one self-contained page to browse the archive and watch any
+    landing. It opens offline in any current browser (no server, nothing fetched): the heatmap
+    (hover a cell for its numbers, click it to watch its elite land), a sortable table of the best
+    elites, and the run's progress curves. Every elite is flown again on the cluster to record its
+    poses, so the page plays exactly the flight that `video` renders.
+
+    Args:
+        run_dir: A run folder written by this script.
+    """
+    env_seed, workers, scheduler_address = flags["env_seed"], flags["workers"], flags["scheduler_address"]
+    archive, config = load_run(run_dir)
+    shown = shown_terrain(config, env_seed)
+    workers, run = positive_int("workers", workers), Path(str(run_dir))
+    check_writable(run)
+    rows = elite_rows(archive)
+    with dask_client(workers, scheduler_address, console_log()) as client:
+        chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
+        futures = [client.submit(record_poses, chunk, shown, pure=False, retries=3)
+                   for chunk in chunks]
+        flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
+    data = explorer_data(archive, config, rows, flights, shown, run)
+    page = EXPLORER_PAGE.read_text().replace("/*DATA*/null", json.dumps(data, separators=(",", ":")))
+    atomic_write(run / "explorer.html", lambda f: f.write(page), mode="w")
+    size = (run / "explorer.html").stat().st_size
+    print(f"{len(rows['index'])} elites, {sum(len(a) for _, a in flights):,} poses: wrote "
+          f"{run / 'explorer.html'} ({size / 1e6:.1f} MB); open it in a browser")
+
+
+def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
+                     objectives: np.ndarray):
+    """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
+    elites that generalise best first."""
+    import pandas as pd
+
+    table = pd.DataFrame({"cell_index": rows["index"], "objective": rows["objective"],
+                          **{name: rows["measures"][:, i] for i, name in enumerate(measures)},
+                          "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
+                          "std_objective": objectives.std(axis=1),
+                          "landed_share": (objectives >= LANDED).mean(axis=1)})
+    table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
+                      axis=1)
+    return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
+
+
+@takes(CLUSTER_FLAGS)
+def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None = None,
+                        **flags: Any) -> None:
+    """Fly the run's elites on other terrains (on Dask) to see which landing styles generalise.
+
+    Writes RUN_DIR/robustness.csv (per elite: its objective in the run, i.e. its mean over the
+    run's terrains; mean, min and standard deviation of its objective over the new terrains, share
+    of landings >= 200, and each terrain's objective) and RUN_DIR/robustness_heatmap.png (the
+    archive coloured by the mean objective on the new terrains).
+
+    Args:
+        run_dir: A run folder written by this script.
+        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10.
+        top: Only the K elites with the highest objectives (default: all).
+    """
+    from ribs.archives import GridArchive
+
+    archive, config = load_run(run_dir)
+    seeds, workers = seed_list("env_seeds", env_seeds), positive_int("workers", flags["workers"])
+    rows = elite_rows(archive)
+    if top is not None:
+        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
+    if seen := sorted(set(seeds) & set(config["env_seed"])):
+        print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
+    with dask_client(workers, flags["scheduler_address"], console_log()) as client:
+        futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"])
+        objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
+    run = Path(str(run_dir))
+    table = robustness_table(rows, config["measures"], seeds, objectives)
+    write_csv(run / "robustness.csv", table)
+    means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
+                        ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+    means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
+    save_heatmap(means, config["measures"], run / "robustness_heatmap.png",
+                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
+    landed = table["landed_share"]
+    print(f"{len(table)} elites on {len(seeds)} terrains: "
+          f"mean objective {table['mean_objective'].mean():.1f}; "
+          f"{(landed == 1).sum()} land (>= {LANDED:g}) on every terrain, {(landed >= 0.5).sum()} on at "
+          f"least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
+    print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")

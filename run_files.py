@@ -1,0 +1,227 @@
+"""The files of run and experiment folders: written whole or not at all, read back with one line
+of error, and guarded so that one process at a time writes a folder.
+
+Map:
+- `RunError`: a fault of the machine (a full disk), not of the input: exit code 1;
+- folders: `folder_lock` (flock: a kill -9 leaves no stale lock), `new_folder` (never writes
+  over a folder that holds anything), `check_writable`;
+- writing: `atomic_write` (a temporary file, then os.replace), `write_json`, `write_pickle`,
+  `write_csv`;
+- reading: `read_run_json`, `read_pickle` (a UsageError that names the file and the fault);
+- `fault_text`: any fault as one line; logs: `make_logger` (console and run.log), `console_log`;
+- `library_versions`: what config.json records of the libraries a run ran with.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import json
+import logging
+import os
+import pickle
+import platform
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from flags import UsageError
+
+
+class RunError(Exception):
+    """A fault of the machine, not of the input (a full disk, a lost cluster): one line on stderr,
+    exit code 1, and nothing already written is lost."""
+
+
+LOCK_FILE = ".lock"  # in every folder being written; holds the writer's pid
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Be the only writer of `folder` while the block runs, or refuse with the holder's pid.
+
+    An OS lock (flock) on folder/.lock: the kernel drops it when its process ends, however it ends,
+    so a kill -9 never leaves a stale lock. Readers (elites, compare) take no lock.
+    """
+    import fcntl
+
+    try:
+        fd = os.open(folder / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as error:
+        raise UsageError(f"cannot write the folder {folder}: {error.strerror or error}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise UsageError(f"{folder} is being written by another lunar_lander.py process "
+                             f"(pid {holder}); wait for it to end, or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def holds_files(folder: Path) -> bool:
+    """Whether `folder` exists with anything in it but a lock file (or is not a folder)."""
+    return folder.exists() and (not folder.is_dir() or any(
+        path.name != LOCK_FILE for path in folder.iterdir()))
+
+
+@contextlib.contextmanager
+def new_folder(outdir: str | None, name: str) -> Iterator[Path]:
+    """A new, empty run (or experiment) folder, locked for this process: an existing one is never
+    written over, not even by a second command started into the same --outdir at the same moment.
+    By default outputs/<timestamp>_<name>."""
+    if outdir is None:
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        run_dir = Path("outputs") / f"{stamp}_{name}"
+        run_dir = next(p for p in [run_dir, *(Path(f"{run_dir}_{i}") for i in range(2, 1000))]
+                       if not p.exists())
+    else:
+        run_dir = Path(outdir)
+    taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
+                       f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    if holds_files(run_dir):
+        raise taken
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot write the run folder {run_dir}: {error.strerror or error}") from None
+    with folder_lock(run_dir):
+        if holds_files(run_dir):  # another process filled it between the check and the lock
+            raise taken
+        yield run_dir
+
+
+UMASK = os.umask(0o022)
+os.umask(UMASK)
+
+
+def check_writable(folder: Path) -> None:
+    """Refuse, before any work, a folder where nothing can be written (a read-only disk)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as error:
+        raise UsageError(f"cannot write in {folder}: {error.strerror or error}") from None
+
+
+def atomic_write(path: Path, write: Callable[[Any], None], mode: str = "wb") -> None:
+    """Write `path` via a temporary file and os.replace, so a crash never leaves half a file.
+
+    A failed write (a full disk, say) leaves the previous file whole and raises a RunError that
+    names `path`, not the temporary file the error happened in.
+    """
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.chmod(tmp, 0o666 & ~UMASK)  # mkstemp makes files private; outputs are ordinary files
+        with os.fdopen(fd, mode) as file:
+            write(file)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException as error:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(error, OSError):
+            raise RunError(f"cannot write {path}: {error.strerror or error}") from None
+        raise
+
+
+def write_json(path: Path, data: Any) -> None:
+    atomic_write(path, lambda f: json.dump(data, f, indent=2), mode="w")
+
+
+def write_pickle(path: Path, obj: Any) -> None:
+    atomic_write(path, lambda f: pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def read_run_json(run_dir: Path, name: str) -> Any:
+    """A JSON file of a run folder, or a UsageError naming what is missing or wrong."""
+    path = run_dir / name
+    if not run_dir.is_dir():
+        raise UsageError(f"{run_dir}: no such run folder")
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (is {run_dir} a run folder of lunar_lander.py?)")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise UsageError(f"{path}: not readable JSON ({error})") from None
+
+
+def read_pickle(path: Path, what: str) -> Any:
+    """Unpickle a file of ours, or raise a UsageError that names the file and what is wrong.
+
+    Pickles can run code when loaded: only load files you trust (archive.csv is for sharing).
+    """
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (expected {what})")
+    try:
+        with open(path, "rb") as file:
+            return pickle.load(file)
+    except Exception as error:  # truncated, corrupt, or not a pickle at all
+        raise UsageError(f"{path}: not a readable {what} ({type(error).__name__}: {error})") from None
+
+
+def write_csv(path: Path, table) -> None:
+    """A pandas table as CSV (pandas 3 writes floats that read back bit for bit)."""
+    atomic_write(path, lambda f: table.to_csv(f, index=False), mode="w")
+
+
+def fault_text(error: BaseException) -> str:
+    """An OSError (or our RunError) as one line: the file and the cause, without a traceback."""
+    if isinstance(error, OSError) and error.filename:
+        return f"{error.filename}: {error.strerror or error}"
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+class QuietFileHandler(logging.FileHandler):
+    """run.log is a copy of the console: a failed write (a full disk) must not print a traceback;
+    the fault is reported once, by the write that matters."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        pass
+
+
+def make_logger(path: Path, name: str = "lunar_lander", console: bool = True) -> logging.Logger:
+    """Messages go to the console (if asked) and, appended, to the file `path`."""
+    log = logging.getLogger(name)
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    close_logger(log)
+    logfile = QuietFileHandler(path, encoding="utf-8", delay=True)
+    logfile.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+    log.addHandler(logfile)
+    if console:
+        log.addHandler(logging.StreamHandler(sys.stdout))
+    return log
+
+
+def close_logger(log: logging.Logger) -> None:
+    for handler in list(log.handlers):
+        log.removeHandler(handler)
+        handler.close()
+
+
+
+def console_log() -> logging.Logger:
+    """Messages of commands that only read a run: printed, not appended to its run.log."""
+    log = logging.getLogger("lunar_lander.results")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    log.handlers = [logging.StreamHandler(sys.stdout)]  # today's stdout, not the first call's
+    return log
+
+
+def library_versions() -> dict[str, str]:
+    from importlib.metadata import version
+
+    packages = ["ribs", "gymnasium", "box2d", "dask", "distributed", "numpy"]
+    return {"python": platform.python_version(), **{name: version(name) for name in packages}}
