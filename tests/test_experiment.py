@@ -25,6 +25,8 @@ from util import (
     wait_for,
 )
 
+pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
+
 TINY = dict(iterations=4, n_emitters=2, batch_size=6, log_every=4)  # each run saved at its end
 
 
@@ -89,8 +91,13 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
     assert f"resume {folder}" in out and "Traceback" not in err
     states = {run["state"] for run in plan_of(folder)["runs"]}
     assert states <= {"stopped", "done"} and "stopped" in states
+    held = {run["name"]: checkpoint_iteration(folder / run["name"]) for run in plan_of(folder)["runs"]}
+    assert all(2 <= iteration <= 8 for iteration in held.values())
 
     ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+
+    # The resumed drive flew only what the checkpoints lacked: no run started again from 0.
+    assert plan_of(folder)["timing"]["iterations"] == sum(8 - iteration for iteration in held.values())
 
     whole = tmp_path / "whole"
     experiments.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
@@ -100,6 +107,27 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
         assert run["state"] == "done"
         assert run_archive(folder / run["name"]).equals(run_archive(whole / run["name"]))
         assert run_metrics(folder / run["name"]) == run_metrics(whole / run["name"])
+
+
+def test_resume_of_an_experiment_being_driven_is_refused(tmp_path, dask_cluster, capsys):
+    folder = tmp_path / "exp"
+    process = launch("experiment", algorithms="cma_me", seeds="1", iterations=200, n_emitters=2,
+                     batch_size=6, log_every=2, outdir=folder,
+                     scheduler_address=dask_cluster.scheduler_address)
+    try:
+        wait_for(lambda: (folder / "experiment.json").exists() and all(
+            checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+            process, "a run past iteration 2")
+
+        code = ll.main(["resume", str(folder), "--scheduler_address", dask_cluster.scheduler_address])
+
+        assert_one_line_error(Result(code, "", capsys.readouterr().err), str(folder),
+                              f"is being written by another lunar_lander.py process (pid {process.pid})")
+        assert "resumed" not in plan_of(folder)  # experiment.json is the driver's alone
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=60)
+    assert process.returncode == 130
 
 
 def test_a_failing_run_is_recorded_and_the_others_go_on(tmp_path, dask_cluster, experiment_dir, capsys):

@@ -43,7 +43,8 @@ def empty_point_next_to_an_elite(archive):
     width = archive.interval_size / np.array(archive.dims)
     for x, v in archive.data("measures"):
         point = (x + width[0], v)
-        if point[0] < archive.upper_bounds[0] and not archive.retrieve_single(point)[0]:
+        inside = np.all((archive.lower_bounds <= point) & (point < archive.upper_bounds))
+        if inside and not archive.retrieve_single(point)[0]:
             return point
     raise AssertionError("every elite has a right neighbour")
 
@@ -224,10 +225,10 @@ def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fr
 
 
 def test_commands_and_their_flags_are_registered(tmp_path):
-    assert {"video", "elites", "trajectories", "evaluate"} <= set(ll.COMMANDS)
-    assert ll.COMMANDS["evaluate"] is results.evaluate_robustness
+    assert {"video", "elites", "trajectories", "evaluate", "explore"} <= set(ll.COMMANDS)
+    assert ll.command("evaluate") is results.evaluate_robustness
     with pytest.raises(UsageError, match="--cell;"):
-        ll.reject_unknown_flags(ll.COMMANDS["video"], ["--cell", "[(0, 0)]"])
+        ll.reject_unknown_flags(ll.command("video"), ["--cell", "[(0, 0)]"])
     (tmp_path / "run").mkdir()
     with pytest.raises(UsageError, match="archive.pkl: no such file"):
         results.load_run(tmp_path / "run")

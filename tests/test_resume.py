@@ -24,6 +24,8 @@ from util import (
     wait_for,
 )
 
+pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
+
 TUTORIAL_RANGES = [ll.MEASURES[name].range for name in ll.TUTORIAL_MEASURES]
 ITERATIONS = REFERENCE_ITERATIONS  # long enough for a process to be stopped part-way
 

@@ -27,6 +27,8 @@ from util import (
     wait_for,
 )
 
+pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
+
 # The reference run's flags, saved after every iteration: a fault finds a write in progress.
 FLAGS = tiny_flags(iterations=REFERENCE_ITERATIONS, log_every=1)
 

@@ -9,6 +9,8 @@ import pytest
 
 from util import run_archive, run_metrics, tiny_flags
 
+pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
+
 
 @pytest.fixture
 def external_cluster(tmp_path):
