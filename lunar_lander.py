@@ -1213,6 +1213,8 @@ def main(argv: list[str]) -> int:
             raise UsageError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
         function = command(name)
         reject_unknown_flags(function, args)
+        if "--help" in args and "--" not in args:  # else a command taking **flags reads it as one
+            args = [arg for arg in args if arg != "--help"] + ["--", "--help"]
         fire.Fire(function, command=args, name="lunar_lander.py" if name == "search" else name)
     except UsageError as error:
         print(f"error: {error}", file=sys.stderr)

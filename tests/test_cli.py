@@ -45,3 +45,41 @@ def test_unwritable_run_folder(run_cli, tmp_path):
     blocker.write_text("not a folder")
     assert_one_line_error(run_cli("--iterations", 1, "--outdir", blocker / "run"), "cannot write")
     assert blocker.read_text() == "not a folder"
+
+
+def test_the_readmes_flag_table_says_what_the_flag_table_declares():
+    """The README's main flags come from SEARCH_FLAGS: the same defaults, and only real flags."""
+    import re
+
+    from conftest import ROOT
+
+    rows = re.findall(r"^\| `--(\w+)` \| ([^|]+) \|", (ROOT / "README.md").read_text(), re.MULTILINE)
+    assert len(rows) >= 10
+    shown = {None: ["none", "drawn"], ("impact_x", "impact_y_velocity"): ["`impact_x,impact_y_velocity`"],
+             "cma_me": ["`cma_me`"]}
+    for name, default in rows:
+        assert name in ll.SEARCH_FLAGS, name
+        flag = ll.SEARCH_FLAGS[name]
+        expected = shown.get(flag.default, [str(flag.default)]) if name != "outdir" else [
+            "`outputs/<timestamp>_seed<seed>`"]
+        assert default.strip() in expected, (name, default)
+
+
+def test_every_command_documents_its_flags_from_the_tables(run_cli):
+    for name in ll.COMMANDS:
+        function = ll.command(name)
+        result = run_cli(*([] if name == "search" else [name]), "--help")
+        assert result.returncode == 0, name
+        parameters = inspect.signature(function).parameters
+        for flag in ll.known_flags(function):
+            if flag in parameters and parameters[flag].default is inspect.Parameter.empty:
+                continue  # a positional argument (RUN_DIR)
+            if flag not in parameters:
+                continue  # experiment passes search's flags on: its help lists them in one line
+            assert f"--{flag}" in result.stdout + result.stderr, (name, flag)
+        shown = " ".join((result.stdout + result.stderr).split())
+        own = inspect.signature(getattr(function, "__wrapped__", function)).parameters
+        tables = (ll.SEARCH_FLAGS, ll.CLUSTER_FLAGS, ll.RESUME_FLAGS, ll.SELECTION_FLAGS, ll.TERRAIN_FLAGS)
+        for flag in (flag for flag in parameters if flag not in own):  # taken from a table
+            helps = [" ".join(table[flag].help.split()[:6]) for table in tables if flag in table]
+            assert any(help in shown for help in helps), (name, flag)

@@ -1,0 +1,49 @@
+#!/usr/bin/env python
+"""Do the MEASURES ranges hold what real policies reach? The figures of docs/terrains.md.
+
+    python docs/measure_ranges.py outputs/seed42 --random 1000        # values outside each range
+    python docs/measure_ranges.py outputs/ranges_fuel outputs/ranges_vx_angle   # edge cells
+
+For the policies given (the elites of each run folder's archive, plus --random policies with
+weights drawn from N(0, 1), seeded), each flown on terrain 52: the share of each measure's values
+that fall outside its range, among all of them and among those scoring over 100. For each run
+folder: the share of its elites on the two edge cells of each of its axes (a uniform spread over
+a 50-cell axis puts 4% there).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import fire
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import lunar_lander as ll  # noqa: E402
+from results import load_run  # noqa: E402
+
+
+def main(*run_dirs: str, random: int = 0, env_seed: int = 52) -> None:
+    archives = [load_run(run_dir) for run_dir in run_dirs]
+    for run_dir, (archive, config) in zip(run_dirs, archives):
+        cells = archive.int_to_grid_index(archive.data("index"))
+        edges = ", ".join(f"{name} {np.isin(cells[:, i], (0, archive.dims[i] - 1)).mean():.1%}"
+                          for i, name in enumerate(config["measures"]))
+        print(f"{run_dir}: {len(archive)} elites; on an axis's two edge cells: {edges}")
+    solutions = [archive.data("solution") for archive, _ in archives]
+    solutions.append(np.random.default_rng(0).normal(size=(random, ll.SOLUTION_DIM)))
+    solutions = np.concatenate(solutions)
+    env, names = ll.make_env(), tuple(ll.MEASURES)
+    flown = np.array([ll.rollout(solution, env_seed, env, names) for solution in solutions])
+    good = flown[:, 0] > 100
+    print(f"{len(flown)} policies on terrain {env_seed} ({good.sum()} scoring over 100): "
+          f"share outside each range, all / over 100")
+    for i, name in enumerate(names):
+        low, high = ll.MEASURES[name].range
+        outside = (flown[:, 1 + i] < low) | (flown[:, 1 + i] > high)
+        print(f"  {name:18s} [{low:g}, {high:g}]: {outside.mean():.1%} / {outside[good].mean():.1%}")
+
+
+if __name__ == "__main__":
+    fire.Fire(main)
