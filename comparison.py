@@ -26,8 +26,8 @@ import numpy as np
 
 from experiments import read_experiment, run_setting
 from flags import UsageError, boolean
-from lunar_lander import LANDED, QD_SCORE_OFFSET, save_metric_panels
-from run_files import atomic_write, read_pickle, read_run_json, write_csv
+from lunar_lander import LANDED, QD_SCORE_OFFSET, load_metrics, load_run_config, save_metric_panels
+from run_files import atomic_write, check_parent_folder, read_pickle, write_csv
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
 SOLVED_CELLS = f"cells_{LANDED:.0f}+"  # the table's column of cells holding a good landing
@@ -46,14 +46,10 @@ def solved_cells(run_dir: Path) -> int | None:
 
 
 def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
-    """A run's config and its metrics rows (at least one, each with every compared field)."""
-    config, metrics = read_run_json(run_dir, "config.json"), read_run_json(run_dir, "metrics.json")
-    if not isinstance(config, dict):
-        raise UsageError(f"{run_dir / 'config.json'}: not a run config")
-    if not (isinstance(metrics, list) and metrics
-            and all(isinstance(row, dict) and set(COMPARED) <= row.keys() for row in metrics)):
-        raise UsageError(f"{run_dir / 'metrics.json'}: no metrics to compare")
-    return config, metrics
+    """A run's config and its metrics rows (at least one, each field of its type), both checked
+    as every command checks them."""
+    metrics = load_metrics(run_dir)
+    return load_run_config(run_dir), metrics
 
 
 def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
@@ -77,6 +73,7 @@ def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
         files = next(named(p) for p in candidates if not any(f.exists() for f in named(p).values()))
     else:
         files = named(Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png"))
+    check_parent_folder(files["png"])
     existing = [str(p) for p in files.values() if p.exists()]
     if existing and not overwrite:
         raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
@@ -253,15 +250,21 @@ def holm_floor(tests) -> float:
 
 
 def expand_folders(paths: list[Path]) -> list[Path]:
-    """Run folders, each experiment folder replaced by its runs that have metrics."""
-    expanded = []
+    """Run folders, each experiment folder replaced by its runs that have metrics; a run given
+    twice (a folder named twice, or a run and its experiment) is counted once, and a note says so."""
+    expanded: dict[Path, Path] = {}
     for path in paths:
         if (path / "experiment.json").is_file():
             runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]
-            expanded += [run for run in runs if (run / "metrics.json").is_file()]
+            runs = [run for run in runs if (run / "metrics.json").is_file()]
         else:
-            expanded.append(path)
-    return expanded
+            runs = [path]
+        for run in runs:
+            if (key := run.resolve()) in expanded:
+                print(f"note: {run} is given twice (the same run as {expanded[key]}); counted once")
+            else:
+                expanded[key] = run
+    return list(expanded.values())
 
 
 def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from flags import UsageError, check_flags, one_of, positive_int, seed_list, takes
+from flags import UsageError, check_flags, one_of, positive_int, seed_list, shown, takes
 from lunar_lander import (
     ALGORITHMS,
     CLUSTER_FLAGS,
@@ -300,10 +300,13 @@ class Experiment:
         self.log.info(f"Done: {len(runs) - len(failed)} of {len(runs)} runs finished in {self.folder} "
                       f"({wall:.1f} s, main process {cpu / max(wall, 1e-9):.0%} of a core)")
         if failed:
-            raise RunsFailed(f"{len(failed)} of {len(runs)} runs failed ({', '.join(failed)}): their "
-                           f"causes are in {self.folder / 'experiment.json'}; the others finished. "
-                           f"Mend the cause and retry them with: python lunar_lander.py resume "
-                           f"{self.folder}")
+            which = (f"{len(failed)} of {len(runs)} runs failed ({', '.join(failed)})"
+                     if len(failed) < len(runs) else
+                     "its only run failed" if len(runs) == 1 else f"all {len(runs)} runs failed")
+            others = "" if len(failed) == len(runs) else "; the others finished"
+            raise RunsFailed(f"{which}: their causes are in {self.folder / 'experiment.json'}{others}. "
+                             f"Mend the cause and retry them with: python lunar_lander.py resume "
+                             f"{self.folder}")
 
     def start_more(self) -> None:
         """Open waiting runs until `limit` are in flight."""
@@ -445,20 +448,52 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
     with folder_lock(folder):
         plan = read_experiment(folder)
         workers = positive_int("workers", plan["workers"] if workers is None else workers)
+        planned = max(entry["config"]["iterations"] for entry in plan["runs"])
         if iterations is not None:
             iterations = positive_int("iterations", iterations)
+            if iterations < planned:
+                raise UsageError(f"the runs of {folder} go to iteration {planned}; --iterations must "
+                                 f"be at least that")
             for entry in plan["runs"]:
                 if iterations > entry["config"]["iterations"]:
                     entry["config"]["iterations"] = iterations
                     entry["state"] = "pending"
+        if all(entry["state"] == "done" for entry in plan["runs"]):
+            print(f"nothing to do: all {len(plan['runs'])} runs of {folder} are done (iteration "
+                  f"{planned}); --iterations N extends them")
+            return
         plan["resumed"] = [*plan.get("resumed", []), {"at": datetime.datetime.now().isoformat(),
                                                       "iterations": iterations, "workers": workers}]
         write_json(folder / "experiment.json", plan)
         run_experiment(folder, plan, workers, scheduler_address)
 
 
+RUN_STATES = ("pending", "running", "done", "stopped", "failed")
+
+
 def read_experiment(folder: Path) -> dict:
+    """experiment.json, checked: every run has a plain folder name (no path: a run folder is
+    always inside its experiment), a known state, and a config with a seed and iterations."""
     plan = read_run_json(folder, "experiment.json")
-    if not (isinstance(plan, dict) and plan.get("format") == EXPERIMENT_FORMAT and plan.get("runs")):
-        raise UsageError(f"{folder / 'experiment.json'}: not an experiment of lunar_lander.py")
+    path = folder / "experiment.json"
+    if not (isinstance(plan, dict) and plan.get("format") == EXPERIMENT_FORMAT
+            and isinstance(plan.get("runs"), list) and plan["runs"]):
+        raise UsageError(f"{path}: not an experiment of lunar_lander.py")
+    for i, entry in enumerate(plan["runs"]):
+        config = entry.get("config") if isinstance(entry, dict) else None
+        fits = (isinstance(config, dict) and isinstance(entry.get("name"), str)
+                and re.fullmatch(r"[A-Za-z0-9._-]+", entry["name"]) and entry["name"].strip(".")
+                and entry.get("state") in RUN_STATES and isinstance(entry.get("setting"), str))
+        try:
+            if fits:
+                positive_int("iterations", config.get("iterations"))
+                check_flags(SEARCH_FLAGS, {"seed": config.get("seed")})
+        except UsageError as error:
+            fits, why = False, f": {error}"
+        else:
+            why = ""
+        if not fits:
+            raise UsageError(f"{path}: run {i} is not a run of this experiment's plan{why}")
+    if isinstance(plan.get("workers"), bool) or not isinstance(plan.get("workers"), int):
+        raise UsageError(f"{path}: workers is {shown(plan.get('workers'))}, not a number of workers")
     return plan

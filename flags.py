@@ -8,8 +8,9 @@ and a direct call all see one declaration.
 
 Map:
 - `UsageError`: bad input, reported as one line and exit code 2;
-- the checkers, each `(flag name, value) -> checked value`: `positive_int`, `non_negative_int`,
-  `positive_float`, `fraction`, `boolean`, `one_of`, `seed_list`, `distinct_names`;
+- the checkers, each `(flag name, value) -> checked value`: `positive_int`, `seed_number`,
+  `positive_float`, `fraction`, `boolean`, `one_of`, `seed_list`, `distinct_names`; `shown`
+  quotes a bad value, `one_line` keeps a message on one line;
 - `Flag`, `check_flags` (values through their entries' checks) and `takes` (the decorator).
 """
 
@@ -18,8 +19,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
+import math
 import re
 import textwrap
+import unicodedata
 from typing import Any, Callable
 
 import numpy as np
@@ -34,25 +37,30 @@ Check = Callable[[str, Any], Any]
 
 def positive_int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise UsageError(f"--{name} must be a positive whole number, got {value!r}")
+        raise UsageError(f"--{name} must be a positive whole number, got {shown(value)}")
     return value
 
 
-def non_negative_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise UsageError(f"--{name} must be a whole number >= 0, got {value!r}")
+MAX_SEED = 2**32 - 1  # what numpy's and Box2D's seeding take
+MAX_SEEDS = 10_000  # seeds in one list or range (terrains to fly every policy on, runs per setting)
+
+
+def seed_number(name: str, value: Any) -> int:
+    """One seed: a whole number from 0 to MAX_SEED."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
+        raise UsageError(f"--{name} must be a whole number from 0 to {MAX_SEED}, got {shown(value)}")
     return value
 
 
 def positive_float(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise UsageError(f"--{name} must be a positive number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise UsageError(f"--{name} must be a positive number, got {shown(value)}")
     return float(value)
 
 
 def fraction(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
-        raise UsageError(f"--{name} must be a number in (0, 1], got {value!r}")
+        raise UsageError(f"--{name} must be a number in (0, 1], got {shown(value)}")
     return float(value)
 
 
@@ -63,29 +71,49 @@ def boolean(name: str, value: Any) -> bool:
         return bool(value)
     if str(value).lower() in words:
         return words[str(value).lower()]
-    raise UsageError(f"--{name} must be true or false, got {value!r}")
+    raise UsageError(f"--{name} must be true or false, got {shown(value)}")
 
 
 def one_of(choices: dict) -> Check:
     """A check that the value is a key of `choices` (a table such as ALGORITHMS)."""
     def check(name: str, value: Any) -> str:
-        if value not in choices:
-            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {value!r}")
+        if not isinstance(value, str) or value not in choices:
+            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {shown(value)}")
         return value
     return check
 
 
 def seed_list(name: str, value: Any) -> list[int]:
-    """Seeds as a range 0-19, a list 3,5,8 or both (0-4,10); Fire may have made a number or a
-    tuple of it already."""
+    """Seeds as a range 0-19, a list 3,5,8 or both (0-4,10), each from 0 to MAX_SEED and at most
+    MAX_SEEDS in all (counted before any list is built); Fire may have made a number or a tuple
+    of it already."""
     parts = [str(part) for part in value] if isinstance(value, (tuple, list)) else str(value).split(",")
-    seeds: list[int] = []
+    bounds = []
     for part in parts:
-        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
-        if isinstance(value, bool) or not match or (match[2] and int(match[2]) < int(match[1])):
-            raise UsageError(f"--{name} takes seeds >= 0 such as 52, 0-19, 3,5,8 or 0-4,10; got {value!r}")
-        seeds += range(int(match[1]), int(match[2] or match[1]) + 1)
-    return list(dict.fromkeys(seeds))
+        match = re.fullmatch(r"\s*(\d{1,20})\s*(?:-\s*(\d{1,20})\s*)?", part)
+        first, last = (int(match[1]), int(match[2] or match[1])) if match else (0, -1)
+        if isinstance(value, bool) or not match or last < first or last > MAX_SEED:
+            raise UsageError(f"--{name} takes seeds from 0 to {MAX_SEED} such as 52, 0-19, 3,5,8 or "
+                             f"0-4,10; got {shown(value)}")
+        bounds.append((first, last))
+    if not bounds:
+        raise UsageError(f"--{name} takes at least one seed, such as 52, 0-19 or 3,5,8; got {shown(value)}")
+    if (count := sum(last - first + 1 for first, last in bounds)) > MAX_SEEDS:
+        raise UsageError(f"--{name} lists {count:,} seeds; at most {MAX_SEEDS:,}")
+    return list(dict.fromkeys(seed for first, last in bounds for seed in range(first, last + 1)))
+
+
+def one_line(text: str) -> str:
+    """A message as one line: line breaks and other control characters (a hostile folder name
+    may hold them) written as their escapes."""
+    return "".join(char.encode("unicode_escape").decode() if unicodedata.category(char) in
+                   ("Cc", "Zl", "Zp") else char for char in text)
+
+
+def shown(value: Any, limit: int = 80) -> str:
+    """A value as an error message quotes it: its repr, cut to `limit` characters, on one line."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def distinct_names(table: dict, noun: str, most: int) -> Check:
@@ -96,7 +124,7 @@ def distinct_names(table: dict, noun: str, most: int) -> Check:
         unknown = [n for n in names if n not in table]
         if unknown or not 1 <= len(names) <= most or len(set(names)) != len(names):
             raise UsageError(f"--{name} takes 1 to {most} different {noun} of {', '.join(table)}; "
-                             f"got {value!r}")
+                             f"got {shown(value)}")
         return names
     return check
 
@@ -114,6 +142,7 @@ class Flag:
     label: int = 0  # >0: a value other than the default names a run's setting, at this place
     only_for: tuple[str, ...] = ()  # the algorithms that use it (empty: every one)
     before: Any = None  # what runs recorded before the flag existed ran with (None: the default)
+    text: bool = False  # the command line hands its check the text as typed (not Fire's literal)
 
 
 def check_flags(table: dict[str, Flag], values: dict[str, Any]) -> dict[str, Any]:
@@ -149,10 +178,30 @@ def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
             return function(**arguments, **extra)
 
         command.__signature__ = signature
+        command.flag_table = {name: flags[name] for name in flags if name not in own.parameters}
         command.__doc__ = with_flag_help(function.__doc__ or "", {n: flags[n] for n in flags
                                                                   if n not in own.parameters})
         return command
     return decorate
+
+
+def as_typed(args: list[str], text_flags: set[str]) -> list[str]:
+    """The command line with the values of `text_flags` quoted, so that Fire hands them over as
+    typed: Fire reads a value as a Python literal, and "fuel," would become the tuple ("fuel",),
+    its stray comma lost before the check could see it."""
+    typed, args = [], list(args)
+    while args:
+        arg = args.pop(0)
+        name, is_value_inline, value = arg[2:].partition("=") if arg.startswith("--") else ("", "", "")
+        if name.replace("-", "_") not in text_flags:
+            typed.append(arg)
+        elif is_value_inline:
+            typed.append(f"--{name}={value!r}")
+        elif args and not args[0].startswith("--"):
+            typed += [arg, repr(args.pop(0))]
+        else:  # a flag with no value (Fire reads it as True): the check refuses it
+            typed.append(arg)
+    return typed
 
 
 def with_flag_help(doc: str, flags: dict[str, Flag]) -> str:

@@ -78,15 +78,18 @@ from fast_env import FastLunarLander
 from flags import (
     Flag,
     UsageError,
+    as_typed,
     boolean,
     check_flags,
     distinct_names,
     fraction,
-    non_negative_int,
+    one_line,
     one_of,
     positive_float,
     positive_int,
     seed_list,
+    seed_number,
+    shown,
     takes,
 )
 from run_files import (
@@ -599,6 +602,14 @@ STOP = StopRequests()
 CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
 
 
+# A row of metrics.json: each field and what it holds (None: no elite yet).
+METRIC_FIELDS: dict[str, tuple[type, ...]] = {
+    "iteration": (int,), "evaluations": (int,), "coverage": (float,), "num_elites": (int,),
+    "qd_score": (float,), "best_objective": (float, type(None)),
+    "mean_objective": (float, type(None)), "elapsed_s": (float,),
+}
+
+
 def iteration_metrics(archive, iteration: int, evaluations: int, elapsed: float) -> dict:
     """One row of metrics.json: the archive's state after `iteration` iterations."""
     stats = archive.stats
@@ -780,19 +791,76 @@ def describe_progress(row: dict, iterations: int) -> str:
             f"{row['elapsed_s'] / max(row['iteration'], 1):.2f} s/iteration")
 
 
+def check_metrics(rows: Any, path: Path) -> list[dict]:
+    """metrics.json's rows (at least one), each with every field of METRIC_FIELDS holding a value
+    of its type (an int counts as a float; NaN and infinities do not), or a UsageError that names
+    the first that does not."""
+    if not isinstance(rows, list) or not rows:
+        raise UsageError(f"{path}: no metrics (a list of one row per iteration)")
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict):
+            raise UsageError(f"{path}: row {i} is a {type(row).__name__}, not a row of metrics")
+        for field, kinds in METRIC_FIELDS.items():
+            if field not in row and field != "elapsed_s":  # older runs recorded no timings
+                raise UsageError(f"{path}: row {i} has no {field}")
+            if field in row and not holds(row[field], kinds):
+                raise UsageError(f"{path}: row {i} has {field} = {shown(row[field])}, not "
+                                 f"{' or '.join(kind.__name__ for kind in kinds)}")
+    return rows
+
+
+def holds(value: Any, kinds: tuple[type, ...]) -> bool:
+    """Whether a JSON value is one of `kinds`: a whole number counts as a float; NaN, infinities
+    and booleans count as nothing."""
+    if value is None or isinstance(value, bool):
+        return value is None and type(None) in kinds
+    if float in kinds:
+        return isinstance(value, (int, float)) and math.isfinite(value)
+    return isinstance(value, int)
+
+
+def load_metrics(run_dir: Path) -> list[dict]:
+    """A run folder's metrics.json, checked (check_metrics)."""
+    return check_metrics(read_run_json(run_dir, "metrics.json"), run_dir / "metrics.json")
+
+
+def load_run_config(run_dir: Path) -> dict:
+    """A run folder's config.json, every flag valid (check_run_config)."""
+    try:
+        return check_run_config(read_run_json(run_dir, "config.json"))
+    except UsageError as error:
+        if not (run_dir / "config.json").is_file() or "not readable JSON" in str(error):
+            raise
+        raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
+
+
+# Flags that config.json may hold apart from its checkpoint: resume writes a larger --iterations
+# into config.json before the run's next checkpoint records it.
+MAY_DIFFER = ("iterations",)
+
+
 def load_run_state(run_dir: Path) -> tuple[dict, dict | None]:
-    """A run folder's config and checkpoint. A run killed before its first checkpoint (while its
-    cluster started) has only config.json: its checkpoint is None, and resume starts it afresh
-    from that config, which records the seed, so it ends as the uninterrupted run would."""
+    """A run folder's config and checkpoint, which must agree (a hand edit of config.json is
+    refused, not silently ignored). A run killed before its first checkpoint (while its cluster
+    started) has only config.json: its checkpoint is None, and resume starts it afresh from that
+    config, which records the seed, so it ends as the uninterrupted run would."""
     path = run_dir / "checkpoint.pkl"
     if path.is_file() or not (run_dir / "config.json").is_file():
         checkpoint = load_checkpoint(path)
+        if (run_dir / "config.json").is_file():
+            check_same_config(load_run_config(run_dir), checkpoint["config"], run_dir)
         return checkpoint["config"], checkpoint
-    recorded = read_run_json(run_dir, "config.json")
-    try:
-        return check_run_config(recorded), None
-    except UsageError as error:
-        raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
+    return load_run_config(run_dir), None
+
+
+def check_same_config(recorded: dict, checkpointed: dict, run_dir: Path) -> None:
+    """config.json must say what the checkpoint ran with: a run goes on as it started."""
+    for name in SEARCH_FLAGS:
+        if name not in MAY_DIFFER and recorded[name] != checkpointed[name]:
+            raise UsageError(
+                f"{run_dir / 'config.json'} says --{name} {shown(recorded[name])} but the run's "
+                f"checkpoint ran with {shown(checkpointed[name])}: a run goes on with the settings "
+                f"it started with; undo the edit, or start a new run with the flags you want")
 
 
 def check_archive(archive: Any, path: Path, config: dict) -> None:
@@ -837,7 +905,7 @@ def check_run_config(config: Any) -> dict:
         config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
     except TypeError as error:
         raise UsageError(str(error)) from None
-    non_negative_int("seed", config["seed"])
+    seed_number("seed", config["seed"])
     return config
 
 
@@ -857,6 +925,8 @@ def load_checkpoint(path: Path) -> dict:
             raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
     except (KeyError, TypeError, UsageError) as error:
         raise UsageError(f"{path}: checkpoint of an incompatible config ({error})") from None
+    if metrics:
+        check_metrics(metrics, path)
     if [row["iteration"] for row in metrics if row["iteration"] > 0] != list(range(1, iteration + 1)):
         raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
     check_archive(checkpoint["scheduler"].archive, path, checkpoint["config"])
@@ -981,15 +1051,15 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "workers": CLUSTER_FLAGS["workers"],
     "seed": Flag(None, "Seed of the archive and emitters; drawn and recorded in config.json if "
                        "omitted. The same seed gives the same archive whatever the number of "
-                       "workers.", non_negative_int, per_run=True),
+                       "workers.", seed_number, per_run=True),
     "env_seed": Flag(52, "The terrain(s) every policy is flown on: one seed (52), a range (0-4), a "
                          "list (3,5,8) or both (0-4,10). With several terrains the objective is "
                          "the mean return over them, and each measure is its per-terrain values "
-                         "averaged.", seed_list, label=1),
+                         "averaged.", seed_list, label=1, text=True),
     "measures": Flag(TUTORIAL_MEASURES, "1 to 3 rows of the MEASURES table, comma-separated, as "
                                         "the archive's axes: " + ", ".join(MEASURES) + " (the "
                                         "first two, the tutorial's, are the default).",
-                     distinct_names(MEASURES, "measures", 3), label=2),
+                     distinct_names(MEASURES, "measures", 3), label=2, text=True),
     "grid": Flag(50, "Archive cells along each measure.", positive_int, sweep=True, label=3),
     "algorithm": Flag("cma_me", "Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae "
                                 "(CMA-MAE) or map_elites (MAP-Elites with Gaussian mutation); "
@@ -1040,7 +1110,8 @@ SELECTION_FLAGS: dict[str, Flag] = {
                            "stopping.", boolean),
 }
 TERRAIN_FLAGS: dict[str, Flag] = {
-    "env_seed": Flag(None, "The terrain to fly on; default: the run's first.", non_negative_int),
+    "env_seed": Flag(None, "The terrain to fly on, one of the run's; default: the run's first.",
+                     seed_number),
 }
 
 
@@ -1191,6 +1262,13 @@ def known_flags(function: Callable) -> list[str]:
     return known
 
 
+def text_flags(function: Callable) -> set[str]:
+    """The flags of a command whose checks read the text as typed (Flag.text)."""
+    entries = {**{name: SEARCH_FLAGS[name] for name in known_flags(function) if name in SEARCH_FLAGS},
+               **getattr(function, "flag_table", {})}
+    return {name for name, flag in entries.items() if flag.text}
+
+
 def reject_unknown_flags(function: Callable, args: list[str]) -> None:
     """Fire would print a page of usage for a mistyped flag; one line naming it is clearer."""
     known = known_flags(function)
@@ -1210,17 +1288,18 @@ def main(argv: list[str]) -> int:
     STOP.install()
     try:
         if name not in COMMANDS:
-            raise UsageError(f"unknown command {name!r}; commands: {', '.join(COMMANDS)}")
+            raise UsageError(f"unknown command {shown(name)}; commands: {', '.join(COMMANDS)}")
         function = command(name)
         reject_unknown_flags(function, args)
         if "--help" in args and "--" not in args:  # else a command taking **flags reads it as one
             args = [arg for arg in args if arg != "--help"] + ["--", "--help"]
+        args = as_typed(args, text_flags(function))
         fire.Fire(function, command=args, name="lunar_lander.py" if name == "search" else name)
     except UsageError as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: {one_line(str(error))}", file=sys.stderr)
         return 2
     except (RunError, OSError) as error:  # OSError: any fault not already described better
-        print(f"error: {fault_text(error)}", file=sys.stderr)
+        print(f"error: {one_line(fault_text(error))}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)

@@ -42,7 +42,7 @@ from fast_env import (
     FastLunarLander,
     seeded_randoms,
 )
-from flags import UsageError, check_flags, positive_int, seed_list, takes
+from flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from lunar_lander import (
     _WORKER_ENVS,
     CLUSTER_FLAGS,
@@ -54,11 +54,12 @@ from lunar_lander import (
     TERRAIN_FLAGS,
     TUTORIAL_MEASURES,
     averaged,
-    check_run_config,
     dask_client,
     fly,
     gather_with_progress,
     load_archive,
+    load_metrics,
+    load_run_config,
     make_env,
     per_terrain,
     rollout,
@@ -71,7 +72,6 @@ from run_files import (
     check_writable,
     console_log,
     fault_text,
-    read_run_json,
     write_csv,
 )
 
@@ -84,11 +84,7 @@ def load_run(run_dir: Any) -> tuple[Any, dict]:
         raise UsageError(f"{path}: no such run folder")
     if not (path / "archive.pkl").is_file():
         raise UsageError(f"{path / 'archive.pkl'}: no such file (is {path} a run folder of lunar_lander.py?)")
-    recorded = read_run_json(path, "config.json")
-    try:
-        config = check_run_config(recorded)
-    except UsageError as error:
-        raise UsageError(f"{path / 'config.json'}: not a usable run config ({error})") from None
+    config = load_run_config(path)
     return load_archive(path / "archive.pkl", config), config
 
 
@@ -113,7 +109,7 @@ def parse_cells(cells: Any, measures: list[str]) -> list[tuple[float, ...]]:
             isinstance(p, (tuple, list)) and len(p) == size and all(map(is_number, p)) for p in points)):
         example = "(" + ", ".join(f"{sum(MEASURES[m].range) / 2:g}" for m in measures) + ")"
         raise UsageError(f"--cells takes points of ({', '.join(measures)}) such as "
-                         f'"[{example}]", got {cells!r}')
+                         f'"[{example}]", got {shown(cells)}')
     return [tuple(float(v) for v in point) for point in points]
 
 
@@ -124,7 +120,7 @@ def parse_indices(index: Any, archive) -> list[int]:
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
             raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
-                             f"command's cell_index), got {index!r}")
+                             f"command's cell_index), got {shown(index)}")
     return values
 
 
@@ -266,10 +262,17 @@ def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[dict, list[
 
 
 def shown_terrain(config: dict, env_seed: Any) -> int:
-    """The terrain a results command shows a run on: --env_seed, by default the run's first."""
+    """The terrain a results command shows a run on: --env_seed, one of the run's terrains (its
+    elites' objectives and measures were flown there), by default the run's first."""
     if env_seed is None:
         return config["env_seed"][0]
-    return check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
+    terrain = check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
+    if terrain not in config["env_seed"]:
+        terrains = ",".join(map(str, config["env_seed"]))
+        raise UsageError(f"--env_seed {terrain} is not a terrain of this run (it was flown on "
+                         f"{terrains}); to fly its elites on other terrains, use: "
+                         f"python lunar_lander.py evaluate RUN --env_seeds {terrain}")
+    return terrain
 
 
 def reflown(elite: dict, config: dict) -> tuple[float, list[float]]:
@@ -358,7 +361,7 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
     """
     archive, config = load_run(run_dir)
     if min_objective is not None and not is_number(min_objective):
-        raise UsageError(f"--min_objective must be a number, got {min_objective!r}")
+        raise UsageError(f"--min_objective must be a number, got {shown(min_objective)}")
     table = elite_table(archive, config["measures"], min_objective,
                         None if top is None else positive_int("top", top))
     path = Path(str(run_dir)) / "elites.csv"
@@ -435,8 +438,29 @@ def trajectories(run_dir: str, **flags: Any) -> None:
 
 
 # The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
-# replaces its /*DATA*/null with the run's data (explorer_data).
+# fills in its /*DATA*/ (the run's data) and /*POLICY*/ (its Content-Security-Policy).
 EXPLORER_PAGE = Path(__file__).with_name("explorer_page.html")
+# In the data block, what could end it or start markup is written as a JSON escape (JSON.parse
+# reads it back as the same character): the data can't close its <script>, whatever a run
+# folder's name holds. json.dumps already escapes U+2028 and U+2029 (ensure_ascii).
+JSON_IN_HTML = {ord("<"): "\\u003c", ord(">"): "\\u003e", ord("&"): "\\u0026"}
+
+
+def explorer_page(data: dict) -> str:
+    """The page with the run's data in a JSON block that no browser executes, and a policy that
+    lets only the page's own script run (by its hash): no inline handler, no other script, nothing
+    fetched. So nothing a run's name or label holds can run when the page is opened."""
+    import base64
+    import hashlib
+    import re
+
+    page = EXPLORER_PAGE.read_text()
+    code = re.search(r"<script>(.*?)</script>", page, re.DOTALL)[1]
+    digest = base64.b64encode(hashlib.sha256(code.encode()).digest()).decode()
+    policy = (f"default-src 'none'; script-src 'sha256-{digest}'; style-src 'unsafe-inline'; "
+              f"img-src data:; base-uri 'none'; form-action 'none'")
+    block = json.dumps(data, separators=(",", ":")).translate(JSON_IN_HTML)
+    return page.replace("/*POLICY*/", policy, 1).replace("/*DATA*/", block, 1)
 
 # The explorer page: every elite's flight, recorded as poses and packed into the page.
 # Per step, five numbers give the drawing: the lander's x, y and angle and its two legs' angles (a
@@ -469,7 +493,7 @@ def record_flight(solution: np.ndarray, env_seed: int, env: FastLunarLander) -> 
 
 
 def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: int,
-                  run_dir: Path) -> dict:
+                  run_dir: Path, metrics: list[dict]) -> dict:
     """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
     import base64
 
@@ -493,7 +517,6 @@ def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: in
               in zip(rows["index"], grid, rows["objective"], rows["measures"], offsets, flights)]
     edges, _, _ = seeded_randoms(env_seed)
     magma = matplotlib.colormaps["magma"]
-    metrics = read_run_json(run_dir, "metrics.json")
     return {
         "run": str(run_dir), "algorithm": config["algorithm"], "env_seed": env_seed,
         "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
@@ -531,6 +554,7 @@ def explore(run_dir: str, **flags: Any) -> None:
     archive, config = load_run(run_dir)
     shown = shown_terrain(config, env_seed)
     workers, run = positive_int("workers", workers), Path(str(run_dir))
+    metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown
     check_writable(run)
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
@@ -538,8 +562,8 @@ def explore(run_dir: str, **flags: Any) -> None:
         futures = [client.submit(record_poses, chunk, shown, pure=False, retries=3)
                    for chunk in chunks]
         flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
-    data = explorer_data(archive, config, rows, flights, shown, run)
-    page = EXPLORER_PAGE.read_text().replace("/*DATA*/null", json.dumps(data, separators=(",", ":")))
+    data = explorer_data(archive, config, rows, flights, shown, run, metrics)
+    page = explorer_page(data)
     atomic_write(run / "explorer.html", lambda f: f.write(page), mode="w")
     size = (run / "explorer.html").stat().st_size
     print(f"{len(rows['index'])} elites, {sum(len(a) for _, a in flights):,} poses: wrote "

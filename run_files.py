@@ -84,8 +84,11 @@ def new_folder(outdir: str | None, name: str) -> Iterator[Path]:
         run_dir = Path(outdir)
     taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
                        f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise UsageError(f"{run_dir} exists and is not a folder; choose another --outdir")
     if holds_files(run_dir):
         raise taken
+    check_parent_folder(run_dir)
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -94,6 +97,15 @@ def new_folder(outdir: str | None, name: str) -> Iterator[Path]:
         if holds_files(run_dir):  # another process filled it between the check and the lock
             raise taken
         yield run_dir
+
+
+def check_parent_folder(path: Path) -> None:
+    """Refuse a path under something that is not a folder (a file named as a folder on the way)."""
+    for parent in Path(path).parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise UsageError(f"cannot write {path}: {parent} is not a folder")
+            return
 
 
 UMASK = os.umask(0o022)

@@ -30,15 +30,18 @@ def explored(tmp_path_factory, dask_cluster, tiny_run):
     return run_dir
 
 
+DATA_BLOCK = '<script id="data" type="application/json">'
+
+
 def page_data(run_dir) -> dict:
     html = (run_dir / "explorer.html").read_text()
-    start = html.index("const DATA = ") + len("const DATA = ")
-    return json.loads(html[start:html.index(";\n", start)])
+    start = html.index(DATA_BLOCK) + len(DATA_BLOCK)
+    return json.loads(html[start:html.index("</script>", start)])
 
 
 def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     html = (explored / "explorer.html").read_text()
-    assert "<script src" not in html and "http" not in html.split("const DATA")[0]  # nothing fetched
+    assert "<script src" not in html and "http" not in html.split(DATA_BLOCK)[0]  # nothing fetched
     data = page_data(explored)
     archive = load_pickle(explored / "archive.pkl")
     assert len(data["elites"]) == len(archive)
