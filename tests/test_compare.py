@@ -56,7 +56,7 @@ def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_run):
     (tmp_path / "no_metrics").mkdir()
     (tmp_path / "no_metrics" / "config.json").write_text("{}")
     (tmp_path / "no_metrics" / "metrics.json").write_text("[]")
-    for bad, words in [("missing", "no such run folder"), ("empty", "config.json"),
+    for bad, words in [("missing", "no such run folder"), ("empty", "metrics.json: no such file"),
                        ("no_metrics", "no metrics")]:
         assert_one_line_error(run_cli("compare", tiny_run, tmp_path / bad), bad, words)
     assert_one_line_error(run_cli("compare"), "at least one run folder")

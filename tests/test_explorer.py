@@ -41,7 +41,9 @@ def page_data(run_dir) -> dict:
 
 def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     html = (explored / "explorer.html").read_text()
-    assert "<script src" not in html and "http" not in html.split(DATA_BLOCK)[0]  # nothing fetched
+    page = html.split(DATA_BLOCK)[0]
+    assert "<script src" not in html and "http://" not in page and "https://" not in page  # nothing fetched
+    assert "default-src 'none'; script-src 'sha256-" in page  # and nothing but its own script runs
     data = page_data(explored)
     archive = load_pickle(explored / "archive.pkl")
     assert len(data["elites"]) == len(archive)
