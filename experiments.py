@@ -39,13 +39,13 @@ from lunar_lander import (
     averaged,
     before_the_flags,
     check_archive_size,
-    check_scheduler_reachable,
     dask_client,
     describe_progress,
     ignores,
     load_run_state,
     own_flags,
     per_terrain,
+    scheduler_of,
     search_defaults,
     submit_flights,
 )
@@ -94,11 +94,11 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
             {passed_on}. A list of values of {sweeps}, e.g. --learning_rate "[0.01, 0.1]", is one
             more axis of the grid.
     """
-    workers, scheduler_address = search_flags.pop("workers"), search_flags.pop("scheduler_address")
+    cluster = {name: search_flags.pop(name) for name in CLUSTER_FLAGS}
     axes, common, seeds = experiment_grid(algorithms, seeds, search_flags)
-    workers = positive_int("workers", workers)
+    workers = positive_int("workers", cluster["workers"])
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
-    check_scheduler_reachable(scheduler_address)
+    scheduler_address = scheduler_of(cluster)
     with new_folder(outdir, "experiment") as folder:
         plan = {"format": EXPERIMENT_FORMAT, "created": datetime.datetime.now().isoformat(),
                 "command": sys.argv, "axes": axes, "seeds": seeds, "common": common,
@@ -119,7 +119,8 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
     the seeds, each value checked as search checks it."""
     if given := sorted(set(search_flags) - set(passed_on()) & set(SEARCH_FLAGS)):
         raise UsageError(f"--{given[0]} is set by the experiment for each run; use --algorithms, "
-                         f"--seeds, --outdir, --workers and --scheduler_address of experiment")
+                         f"--seeds, --outdir, --workers and --scheduler_address (or --scheduler_file) "
+                         f"of experiment")
     if unknown := sorted(set(search_flags) - set(search_defaults())):
         raise UsageError(f"unknown flag --{unknown[0]}")
     names = [n.strip() for n in algorithms.split(",")] if isinstance(algorithms, str) else list(algorithms)
@@ -201,8 +202,13 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
         except RunsFailed:
             raise
         except (RunError, OSError) as error:  # of the experiment itself (experiment.json, cluster)
+            new = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
             raise RunError(f"{fault_text(error)}; every run keeps its last checkpoint; continue "
-                           f"with: python lunar_lander.py resume {folder}") from None
+                           f"with: python lunar_lander.py resume {folder}{new}") from None
+
+
+class SchedulerLost(RunError):
+    """The cluster's scheduler is gone (ended, killed, its job preempted): every run stops."""
 
 
 class RunsFailed(RunError):
@@ -379,8 +385,16 @@ class Experiment:
                     live.log.info(describe_progress(row, live.target))
                     live.run.save(self.saver)
         except Exception as error:  # this run's fault (a task that failed, a write): it alone stops
+            self.check_scheduler(error)
             self.fail(live, error)
             self.start_more()
+
+    def check_scheduler(self, error: BaseException) -> None:
+        """A task lost with the scheduler is no run's fault: the whole experiment stops (every run
+        keeps its checkpoint) rather than failing its runs one by one."""
+        if self.client.status != "running":
+            raise SchedulerLost(f"lost the Dask scheduler at {self.client.scheduler.address} "
+                                f"({fault_text(error)})") from None
 
     def fail(self, live: LiveRun, error: BaseException) -> None:
         with contextlib.suppress(Exception):
@@ -441,10 +455,11 @@ class Experiment:
 
 
 def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
-                      scheduler_address: str | None) -> None:
-    """Continue every unfinished run of an experiment (failed ones are tried again)."""
+                      cluster: dict[str, Any]) -> None:
+    """Continue every unfinished run of an experiment (failed ones are tried again), on the
+    cluster the `cluster` flags name (by default a local one)."""
     read_experiment(folder)  # refuse a bad folder before anything is written in it
-    check_scheduler_reachable(scheduler_address)
+    scheduler_address = scheduler_of(cluster)
     with folder_lock(folder):
         plan = read_experiment(folder)
         workers = positive_int("workers", plan["workers"] if workers is None else workers)

@@ -58,6 +58,7 @@ import dataclasses
 import datetime
 import hashlib
 import importlib
+import json
 import logging
 import math
 import os
@@ -516,6 +517,9 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
                      f"dashboard {client.dashboard_link}")
             yield client
         return
+    if os.environ.get("DASK_SCHEDULER_ADDRESS"):
+        log.info("note: DASK_SCHEDULER_ADDRESS is set, but this command starts a cluster of its own; "
+                 "to join that scheduler, pass --scheduler_address (or --scheduler_file)")
     # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
     warnings.filterwarnings("ignore", message="Port 8787 is already in use")
     # The imports are over before the search starts: ribs' CMA-ES rebuilds its thread-pool
@@ -543,19 +547,61 @@ QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
                  "distributed.admin.tick.interval": "200ms"}
 
 
-def check_scheduler_reachable(address: str | None) -> None:
-    """Fail before anything is written if the scheduler's address is malformed or nobody listens."""
+def scheduler_of(cluster: dict[str, Any]) -> str | None:
+    """The address of the Dask scheduler a command joins (None: it starts a local cluster), found
+    and checked before anything is written: --scheduler_address, or the address in
+    --scheduler_file once that file appears (a batch job's scheduler writes it when it starts).
+
+    DASK_SCHEDULER_ADDRESS in the environment is not used: a variable left over from another job
+    must not send runs to another cluster unasked (dask_client says so when it is set).
+    """
+    address, path = cluster.get("scheduler_address"), cluster.get("scheduler_file")
+    if address is not None and path is not None:
+        raise UsageError("give --scheduler_address or --scheduler_file, not both")
+    if path is not None:
+        timeout = positive_float("scheduler_timeout", cluster.get("scheduler_timeout"))
+        address = read_scheduler_file(Path(str(path)), timeout)
+    if address is not None:
+        check_scheduler_reachable(str(address), path)
+    return address
+
+
+def read_scheduler_file(path: Path, timeout: float) -> str:
+    """The scheduler's address in a scheduler file, waiting up to `timeout` seconds for the file
+    to appear (Ctrl-C stops the wait), and a moment more for a file still being written."""
+    deadline = time.monotonic() + timeout
+    while not path.is_file():
+        STOP.check()
+        if time.monotonic() > deadline:
+            raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
+                             f"scheduler running? --scheduler_timeout waits longer)")
+        time.sleep(0.2)
+    for _ in range(10):
+        try:
+            address = json.loads(path.read_text())["address"]
+            if isinstance(address, str):
+                return address
+            why = f"its address is {shown(address)}"
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
+            why = f"{type(error).__name__}: {fault_text(error)}"
+        time.sleep(0.2)
+    raise UsageError(f"{path}: not a Dask scheduler file ({why})")
+
+
+def check_scheduler_reachable(address: str, scheduler_file: Any = None) -> None:
+    """Fail before anything is written if the scheduler's address is malformed or nobody listens
+    (for a scheduler file: a stale file, left by a scheduler that has ended)."""
     import socket
 
-    if address is None:
-        return
     from distributed.comm import get_address_host_port
 
     try:
         host, port = get_address_host_port(address)
         socket.create_connection((host, port), timeout=10).close()
     except (OSError, ValueError) as error:
-        raise UsageError(f"cannot reach the Dask scheduler at {address}: {error}") from None
+        named = f" (named by {scheduler_file}: a file left by a scheduler that has ended?)" if (
+            scheduler_file is not None) else ""
+        raise UsageError(f"cannot reach the Dask scheduler at {address}{named}: {error}") from None
 
 
 # ================================================================================================
@@ -856,7 +902,7 @@ def load_run_state(run_dir: Path) -> tuple[dict, dict | None]:
 def check_same_config(recorded: dict, checkpointed: dict, run_dir: Path) -> None:
     """config.json must say what the checkpoint ran with: a run goes on as it started."""
     for name in SEARCH_FLAGS:
-        if name not in MAY_DIFFER and recorded[name] != checkpointed[name]:
+        if name not in MAY_DIFFER and name not in CLUSTER_FLAGS and recorded[name] != checkpointed[name]:
             raise UsageError(
                 f"{run_dir / 'config.json'} says --{name} {shown(recorded[name])} but the run's "
                 f"checkpoint ran with {shown(checkpointed[name])}: a run goes on with the settings "
@@ -1044,6 +1090,12 @@ CLUSTER_FLAGS: dict[str, Flag] = {  # every command that flies policies on a clu
     "scheduler_address": Flag(None, "Address of a running Dask scheduler (tcp://HOST:PORT) to "
                                     "evaluate on instead of starting a local cluster; --workers "
                                     "is then ignored.", per_run=True),
+    "scheduler_file": Flag(None, "A Dask scheduler file (written by dask scheduler "
+                                 "--scheduler-file, dask-mpi or dask-jobqueue's SLURMRunner): "
+                                 "wait for it to appear, then join the scheduler it names; "
+                                 "instead of --scheduler_address.", per_run=True),
+    "scheduler_timeout": Flag(120, "Seconds to wait for --scheduler_file to appear.",
+                              positive_float, per_run=True),
 }
 
 SEARCH_FLAGS: dict[str, Flag] = {
@@ -1080,6 +1132,8 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "
                          "empty.", per_run=True),
     "scheduler_address": CLUSTER_FLAGS["scheduler_address"],
+    "scheduler_file": CLUSTER_FLAGS["scheduler_file"],
+    "scheduler_timeout": CLUSTER_FLAGS["scheduler_timeout"],
     "from_archive": Flag(None, "Warm start: an archive.pkl of an earlier run whose elites are "
                                "re-evaluated in this run's setting to fill the archive first; the "
                                "emitters start from the best.", per_run=True),
@@ -1095,7 +1149,7 @@ RESUME_FLAGS: dict[str, Flag] = {
         "the run was started with. A larger number extends a finished run."),
     "workers": dataclasses.replace(CLUSTER_FLAGS["workers"], default=None, help=(
         CLUSTER_FLAGS["workers"].help + " Default: as the run was started.")),
-    "scheduler_address": CLUSTER_FLAGS["scheduler_address"],
+    **{name: CLUSTER_FLAGS[name] for name in ("scheduler_address", "scheduler_file", "scheduler_timeout")},
 }
 
 # Which elites a results command shows (video, trajectories), and on which terrain (explore too).
@@ -1138,7 +1192,7 @@ def search(**flags: Any) -> None:
     check_archive_size(flags)
     from_archive = flags["from_archive"]
     seed_archive = load_archive(Path(from_archive), flags) if from_archive else None
-    check_scheduler_reachable(flags["scheduler_address"])
+    address = scheduler_of(flags)
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
     with new_folder(flags["outdir"], f"seed{flags['seed']}") as run_dir:
@@ -1147,7 +1201,7 @@ def search(**flags: Any) -> None:
         if from_archive:
             config["from_archive"] = str(Path(from_archive).resolve())
         write_json(run_dir / "config.json", config)
-        with run_session(run_dir, config["workers"], flags["scheduler_address"]) as (client, log, saver):
+        with run_session(run_dir, config["workers"], address) as (client, log, saver):
             run = Run.start(run_dir, config, client, log, seed_archive)
             run_loop(run, client, config["iterations"], log, saver)
     print(where_to_look(run_dir))
@@ -1162,13 +1216,12 @@ def resume(run_dir: str, **flags: Any) -> None:
         run_dir: A run folder (or an experiment folder) written by this script.
     """
     path, iterations, workers = Path(run_dir), flags["iterations"], flags["workers"]
-    scheduler_address = flags["scheduler_address"]
     if (path / "experiment.json").is_file():
         from experiments import resume_experiment
 
-        return resume_experiment(path, iterations, workers, scheduler_address)
+        return resume_experiment(path, iterations, workers, flags)
     load_run_state(path)  # refuse a bad folder before anything is written in it
-    check_scheduler_reachable(scheduler_address)
+    scheduler_address = scheduler_of(flags)
     with folder_lock(path):
         config, checkpoint = load_run_state(path)  # as the last writer left it
         iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)

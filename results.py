@@ -64,6 +64,7 @@ from lunar_lander import (
     per_terrain,
     rollout,
     save_heatmap,
+    scheduler_of,
     submit_flights,
 )
 from run_files import (
@@ -550,12 +551,13 @@ def explore(run_dir: str, **flags: Any) -> None:
     Args:
         run_dir: A run folder written by this script.
     """
-    env_seed, workers, scheduler_address = flags["env_seed"], flags["workers"], flags["scheduler_address"]
+    env_seed, workers = flags["env_seed"], flags["workers"]
     archive, config = load_run(run_dir)
     shown = shown_terrain(config, env_seed)
     workers, run = positive_int("workers", workers), Path(str(run_dir))
     metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown
     check_writable(run)
+    scheduler_address = scheduler_of(flags)
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
@@ -610,7 +612,8 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
         rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
     if seen := sorted(set(seeds) & set(config["env_seed"])):
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
-    with dask_client(workers, flags["scheduler_address"], console_log()) as client:
+    scheduler_address = scheduler_of(flags)
+    with dask_client(workers, scheduler_address, console_log()) as client:
         futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"])
         objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
     run = Path(str(run_dir))

@@ -107,3 +107,47 @@ def checkpoint_iteration(run_dir: Path) -> int:
         return load_pickle(Path(run_dir) / "checkpoint.pkl")["iteration"]
     except (OSError, EOFError, pickle.UnpicklingError):
         return -1
+
+
+def start_scheduler(folder: Path) -> tuple[subprocess.Popen, Path]:
+    """`dask scheduler --scheduler-file` on loopback, started in `folder` (where no code of ours
+    is): the process and its scheduler file, once written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    scheduler_file = folder / "scheduler.json"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+         "--no-dashboard", "--scheduler-file", str(scheduler_file)], cwd=folder,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 60
+    while not scheduler_file.exists() and time.time() < deadline:
+        time.sleep(0.05)
+    return process, scheduler_file
+
+
+def start_worker(scheduler_file: Path, folder: Path, *options: str) -> subprocess.Popen:
+    """`dask worker --scheduler-file F --nthreads 1` (a nanny and its worker) in a folder of its
+    own, as an HPC job starts one; `options` such as --lifetime."""
+    folder.mkdir(parents=True, exist_ok=True)
+    return subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file", str(scheduler_file),
+                             "--nthreads", "1", "--nworkers", "1", "--no-dashboard",
+                             "--local-directory", str(folder), *options],
+                            cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
+def stop_all(processes: list[subprocess.Popen]) -> None:
+    """End the processes a test started, each with its process group (a nanny and its worker)."""
+    import contextlib
+    import os
+    import signal
+
+    for process in processes:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGTERM)
+    for process in processes:
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
