@@ -69,7 +69,6 @@ def test_workers_that_join_retire_and_die_change_nothing(tmp_path, twins):
             wait_for(lambda: (folder / "experiment.json").exists() and all(
                 checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
                 experiment, "both runs past iteration 2")
-            first = next(iter(client.scheduler_info()["workers"]))
 
             processes.append(start_worker(scheduler_file, tmp_path / "w1"))  # joins late
             short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",
