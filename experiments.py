@@ -20,6 +20,7 @@ import dataclasses
 import datetime
 import itertools
 import logging
+import math
 import re
 import sys
 import time
@@ -239,6 +240,9 @@ def count_as_done_before(bar, iterations: int) -> None:
     bar.refresh()
 
 
+THREADS_EVERY = 2.0  # seconds between two counts of the cluster's worker threads
+
+
 class Experiment:
     """Drives many runs on one client: Dask's as_completed hands back chunks in whatever order
     they finish, and each run goes on as soon as its own batch is whole. A run's results depend on
@@ -259,6 +263,7 @@ class Experiment:
         # failed comes as its exception, and fails its run alone.
         self.finished = as_completed(with_results=True, raise_errors=False)
         self.limit = plan.get("max_in_flight") or len(plan["runs"])
+        self.threads_asked = (-math.inf, 1)  # when the worker threads were last counted, and how many
 
     def drive(self) -> None:
         from tqdm import tqdm
@@ -314,6 +319,14 @@ class Experiment:
                              f"Mend the cause and retry them with: python lunar_lander.py resume "
                              f"{self.folder}")
 
+    def threads(self) -> int:
+        """The cluster's worker threads, asked of the scheduler at most every THREADS_EVERY seconds
+        rather than for every batch (workers come and go; a stale count only sizes the chunks,
+        never changes a result)."""
+        if time.monotonic() - self.threads_asked[0] > THREADS_EVERY:
+            self.threads_asked = (time.monotonic(), sum(self.client.nthreads().values()))
+        return self.threads_asked[1]
+
     def start_more(self) -> None:
         """Open waiting runs until `limit` are in flight."""
         while self.todo and len(self.live) < self.limit:
@@ -361,7 +374,7 @@ class Experiment:
         """Ask the run's next batch and send it to the cluster."""
         config = live.run.config
         futures = submit_flights(self.client, live.run.ask(), config["env_seed"], config["measures"],
-                                 config["fast_env"], sharing=len(self.live))
+                                 config["fast_env"], sharing=len(self.live), threads=self.threads())
         live.results, live.waiting = [None] * len(futures), len(futures)
         for position, future in enumerate(futures):
             self.owner[future.key] = (live.entry["name"], position)

@@ -376,16 +376,17 @@ MAX_CHUNK = 1000  # rollouts per task at most (a few seconds), so big batches re
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
-                   fast_env: bool = True, sharing: int = 1) -> list:
+                   fast_env: bool = True, sharing: int = 1, threads: int | None = None) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
 
     The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
     the number of terrains, so the workers stay evenly loaded. A batch alone on the cluster is
     split in CHUNKS_PER_WORKER chunks per worker; when `sharing` runs keep the workers busy
     together, each batch needs only its share of that, and fewer tasks cost the scheduler less.
-    The chunks go in one message (client.map); tasks of a dead worker are retried.
+    The chunks go in one message (client.map); tasks of a dead worker are retried. `threads`, the
+    cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
     """
-    workers = max(1, sum(client.nthreads().values()))
+    workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
     pairs = len(solutions) * len(env_seeds)
     wanted = max(-(-CHUNKS_PER_WORKER * workers // max(1, sharing)), -(-pairs // MAX_CHUNK))
     chunks = np.array_split(np.arange(pairs), min(wanted, max(1, pairs // MIN_CHUNK)))

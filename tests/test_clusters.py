@@ -74,6 +74,8 @@ def test_workers_that_join_retire_and_die_change_nothing(tmp_path, twins):
             short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",
                                        "--lifetime-stagger", "0s")  # joins, then retires on its own
             processes.append(short_lived)
+            processes.append(start_worker(scheduler_file, tmp_path / "w3", "--lifetime", "2s",
+                                          "--lifetime-stagger", "1s", "--lifetime-restart"))  # comes back
             client.wait_for_workers(3, timeout=60)
             late = next(address for address, info in client.scheduler_info()["workers"].items()
                         if str(tmp_path / "w1") in info["local_directory"])
