@@ -26,7 +26,8 @@ import numpy as np
 
 from experiments import read_experiment, run_setting
 from flags import UsageError, boolean
-from lunar_lander import LANDED, QD_SCORE_OFFSET, load_metrics, load_run_config, save_metric_panels
+from lunar_lander import LANDED, QD_SCORE_OFFSET, load_metrics, load_run_config
+from plots import save_metric_panels
 from run_files import atomic_write, check_parent_folder, read_pickle, write_csv
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")

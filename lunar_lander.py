@@ -37,9 +37,11 @@ The supporting work lives in sibling modules, each opening with a map of itself:
   with the explorer's page in explorer_page.html;
 - comparison.py: `compare` and its statistics across seeds;
 - fast_env.py: the streamlined Lunar Lander the rollouts fly in (bitwise gym.make's);
+- plots.py: the heatmaps and progress curves;
 - run_files.py: locks, atomic writes, JSON and pickles, logs;
 - flags.py: the `Flag` entry, the checkers and UsageError.
-They import this module; this module imports only fast_env, run_files and flags at load time.
+They import this module; this module imports only fast_env, plots, run_files and flags at load
+time.
 """
 
 from __future__ import annotations
@@ -93,6 +95,7 @@ from flags import (
     shown,
     takes,
 )
+from plots import save_heatmap, save_progress_plot
 from run_files import (
     RunError,
     atomic_write,
@@ -433,7 +436,7 @@ def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndar
 
 
 # The modules a worker imports to run tasks, in the order they import each other.
-SHIPPED = ("flags", "run_files", "fast_env", "lunar_lander", "results")
+SHIPPED = ("flags", "run_files", "plots", "fast_env", "lunar_lander", "results")
 
 
 def ship_code(client) -> None:
@@ -506,6 +509,9 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     from dask.distributed import Client, LocalCluster
 
     logging.getLogger("asyncio").addFilter(not_dask_stop)  # once: the same filter is kept once
+    # A client that loses its scheduler logs each failed reconnection and closed comm with a
+    # traceback; the loss is reported once, in one line (experiments.SchedulerLost, run_session).
+    quiet_dask_logs()
     if scheduler_address:
         try:
             client = Client(scheduler_address, timeout="20s")
@@ -529,9 +535,17 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                host="127.0.0.1", dashboard_address="127.0.0.1:8787",
                                silence_logs=logging.ERROR)
+    quiet_dask_logs()  # LocalCluster's silence_logs set its own level
     with cluster, Client(cluster) as client:
         log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
         yield client
+
+
+def quiet_dask_logs() -> None:
+    """Dask's own log lines (and their tracebacks) stay out of the console: every fault a user
+    must know of is reported by this script, in one line."""
+    for name in ("distributed", "distributed.client"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
 def not_dask_stop(record: logging.LogRecord) -> bool:
@@ -981,87 +995,6 @@ def load_checkpoint(path: Path) -> dict:
 
 
 
-HEATMAP_RANGE = (-300, 300)
-
-
-def save_heatmap(archive, measures: list[str], path: Path, title: str) -> None:
-    """The tutorial's heatmap: objective per cell (the fastest impacts on top). One measure
-    gives a strip; with three, each cell of the first two shows the best elite over the third."""
-    import matplotlib.pyplot as plt
-    from ribs.archives import GridArchive
-    from ribs.visualize import grid_archive_heatmap
-
-    if archive.measure_dim == 3:
-        data = archive.data(["solution", "objective", "measures"])
-        shown = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims[:2],
-                            ranges=list(zip(archive.lower_bounds[:2], archive.upper_bounds[:2])))
-        shown.add(data["solution"], data["objective"], data["measures"][:, :2])
-        title += f" (best over {MEASURES[measures[2]].label.lower()})"
-    else:
-        shown = archive
-    fig, ax = plt.subplots(figsize=(8, 6))
-    fig.subplots_adjust(left=0.1, right=0.99, bottom=0.09, top=0.94)  # a fixed layout draws once
-    grid_archive_heatmap(shown, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
-    ax.set_xlabel(MEASURES[measures[0]].label)
-    if len(measures) > 1:
-        ax.set_ylabel(MEASURES[measures[1]].label)
-        if MEASURES[measures[1]].descending:
-            ax.invert_yaxis()
-    ax.set_title(title)
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
-    plt.close(fig)
-
-
-PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
-                   ("best_objective", "Best objective"))
-
-
-def save_progress_plot(metrics: list[dict], path: Path) -> None:
-    """QD score, coverage and best objective over iterations, side by side."""
-    save_metric_panels({"": [metrics]}, "iteration", "Iteration", path)
-
-
-def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label: str,
-                       path: Path) -> None:
-    """One panel per metric of PROGRESS_PANELS, one line per group of runs (labelled if it has a
-    label): a run's own curve, or for several runs their mean and its 95% confidence band."""
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
-    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
-    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
-    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
-        for group_label, runs in groups.items():
-            length = min(len(metrics) for metrics in runs)
-            values = np.array([[np.nan if row[key] is None else row[key] for row in metrics[:length]]
-                               for metrics in runs], dtype=float)
-            x = [row[x_key] for row in runs[0][:length]]
-            line, = ax.plot(x, values.mean(axis=0), label=group_label or None)
-            if len(runs) > 1:
-                low, high = mean_band(values)
-                ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
-        ax.set_xlabel(x_label)
-        ax.set_title(label)
-        ax.grid(alpha=0.3)
-    labelled = any(groups)
-    if labelled:  # beside the panels, where it hides no curve
-        axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
-                                             bbox_inches="tight" if labelled else None))
-    plt.close(fig)
-
-
-def mean_band(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A 95% bootstrap confidence band of the mean of the rows of `values`, point by point."""
-    from scipy.stats import bootstrap
-
-    with warnings.catch_warnings():  # points where every run has the same value: a band of width 0
-        warnings.simplefilter("ignore")
-        result = bootstrap((values,), np.mean, axis=0, vectorized=True, method="percentile",
-                           n_resamples=2000, rng=np.random.default_rng(0))
-    return result.confidence_interval.low, result.confidence_interval.high
-
-
 def save_outputs(run_dir: Path, checkpoint: dict) -> None:
     """The run folder's files besides the checkpoint: metrics, archive, heatmaps, progress."""
     write_json(run_dir / "metrics.json", checkpoint["metrics"])
@@ -1072,7 +1005,7 @@ def save_outputs(run_dir: Path, checkpoint: dict) -> None:
     write_csv(run_dir / "archive.csv", table)
     title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
-    save_heatmap(archive, checkpoint["config"]["measures"], snapshot, title)
+    save_heatmap(archive, [MEASURES[m] for m in checkpoint["config"]["measures"]], snapshot, title)
     atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
     save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
 

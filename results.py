@@ -46,7 +46,6 @@ from flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from lunar_lander import (
     _WORKER_ENVS,
     CLUSTER_FLAGS,
-    HEATMAP_RANGE,
     LANDED,
     MEASURES,
     SELECTION_FLAGS,
@@ -63,10 +62,10 @@ from lunar_lander import (
     make_env,
     per_terrain,
     rollout,
-    save_heatmap,
     scheduler_of,
     submit_flights,
 )
+from plots import HEATMAP_RANGE, save_heatmap
 from run_files import (
     RunError,
     atomic_write,
@@ -622,7 +621,7 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
     means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
                         ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
     means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
-    save_heatmap(means, config["measures"], run / "robustness_heatmap.png",
+    save_heatmap(means, [MEASURES[m] for m in config["measures"]], run / "robustness_heatmap.png",
                  f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
     landed = table["landed_share"]
     print(f"{len(table)} elites on {len(seeds)} terrains: "

@@ -1,0 +1,100 @@
+"""The pictures of a run folder and of a comparison, drawn with matplotlib and ribs.visualize.
+
+Map:
+- `save_heatmap`: the tutorial's heatmap of an archive (a strip for one measure; for three, the
+  best elite over the third), on the fixed colour range HEATMAP_RANGE;
+- `save_progress_plot` and `save_metric_panels`: QD score, coverage and best objective (the
+  PROGRESS_PANELS) against iterations or evaluations, one curve per run or the mean and its 95%
+  bootstrap band (`mean_band`) per group of runs.
+Each figure has a fixed layout (drawn once, no tight_layout: these run in the search loop) and is
+written whole (run_files.atomic_write).
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from run_files import atomic_write
+
+HEATMAP_RANGE = (-300, 300)
+
+
+def save_heatmap(archive, axes: list, path: Path, title: str) -> None:
+    """The tutorial's heatmap: objective per cell (the fastest impacts on top). One measure
+    gives a strip; with three, each cell of the first two shows the best elite over the third."""
+    import matplotlib.pyplot as plt
+    from ribs.archives import GridArchive
+    from ribs.visualize import grid_archive_heatmap
+
+    if archive.measure_dim == 3:
+        data = archive.data(["solution", "objective", "measures"])
+        shown = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims[:2],
+                            ranges=list(zip(archive.lower_bounds[:2], archive.upper_bounds[:2])))
+        shown.add(data["solution"], data["objective"], data["measures"][:, :2])
+        title += f" (best over {axes[2].label.lower()})"
+    else:
+        shown = archive
+    fig, ax = plt.subplots(figsize=(8, 6))
+    fig.subplots_adjust(left=0.1, right=0.99, bottom=0.09, top=0.94)  # a fixed layout draws once
+    grid_archive_heatmap(shown, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
+    ax.set_xlabel(axes[0].label)
+    if len(axes) > 1:
+        ax.set_ylabel(axes[1].label)
+        if axes[1].descending:
+            ax.invert_yaxis()
+    ax.set_title(title)
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    plt.close(fig)
+
+
+PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
+                   ("best_objective", "Best objective"))
+
+
+def save_progress_plot(metrics: list[dict], path: Path) -> None:
+    """QD score, coverage and best objective over iterations, side by side."""
+    save_metric_panels({"": [metrics]}, "iteration", "Iteration", path)
+
+
+def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label: str,
+                       path: Path) -> None:
+    """One panel per metric of PROGRESS_PANELS, one line per group of runs (labelled if it has a
+    label): a run's own curve, or for several runs their mean and its 95% confidence band."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
+    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
+    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
+        for group_label, runs in groups.items():
+            length = min(len(metrics) for metrics in runs)
+            values = np.array([[np.nan if row[key] is None else row[key] for row in metrics[:length]]
+                               for metrics in runs], dtype=float)
+            x = [row[x_key] for row in runs[0][:length]]
+            line, = ax.plot(x, values.mean(axis=0), label=group_label or None)
+            if len(runs) > 1:
+                low, high = mean_band(values)
+                ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
+        ax.set_xlabel(x_label)
+        ax.set_title(label)
+        ax.grid(alpha=0.3)
+    labelled = any(groups)
+    if labelled:  # beside the panels, where it hides no curve
+        axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
+                                             bbox_inches="tight" if labelled else None))
+    plt.close(fig)
+
+
+def mean_band(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A 95% bootstrap confidence band of the mean of the rows of `values`, point by point."""
+    from scipy.stats import bootstrap
+
+    with warnings.catch_warnings():  # points where every run has the same value: a band of width 0
+        warnings.simplefilter("ignore")
+        result = bootstrap((values,), np.mean, axis=0, vectorized=True, method="percentile",
+                           n_resamples=2000, rng=np.random.default_rng(0))
+    return result.confidence_interval.low, result.confidence_interval.high
