@@ -129,6 +129,7 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
     assert saved.stats.obj_max >= scheduler.archive.stats.obj_max
 
 
+@pytest.mark.slow  # a resume or warm start per algorithm: the whole suite has them
 @pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_runs, algorithm):
     run_dir = tmp_path / "run"
@@ -143,6 +144,7 @@ def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_
     assert archive_table(schedulers[0].archive).equals(archive_table(schedulers[1].archive))
 
 
+@pytest.mark.slow  # a resume or warm start per algorithm: the whole suite has them
 @pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
 def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algorithm):
     source = tiny_runs["cma_me"] / "archive.pkl"

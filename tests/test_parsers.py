@@ -33,7 +33,7 @@ from flags import (
 )
 from run_files import read_pickle, read_run_json
 
-QUICK = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+QUICK = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 # What Fire may hand a command (numbers, text, tuples, lists, booleans, None), and the text typed.
 SCALARS = (st.none() | st.booleans() | st.integers() | st.integers(-2**70, 2**70)
