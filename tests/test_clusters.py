@@ -58,27 +58,35 @@ def executed(client, worker: str) -> int:
     return client.run(lambda dask_worker: dask_worker.state.executed_count, workers=[worker])[worker]
 
 
+def experiment_under_way(folder, scheduler_file, processes):
+    """The experiment of RUNS as a process joining the scheduler file's cluster, once both runs
+    are past iteration 2 (it is added to `processes`)."""
+    experiment = launch("experiment", **RUNS, outdir=folder, scheduler_file=scheduler_file)
+    processes.append(experiment)
+    wait_for(lambda: (folder / "experiment.json").exists() and all(
+        checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+        experiment, "both runs past iteration 2")
+    return experiment
+
+
 def test_workers_that_join_retire_and_die_change_nothing(tmp_path, twins):
     scheduler, scheduler_file = start_scheduler(tmp_path / "elsewhere")
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     folder = tmp_path / "exp"
     try:
-        experiment = launch("experiment", **RUNS, outdir=folder, scheduler_file=scheduler_file)
-        processes.append(experiment)
+        experiment = experiment_under_way(folder, scheduler_file, processes)
         with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
-            wait_for(lambda: (folder / "experiment.json").exists() and all(
-                checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
-                experiment, "both runs past iteration 2")
-
             processes.append(start_worker(scheduler_file, tmp_path / "w1"))  # joins late
             short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",
                                        "--lifetime-stagger", "0s")  # joins, then retires on its own
             processes.append(short_lived)
             processes.append(start_worker(scheduler_file, tmp_path / "w3", "--lifetime", "2s",
                                           "--lifetime-stagger", "1s", "--lifetime-restart"))  # comes back
-            client.wait_for_workers(3, timeout=60)
-            late = next(address for address, info in client.scheduler_info()["workers"].items()
-                        if str(tmp_path / "w1") in info["local_directory"])
+            def late_worker():
+                return next((address for address, info in client.scheduler_info()["workers"].items()
+                             if str(tmp_path / "w1") in info["local_directory"]), None)
+            wait_for(lambda: late_worker() is not None, experiment, "the late worker joined")
+            late = late_worker()
             wait_for(lambda: executed(client, late) > 0, experiment, "the late worker at work")
             late_pid = client.run(os.getpid, workers=[late])[late]
             os.killpg(processes[1].pid, signal.SIGTERM)  # the first worker retires
@@ -99,11 +107,7 @@ def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     folder = tmp_path / "exp"
     try:
-        experiment = launch("experiment", **RUNS, outdir=folder, scheduler_file=scheduler_file)
-        processes.append(experiment)
-        wait_for(lambda: (folder / "experiment.json").exists() and all(
-            checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
-            experiment, "both runs past iteration 2")
+        experiment = experiment_under_way(folder, scheduler_file, processes)
         os.killpg(scheduler.pid, signal.SIGKILL)  # its job preempted
         out, err = experiment.communicate(timeout=180)
         assert_one_line_error(Result(experiment.returncode, out, err), "lost the Dask scheduler",
