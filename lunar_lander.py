@@ -887,11 +887,10 @@ def load_metrics(run_dir: Path) -> list[dict]:
 
 def load_run_config(run_dir: Path) -> dict:
     """A run folder's config.json, every flag valid (check_run_config)."""
+    recorded = read_run_json(run_dir, "config.json")  # its own error for a missing or bad file
     try:
-        return check_run_config(read_run_json(run_dir, "config.json"))
+        return check_run_config(recorded)
     except UsageError as error:
-        if not (run_dir / "config.json").is_file() or "not readable JSON" in str(error):
-            raise
         raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
 
 
