@@ -31,7 +31,8 @@ def screenshot(page_file: str, cell: int = 798, step: int = 191, out: str = "doc
             return [e.gx, cellRow(e.gy), CELL, PAD]; }})()""")
         centre = (box["x"] + pad + (gx + 0.5) * size, box["y"] + (row + 0.5) * size)
         page.mouse.click(*centre)
-        page.wait_for_function(f"step >= {step}", timeout=60000)
+        while page.evaluate("step") < step:  # polled from here: the page's CSP forbids eval
+            page.wait_for_timeout(20)
         page.click("#play")  # pause
         page.evaluate(f"show({step}); window.scrollTo(0, 0)")
         page.mouse.move(*centre)
