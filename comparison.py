@@ -26,22 +26,23 @@ import numpy as np
 
 from experiments import read_experiment, run_setting
 from flags import UsageError, boolean
-from lunar_lander import LANDED, QD_SCORE_OFFSET, load_metrics, load_run_config
+from lunar_lander import Environment, load_metrics, load_run_config, task_of
 from plots import save_metric_panels
 from run_files import atomic_write, check_parent_folder, read_pickle, write_csv
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
-SOLVED_CELLS = f"cells_{LANDED:.0f}+"  # the table's column of cells holding a good landing
+SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task
 
 
-def solved_cells(run_dir: Path) -> int | None:
-    """Cells of the final archive holding a landing that solves the task (None without archive.csv):
-    QD score and coverage count crashes too; this counts only the good landings."""
+def solved_cells(run_dir: Path, task: Environment) -> int | None:
+    """Cells of the final archive whose elite solves the task, a return of at least task.solved
+    (200 for Lunar Lander: a good landing); None without archive.csv. QD score and coverage count
+    crashes too; this counts only the solutions."""
     import pandas as pd
 
     try:
         objectives = pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"]
-        return int((objectives >= LANDED).sum())
+        return int((objectives >= task.solved).sum())
     except (OSError, ValueError):
         return None
 
@@ -86,15 +87,14 @@ QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
 # CQD score (Kent 2022, ribs.archives.cqd_score) with fixed settings, so that a number means the
 # same in every table: target points drawn uniformly in the archive's measure box with this seed,
 # penalties spread evenly over [0, 1], objectives normalised over [obj_min, obj_max], distances
-# over the box's diagonal. Written next to every comparison.
-CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0,
-       "obj_min": QD_SCORE_OFFSET, "obj_max": 350.0}
+# over the box's diagonal (obj_min is the task's QD offset). Written next to every comparison.
+CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0, "obj_max": 350.0}
 SUMMARISED = ("qd_score", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
 TESTED = ("qd_score", QD_AUC, CQD_SCORE)  # pairwise between settings: final, anytime, spread
 FEW_RUNS = 5
 
 
-def cqd(run_dir: Path) -> float | None:
+def cqd(run_dir: Path, task: Environment) -> float | None:
     """The CQD score of a run's final archive (None without a readable archive.pkl)."""
     from ribs.archives import cqd_score
 
@@ -106,7 +106,7 @@ def cqd(run_dir: Path) -> float | None:
     targets = np.random.default_rng(CQD["target_seed"]).uniform(
         lower, upper, size=(CQD["iterations"], CQD["targets"], len(lower)))
     return float(cqd_score(archive, iterations=CQD["iterations"], target_points=targets,
-                           penalties=CQD["penalties"], obj_min=CQD["obj_min"], obj_max=CQD["obj_max"],
+                           penalties=CQD["penalties"], obj_min=task.qd_offset, obj_max=CQD["obj_max"],
                            dist_max=float(np.linalg.norm(upper - lower))).mean)
 
 
@@ -125,8 +125,8 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict
     table = pd.DataFrame([
         {"run": label, "folder": str(run_dir), "setting": run_setting(config),
          "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
-         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir),
-         QD_AUC: qd_auc(metrics), CQD_SCORE: cqd(run_dir)}
+         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir, task_of(config)),
+         QD_AUC: qd_auc(metrics), CQD_SCORE: cqd(run_dir, task_of(config))}
         for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
     ])
     for column in (SOLVED_CELLS, CQD_SCORE):
@@ -208,7 +208,7 @@ def format_table(table) -> str:
                                                     if k in shown})
 
 
-def markdown_report(stats, tests) -> str:
+def markdown_report(stats, tests, env: str) -> str:
     """The statistics as Markdown tables, ready for a README or a paper."""
     def cell(row) -> str:
         number = METRIC_FORMATS[row["metric"]].format
@@ -222,10 +222,12 @@ def markdown_report(stats, tests) -> str:
         cells = {row["metric"]: cell(row) for row in group.to_dict("records")}
         lines.append(f"| {setting} | {group['runs'].max()} | "
                      + " | ".join(cells[m] for m in SUMMARISED) + " |")
-    lines += ["", "Mean [95% bootstrap confidence interval of the mean, BCa] over each setting's runs.",
+    task = task_of({"env": env})
+    lines += ["", f"{env}. Mean [95% bootstrap confidence interval of the mean, BCa] over each "
+                  f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
               f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
               f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
-              f"normalised over [{CQD['obj_min']:g}, {CQD['obj_max']:g}].", ""]
+              f"normalised over [{task.qd_offset:g}, {CQD['obj_max']:g}].", ""]
     if len(tests):
         lines += ["| metric | A | B | U | p (Holm) | A12 |", "| --- | --- | --- | --- | --- | --- |"]
         lines += [f"| {t['metric']} | {t['setting_a']} | {t['setting_b']} | {t['U']:.1f} | "
@@ -268,6 +270,16 @@ def expand_folders(paths: list[Path]) -> list[Path]:
     return list(expanded.values())
 
 
+def one_task(paths: list[Path], configs: list[dict]) -> str:
+    """The task every run flew: returns of different tasks share no scale, so they are not
+    pooled in one table."""
+    tasks = {config["env"]: path for path, config in zip(paths, configs)}
+    if len(tasks) > 1:
+        raise UsageError("these runs flew different tasks (" + ", ".join(
+            f"{path}: {env}" for env, path in tasks.items()) + "); compare each task's runs apart")
+    return next(iter(tasks))
+
+
 def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
     """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
     table of their final values (printed, and written as CSV next to the PNG).
@@ -294,6 +306,7 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> 
     if not paths:
         raise UsageError(f"no run with metrics in {', '.join(map(str, run_dirs))}")
     configs, runs = zip(*(load_run_metrics(path) for path in paths))
+    env = one_task(paths, configs)
     files = comparison_outputs(None if out is None else str(out), overwrite)
     labels = run_labels(paths, list(configs))
     table = comparison_table(labels, paths, list(configs), list(runs))
@@ -311,9 +324,9 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> 
         stats, tests = setting_statistics(table), pairwise_tests(table)
         write_csv(files["settings"], stats)
         write_csv(files["tests"], tests)
-        atomic_write(files["md"], lambda f: f.write(markdown_report(stats, tests)), mode="w")
+        atomic_write(files["md"], lambda f: f.write(markdown_report(stats, tests, env)), mode="w")
         print("\nper setting: mean [95% bootstrap interval of the mean] over its runs\n"
-              + markdown_report(stats, tests))
+              + markdown_report(stats, tests, env))
         sizes = table["setting"].value_counts()
         if (few := sizes[sizes < FEW_RUNS]).size:
             print(f"note: {', '.join(f'{s} ({n} runs)' for s, n in few.items())}: fewer than "

@@ -33,6 +33,7 @@ from flags import UsageError, check_flags, one_of, positive_int, seed_list, show
 from lunar_lander import (
     ALGORITHMS,
     CLUSTER_FLAGS,
+    DEFAULT_ENV,
     SEARCH_FLAGS,
     STOP,
     Run,
@@ -40,6 +41,7 @@ from lunar_lander import (
     averaged,
     before_the_flags,
     check_archive_size,
+    check_spaces,
     dask_client,
     describe_progress,
     ignores,
@@ -49,6 +51,7 @@ from lunar_lander import (
     scheduler_of,
     search_defaults,
     submit_flights,
+    with_task,
 )
 from run_files import (
     RunError,
@@ -136,7 +139,8 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
             axes[name] = [check_flags(SEARCH_FLAGS, {name: v})[name] for v in value]
         else:
             common[name] = value
-    common = check_flags(SEARCH_FLAGS, common)
+    common = with_task(check_flags(SEARCH_FLAGS, common))
+    check_spaces(common["env"])
     for setting in itertools.product(*axes.values()):
         check_archive_size({**common, **dict(zip(axes, setting))})
     return axes, common, seed_list("seeds", seeds)
@@ -155,6 +159,9 @@ def run_setting(config: dict) -> str:
     in effect), so a label means the same whatever the defaults become."""
     defaults, changed = check_flags(SEARCH_FLAGS, search_defaults()), []
     config = {**before_the_flags(), **config}  # a config.json from before a flag: what it ran with
+    with contextlib.suppress(KeyError, TypeError, UsageError):  # measures: the task's default
+        defaults = with_task({**defaults, "env": config.get("env", DEFAULT_ENV)})
+        config = with_task(config)
     algorithm = config.get("algorithm")
     own = own_flags(algorithm) if algorithm in ALGORITHMS else ()
     for flag in (flag for flag in label_flags() if flag in config):
@@ -374,7 +381,8 @@ class Experiment:
         """Ask the run's next batch and send it to the cluster."""
         config = live.run.config
         futures = submit_flights(self.client, live.run.ask(), config["env_seed"], config["measures"],
-                                 config["fast_env"], sharing=len(self.live), threads=self.threads())
+                                 config["fast_env"], sharing=len(self.live), threads=self.threads(),
+                                 env_name=config["env"])
         live.results, live.waiting = [None] * len(futures), len(futures)
         for position, future in enumerate(futures):
             self.owner[future.key] = (live.entry["name"], position)

@@ -127,29 +127,20 @@ if __name__ == "__mp_main__":
 
 
 # ================================================================================================
-# The problem: a linear policy flying Lunar Lander, and what its flight is measured by
+# The problem: a linear policy flying a Gymnasium task, and what its episode is measured by
 # ================================================================================================
 
-ENV_ID = "LunarLander-v3"
-ACTION_DIM, OBS_DIM = 4, 8  # discrete actions; observation (x, y, vx, vy, angle, spin, leg1, leg2)
-SOLUTION_DIM = ACTION_DIM * OBS_DIM
-NOOP, LEFT, MAIN, RIGHT = range(ACTION_DIM)  # the discrete actions: engines off, or one fires
-
-
-def make_env(fast: bool = True, render_mode: str | None = None) -> gym.Env:
-    """The environment rollouts fly in: the streamlined copy (fast_env.py), or gym.make's plain one
-    (needed to render, and kept as the reference the streamlined one is tested against)."""
-    if fast and render_mode is None:
-        return FastLunarLander()
-    return gym.make(ENV_ID, render_mode=render_mode)
+NOOP, LEFT, MAIN, RIGHT = range(4)  # Lunar Lander's discrete actions: engines off, or one fires
 
 
 @dataclasses.dataclass
 class Flight:
-    """One episode summed up: everything a measure may read, gathered in a single pass.
+    """A Lunar Lander episode summed up: everything a lander measure may read, in a single pass.
 
     "Touchdown" is the first step on which either leg touches the ground. A lander that never
-    touches it has no touchdown; its impact observation is then its last one.
+    touches it has no touchdown; its impact observation is then its last one. `firings` counts
+    each engine's firings; with throttles (the continuous lander) it sums their power, as the
+    env's fuel cost does.
     """
 
     reward: float = 0.0  # the episode's total reward: the objective
@@ -159,72 +150,63 @@ class Flight:
     last: np.ndarray | None = None  # the last observation
     min_y_velocity: float = math.inf  # the fastest descent of the whole episode
     max_tilt: float = 0.0  # the largest |angle| up to touchdown (the whole episode without one)
-    firings: list[int] = dataclasses.field(default_factory=lambda: [0] * ACTION_DIM)
+    firings: list[float] = dataclasses.field(default_factory=lambda: [0] * 4)
 
     @property
     def impact(self) -> np.ndarray:
         return self.last if self.touchdown is None else self.touchdown
 
 
-@dataclasses.dataclass(frozen=True)
-class Measure:
-    """One behaviour a landing is told apart by: its axis label, its range in the archive (values
-    outside fall into the edge cells), a short name for file names, and how a flight gives it."""
+@dataclasses.dataclass
+class Walk:
+    """A BipedalWalker episode summed up, for the walker measures."""
 
-    label: str
-    range: tuple[float, float]
-    short: str
-    of: Callable[[Flight], float]
-    descending: bool = False  # its axis drawn from the lower bound at the top (the tutorial puts the
-    # fastest impacts, the most negative y-velocities, on top)
+    reward: float = 0.0  # the episode's total reward: the objective
+    steps: int = 0
+    contacts: list[int] = dataclasses.field(default_factory=lambda: [0, 0])  # steps on which each
+    # lower leg touches the ground (observations 8 and 13)
+    distance: float = 0.0  # the hull's x at the end less its x at the start, in metres
+    hull_angles: float = 0.0  # the hull's angle (observation 0), summed over the steps
 
-
-# The measures a search can use (--measures picks 1 to 3, in order). Each is computed per terrain
-# and averaged over the run's terrains. The ranges hold what the policies of real runs reach: an
-# elite on an edge cell of a 50-cell axis is rare (README, "Measures"). To add one, add a row.
-MEASURES: dict[str, Measure] = {
-    # The tutorial's two: where and how fast the lander comes down (without a touchdown: its last
-    # x-position and its fastest descent).
-    "impact_x": Measure("Impact x-position", (-1.0, 1.0), "x", lambda f: f.impact[0]),
-    "impact_y_velocity": Measure(
-        "Impact y-velocity", (-3.0, 0.0), "v", descending=True,
-        of=lambda f: f.min_y_velocity if f.touchdown is None else f.touchdown[3]),
-    "impact_x_velocity": Measure("Impact x-velocity", (-3.0, 3.0), "vx", lambda f: f.impact[2]),
-    # Angles are not wrapped: a lander that tumbles goes past pi, into the edge cells.
-    "impact_angle": Measure("Impact angle (rad)", (-math.pi, math.pi), "angle", lambda f: f.impact[4]),
-    # Fuel in main-engine firings: a side firing costs a tenth of one, as in the env's reward.
-    "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 600.0), "fuel",
-                    lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT])),
-    # A lander falling freely touches down after ~51 steps; one that hovers flies all 1000.
-    "flight_time": Measure("Steps to touchdown", (50.0, 1000.0), "steps",
-                           lambda f: f.steps if f.touchdown_step is None else f.touchdown_step),
-    "max_tilt": Measure("Largest tilt before touchdown (rad)", (0.0, math.pi), "tilt",
-                        lambda f: f.max_tilt),
-}
-TUTORIAL_MEASURES = ("impact_x", "impact_y_velocity")  # the default, and what old run folders used
-LANDED = 200.0  # the episode reward Gymnasium calls solved: a good landing
+    def share(self, leg: int) -> float:
+        return self.contacts[leg] / max(self.steps, 1)
 
 
-def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
-        on_step: Callable[[int, np.ndarray], None] | None = None) -> Flight:
-    """Fly the policy action = argmax(W @ obs) for one episode on the terrain of `env_seed`.
-
-    With a `trajectory` list, each step's (x, y) position is appended to it; `on_step` is called
-    with each step's action and observation (the explorer records poses with it).
-    """
-    if trajectory is not None:
-        def on_step(action: int, obs: np.ndarray) -> None:
-            trajectory.append((float(obs[0]), float(obs[1])))
-    weights = np.asarray(solution, dtype=np.float64).reshape(ACTION_DIM, OBS_DIM)
+def linear_policy(solution: np.ndarray, continuous: bool, shape: tuple[int, int]) -> Callable:
+    """obs -> action of the policy W @ obs (no bias): argmax for discrete actions, tanh of each
+    component for continuous ones (the action box is [-1, 1] in every task here)."""
+    weights = np.asarray(solution, dtype=np.float64).reshape(shape)
     # W.dot(obs) makes the same BLAS call as W @ obs (same bits) for less overhead; a strided W
     # would take matmul's non-BLAS path, so it keeps matmul.
     scores = weights.dot if weights.flags.c_contiguous else weights.__matmul__
+    if continuous:
+        return lambda obs: np.tanh(scores(obs))
+    return lambda obs: int(scores(obs).argmax())
+
+
+def burn(firings: list[float], action: np.ndarray) -> None:
+    """The continuous lander's engine powers of one step, as its env computes them: the main
+    engine fires at half to full power when action[0] > 0, a side engine when |action[1]| > 0.5."""
+    if action[0] > 0.0:
+        firings[MAIN] += (min(float(action[0]), 1.0) + 1.0) * 0.5
+    if abs(action[1]) > 0.5:
+        firings[RIGHT if action[1] > 0 else LEFT] += min(abs(float(action[1])), 1.0)
+
+
+def fly_lander(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
+               on_step: Callable[[Any, np.ndarray], None] | None = None) -> Flight:
+    """One Lunar Lander episode of the linear policy on the terrain of `env_seed`; `on_step` is
+    called with each step's action and observation."""
+    policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
     obs, _ = env.reset(seed=env_seed)
-    flight, firings, done = Flight(), [0] * ACTION_DIM, False
+    flight, firings, done, continuous = Flight(), [0] * 4, False, task.continuous
     total_reward, min_y_velocity, max_tilt, touchdown, steps = 0.0, math.inf, 0.0, None, 0
     while not done:
-        action = int(scores(obs).argmax())
-        firings[action] += 1
+        action = policy(obs)
+        if continuous:
+            burn(firings, action)
+        else:
+            firings[action] += 1
         obs, reward, terminated, truncated, _ = env.step(action)
         done = terminated or truncated
         steps += 1
@@ -242,20 +224,199 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
     return flight
 
 
-def rollout(solution: np.ndarray, env_seed: int, env: gym.Env,
-            measures: tuple[str, ...] = TUTORIAL_MEASURES,
-            trajectory: list | None = None) -> tuple[float, ...]:
-    """(objective, *measures) of one episode: the objective is the episode's total reward."""
-    flight = fly(solution, env_seed, env, trajectory)
-    return (float(flight.reward), *(float(MEASURES[name].of(flight)) for name in measures))
+def fly_walker(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
+               on_step: Callable[[Any, np.ndarray], None] | None = None) -> Walk:
+    """One BipedalWalker episode of the linear policy on the terrain of `env_seed`."""
+    policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
+    obs, _ = env.reset(seed=env_seed)
+    hull, walk, done = env.unwrapped.hull, Walk(), False
+    start_x, contacts, total_reward, angles, steps = hull.position.x, [0, 0], 0.0, 0.0, 0
+    while not done:
+        action = policy(obs)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        done = terminated or truncated
+        steps += 1
+        total_reward += reward
+        angles += obs[0]
+        contacts[0] += obs[8] > 0
+        contacts[1] += obs[13] > 0
+        if on_step is not None:
+            on_step(action, obs)
+    walk.reward, walk.steps, walk.contacts = total_reward, steps, contacts
+    walk.distance, walk.hull_angles = float(hull.position.x - start_x), float(angles)
+    return walk
 
+
+@dataclasses.dataclass(frozen=True)
+class Environment:
+    """A Gymnasium task a search can fly (a row of ENVIRONMENTS, picked by --env).
+
+    The policy is W @ obs with no bias: `action_dim` rows of `obs_dim` weights, the solution the
+    QD algorithm searches. Tasks of one `family` share an episode function and its measures.
+    """
+
+    gym_id: str
+    kwargs: dict[str, Any]
+    obs_dim: int
+    action_dim: int
+    continuous: bool  # action = tanh(W @ obs) (a Box of [-1, 1]); else argmax(W @ obs) (Discrete)
+    family: str  # "lander" or "walker": the MEASURES rows it may use, and the picture it makes
+    fly: Callable  # the episode function: (solution, env_seed, env, task, on_step) -> its summary
+    measures: tuple[str, ...]  # the default --measures
+    qd_offset: float  # below (almost) every return: QD score counts every elite
+    env_seed: str  # what --env_seed picks in this task
+    solved: float  # the return its env calls solved
+    fast: Callable[[], gym.Env] | None = None  # a streamlined copy, bitwise the same (fast_env.py)
+
+    @property
+    def solution_dim(self) -> int:
+        return self.action_dim * self.obs_dim
+
+
+# The tasks a search can fly (--env). To add a Gymnasium task with a Box observation, add a row
+# (and, for a new family, an episode function and its MEASURES rows). The QD offsets are below
+# the lowest returns of real runs (docs/environments.md).
+ENVIRONMENTS: dict[str, Environment] = {
+    # The tutorial's: observation (x, y, vx, vy, angle, spin, leg1, leg2); 4 actions.
+    "LunarLander-v3": Environment(
+        "LunarLander-v3", {}, 8, 4, False, "lander", fly_lander, ("impact_x", "impact_y_velocity"),
+        -600.0, "the terrain and the initial push", 200.0, fast=FastLunarLander),
+    # Throttles instead of switches: main engine and lateral engine, each in [-1, 1].
+    "LunarLanderContinuous-v3": Environment(
+        "LunarLander-v3", {"continuous": True}, 8, 2, True, "lander", fly_lander,
+        ("impact_x", "impact_y_velocity"), -800.0, "the terrain and the initial push", 200.0),
+    # Hull angle, speeds, 4 joints' angles and speeds, 2 foot contacts, 10 lidar readings; 4
+    # torques. An episode ends when the hull touches the ground, or after 1,600 steps.
+    "BipedalWalker-v3": Environment(
+        "BipedalWalker-v3", {}, 24, 4, True, "walker", fly_walker, ("foot1_contact", "foot2_contact"),
+        -300.0, "the grassland's heights", 300.0),
+    # The same walker among stumps, pits and stairs, for up to 2,000 steps.
+    "BipedalWalkerHardcore-v3": Environment(
+        "BipedalWalkerHardcore-v3", {}, 24, 4, True, "walker", fly_walker,
+        ("foot1_contact", "foot2_contact"), -350.0, "the obstacles and the grassland", 300.0),
+}
+DEFAULT_ENV = "LunarLander-v3"  # the tutorial's, and what run folders from before --env flew
+
+
+def make_env(fast: bool = True, render_mode: str | None = None, env_name: str = DEFAULT_ENV) -> gym.Env:
+    """The environment rollouts fly in: the task's streamlined copy if it has one (fast_env.py),
+    or gym.make's plain one (needed to render, and the reference the copy is tested against)."""
+    task = ENVIRONMENTS[env_name]
+    if fast and render_mode is None and task.fast is not None:
+        return task.fast()
+    return gym.make(task.gym_id, render_mode=render_mode, **task.kwargs)
+
+
+def check_spaces(env_name: str) -> None:
+    """Refuse a row whose task the linear policy can't serve: its observation must be a vector of
+    obs_dim numbers, its actions action_dim choices, or a box of action_dim numbers in [-1, 1]."""
+    task = ENVIRONMENTS[env_name]
+    env = gym.make(task.gym_id, **task.kwargs)
+    obs, act = env.observation_space, env.action_space
+    env.close()
+    fits = isinstance(obs, gym.spaces.Box) and obs.shape == (task.obs_dim,) and (
+        isinstance(act, gym.spaces.Box) and act.shape == (task.action_dim,)
+        and bool(np.all(act.low >= -1.0)) and bool(np.all(act.high <= 1.0))
+        if task.continuous else isinstance(act, gym.spaces.Discrete) and act.n == task.action_dim)
+    if not fits:
+        policy = "tanh(W @ obs)" if task.continuous else "argmax(W @ obs)"
+        raise UsageError(f"--env {env_name}: the linear policy {policy} of {task.action_dim} x "
+                         f"{task.obs_dim} weights can't serve {task.gym_id}'s observations {obs} "
+                         f"and actions {act}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Measure:
+    """One behaviour solutions are told apart by: its axis label, its range in the archive (values
+    outside fall into the edge cells), a short name for file names, how an episode's summary gives
+    it, and the family of tasks whose summary that is."""
+
+    label: str
+    range: tuple[float, float]
+    short: str
+    of: Callable[[Any], float]
+    family: str
+    descending: bool = False  # its axis drawn from the lower bound at the top (the tutorial puts the
+    # fastest impacts, the most negative y-velocities, on top)
+
+
+# The measures a search can use (--measures picks 1 to 3, in order, of its task's family). Each
+# is computed per terrain and averaged over the run's terrains. The ranges hold what the policies
+# of real runs reach: an elite on an edge cell of a 50-cell axis is rare (docs/terrains.md,
+# docs/environments.md). To add one, add a row.
+MEASURES: dict[str, Measure] = {
+    # The tutorial's two: where and how fast the lander comes down (without a touchdown: its last
+    # x-position and its fastest descent).
+    "impact_x": Measure("Impact x-position", (-1.0, 1.0), "x", lambda f: f.impact[0], "lander"),
+    "impact_y_velocity": Measure(
+        "Impact y-velocity", (-3.0, 0.0), "v", descending=True, family="lander",
+        of=lambda f: f.min_y_velocity if f.touchdown is None else f.touchdown[3]),
+    "impact_x_velocity": Measure("Impact x-velocity", (-3.0, 3.0), "vx", lambda f: f.impact[2], "lander"),
+    # Angles are not wrapped: a lander that tumbles goes past pi, into the edge cells.
+    "impact_angle": Measure("Impact angle (rad)", (-math.pi, math.pi), "angle", lambda f: f.impact[4],
+                            "lander"),
+    # Fuel in main-engine firings at full power: a side firing costs a tenth of one, as in the
+    # env's reward (with throttles: each firing weighed by its power).
+    "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 600.0), "fuel",
+                    lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT]), "lander"),
+    # A lander falling freely touches down after ~51 steps; one that hovers flies all 1000.
+    "flight_time": Measure("Steps to touchdown", (50.0, 1000.0), "steps",
+                           lambda f: f.steps if f.touchdown_step is None else f.touchdown_step, "lander"),
+    "max_tilt": Measure("Largest tilt before touchdown (rad)", (0.0, math.pi), "tilt",
+                        lambda f: f.max_tilt, "lander"),
+    # The QD literature's walker measures (Cully et al. 2015's duty factor): the share of steps
+    # each foot touches the ground.
+    "foot1_contact": Measure("Share of steps foot 1 touches the ground", (0.0, 1.0), "foot1",
+                             lambda w: w.share(0), "walker"),
+    "foot2_contact": Measure("Share of steps foot 2 touches the ground", (0.0, 1.0), "foot2",
+                             lambda w: w.share(1), "walker"),
+    # How far, and how fast: the course is ~88 m from the start to its end.
+    "distance": Measure("Distance walked (m)", (-10.0, 90.0), "dist", lambda w: w.distance, "walker"),
+    "speed": Measure("Mean speed (m/s)", (-1.0, 3.0), "speed",
+                     lambda w: w.distance * 50 / max(w.steps, 1), "walker"),  # 50 steps a second
+    "hull_angle": Measure("Mean hull angle (rad)", (-1.0, 1.0), "hull",
+                          lambda w: w.hull_angles / max(w.steps, 1), "walker"),
+}
+TUTORIAL_MEASURES = ENVIRONMENTS[DEFAULT_ENV].measures  # what old run folders used
+
+
+def family_measures(family: str) -> list[str]:
+    return [name for name, measure in MEASURES.items() if measure.family == family]
+
+
+def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
+        on_step: Callable[[Any, np.ndarray], None] | None = None, env_name: str = DEFAULT_ENV) -> Any:
+    """Fly the task's linear policy for one episode on the terrain of `env_seed`; its summary.
+
+    With a `trajectory` list, each step's position is appended to it (the lander's normalised
+    (x, y), the walker's hull in metres); `on_step` is called with each step's action and
+    observation (the explorer records poses with it).
+    """
+    task = ENVIRONMENTS[env_name]
+    if trajectory is not None:
+        if task.family == "walker":
+            def on_step(action: Any, obs: np.ndarray) -> None:
+                position = env.unwrapped.hull.position  # the hull of this episode (reset makes one)
+                trajectory.append((float(position.x), float(position.y)))
+        else:
+            def on_step(action: Any, obs: np.ndarray) -> None:
+                trajectory.append((float(obs[0]), float(obs[1])))
+    return task.fly(solution, env_seed, env, task, on_step)
+
+
+def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
+            trajectory: list | None = None, env_name: str = DEFAULT_ENV) -> tuple[float, ...]:
+    """(objective, *measures) of one episode (default: the task's measures): the objective is the
+    episode's total reward."""
+    flight = fly(solution, env_seed, env, trajectory, env_name=env_name)
+    measures = ENVIRONMENTS[env_name].measures if measures is None else measures
+    return (float(flight.reward), *(float(MEASURES[name].of(flight)) for name in measures))
 
 # ================================================================================================
 # The algorithm: an archive of elites, emitters that propose solutions, a scheduler tying them
 # ================================================================================================
 
-MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps a 32-number solution
-QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score counts every elite
+MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps one solution
 
 # One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
 # whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
@@ -266,13 +427,13 @@ QD_SCORE_OFFSET = -600.0  # almost every policy scores above -600, so QD score c
 # - cma_me: the tutorial's CMA-ME (EvolutionStrategyEmitter, two-stage improvement ranker).
 # - cma_mae: pyribs' CMA-MAE tutorial and sphere.py's "cma_mae" row: a soft archive with
 #   learning_rate (--learning_rate; 0.01 there, 0.5 here: docs/algorithms.md) and threshold_min (0
-#   there for objectives in [0, 100]; here the QD offset -600, below almost every episode's
-#   reward), a plain result archive of the same grid that keeps the best solutions (metrics,
+#   there for objectives in [0, 100]; here the task's QD offset, below almost every episode's
+#   return), a plain result archive of the same grid that keeps the best solutions (metrics,
 #   heatmaps and archive.pkl come from it), and emitters with the "imp" ranker, "mu" selection
 #   and "basic" restarts.
 # - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
-#   fixed sigma (--sigma0). The policy argmax(W @ obs) ignores W's scale and the search starts
-#   from zeros, so only sigma relative to the elites' weights matters, as for CMA-ES's sigma0.
+#   fixed sigma (--sigma0). (Lunar Lander's policy argmax(W @ obs) ignores W's scale, so there
+#   only sigma relative to the elites' weights matters; tanh(W @ obs) does not ignore it.)
 ALGORITHMS: dict[str, dict[str, Any]] = {
     "cma_me": {
         "archive": lambda config: {},
@@ -282,7 +443,7 @@ ALGORITHMS: dict[str, dict[str, Any]] = {
     },
     "cma_mae": {
         "archive": lambda config: {"learning_rate": config["learning_rate"],
-                                   "threshold_min": QD_SCORE_OFFSET},
+                                   "threshold_min": task_of(config).qd_offset},
         "result_archive": True,
         "emitter": "EvolutionStrategyEmitter",
         "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "imp",
@@ -308,6 +469,11 @@ def ignores(algorithm: str, flag: str) -> bool:
     return bool(only_for) and algorithm not in only_for
 
 
+def task_of(config: dict[str, Any]) -> Environment:
+    """The run's row of ENVIRONMENTS (run folders from before --env flew Lunar Lander)."""
+    return ENVIRONMENTS[config.get("env", DEFAULT_ENV)]
+
+
 def derive_seeds(seed: int, count: int) -> list[int]:
     """Independent seeds for the archive and each emitter, all fixed by the one run seed."""
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
@@ -316,8 +482,9 @@ def derive_seeds(seed: int, count: int) -> list[int]:
 def archive_grid(config: dict[str, Any]) -> dict[str, Any]:
     """The archive's cells: --grid of them along each of the run's --measures, over its range."""
     measures = config["measures"]
-    return dict(solution_dim=SOLUTION_DIM, dims=(config["grid"],) * len(measures),
-                ranges=[MEASURES[name].range for name in measures], qd_score_offset=QD_SCORE_OFFSET)
+    task = task_of(config)
+    return dict(solution_dim=task.solution_dim, dims=(config["grid"],) * len(measures),
+                ranges=[MEASURES[name].range for name in measures], qd_score_offset=task.qd_offset)
 
 
 def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
@@ -339,7 +506,7 @@ def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
     emitters = [
         emitter_class(
             archive,
-            x0=np.zeros(SOLUTION_DIM) if x0 is None else x0,
+            x0=np.zeros(task_of(config).solution_dim) if x0 is None else x0,
             batch_size=config["batch_size"],
             seed=emitter_seed,
             **spec["emitter_kwargs"](config),
@@ -353,21 +520,28 @@ def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
 # The evaluation engine: batches of rollouts on a Dask cluster
 # ================================================================================================
 
-_WORKER_ENVS: dict[bool, gym.Env] = {}  # one environment per worker process, reused across tasks
+_WORKER_ENVS: dict[tuple[str, bool], gym.Env] = {}  # per worker process, reused across tasks
+
+
+def worker_env(env_name: str, fast: bool = True) -> gym.Env:
+    """This process's environment of the task: reset(seed) gives the same episode bit for bit as
+    a fresh environment, without paying for gym.make each time."""
+    key = (env_name, fast)
+    if key not in _WORKER_ENVS:
+        _WORKER_ENVS[key] = make_env(fast, env_name=env_name)
+    return _WORKER_ENVS[key]
 
 
 def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str, ...],
-              fast_env: bool = True) -> np.ndarray:
+              fast_env: bool = True, env_name: str = DEFAULT_ENV) -> np.ndarray:
     """Runs on a worker: fly solutions[i] on terrain env_seeds[i]; rows of (objective, *measures).
 
     A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
-    small next to the rollouts, and the environment is kept between tasks: reset(seed) gives the
-    same episode bit for bit as a fresh environment, without paying for gym.make each time.
+    small next to the rollouts, and the environment is kept between tasks (worker_env).
     """
-    env = _WORKER_ENVS.get(fast_env)
-    if env is None:
-        env = _WORKER_ENVS[fast_env] = make_env(fast_env)
-    rows = [rollout(solution, int(seed), env, measures) for solution, seed in zip(solutions, env_seeds)]
+    env = worker_env(env_name, fast_env)
+    rows = [rollout(solution, int(seed), env, measures, env_name=env_name)
+            for solution, seed in zip(solutions, env_seeds)]
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
@@ -379,7 +553,8 @@ MAX_CHUNK = 1000  # rollouts per task at most (a few seconds), so big batches re
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
-                   fast_env: bool = True, sharing: int = 1, threads: int | None = None) -> list:
+                   fast_env: bool = True, sharing: int = 1, threads: int | None = None,
+                   env_name: str = DEFAULT_ENV) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
 
     The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
@@ -396,7 +571,7 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures
     seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
     return client.map(fly_chunk, [solutions[chunk // len(env_seeds)] for chunk in chunks],
                       [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
-                      [fast_env] * len(chunks), pure=False, retries=3)
+                      [fast_env] * len(chunks), [env_name] * len(chunks), pure=False, retries=3)
 
 
 def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int]) -> np.ndarray:
@@ -431,7 +606,7 @@ def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndar
     seed gives the same archive on 1 or 100 workers.
     """
     futures = submit_flights(client, solutions, config["env_seed"], config["measures"],
-                             config["fast_env"])
+                             config["fast_env"], env_name=config["env"])
     return averaged(per_terrain(client.gather(futures), config["env_seed"]))
 
 
@@ -965,6 +1140,7 @@ def check_run_config(config: Any) -> dict:
         config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
     except TypeError as error:
         raise UsageError(str(error)) from None
+    config = with_task(config)
     seed_number("seed", config["seed"])
     return config
 
@@ -1037,13 +1213,18 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "seed": Flag(None, "Seed of the archive and emitters; drawn and recorded in config.json if "
                        "omitted. The same seed gives the same archive whatever the number of "
                        "workers.", seed_number, per_run=True),
+    "env": Flag(DEFAULT_ENV, "The Gymnasium task, a row of ENVIRONMENTS: " + ", ".join(ENVIRONMENTS)
+                + " (docs/environments.md).", one_of(ENVIRONMENTS)),
     "env_seed": Flag(52, "The terrain(s) every policy is flown on: one seed (52), a range (0-4), a "
                          "list (3,5,8) or both (0-4,10). With several terrains the objective is "
                          "the mean return over them, and each measure is its per-terrain values "
                          "averaged.", seed_list, label=1, text=True),
-    "measures": Flag(TUTORIAL_MEASURES, "1 to 3 rows of the MEASURES table, comma-separated, as "
-                                        "the archive's axes: " + ", ".join(MEASURES) + " (the "
-                                        "first two, the tutorial's, are the default).",
+    "measures": Flag(None, "1 to 3 rows of the MEASURES table of the task's family, "
+                           "comma-separated, as the archive's axes; default: the task's own. Lunar "
+                           "Lander: " + ", ".join(family_measures("lander")) + " (the tutorial's "
+                           "impact_x,impact_y_velocity by default); BipedalWalker: "
+                           + ", ".join(family_measures("walker")) + " (foot1_contact,"
+                           "foot2_contact by default).",
                      distinct_names(MEASURES, "measures", 3), label=2, text=True),
     "grid": Flag(50, "Archive cells along each measure.", positive_int, sweep=True, label=3),
     "algorithm": Flag("cma_me", "Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae "
@@ -1070,9 +1251,9 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "from_archive": Flag(None, "Warm start: an archive.pkl of an earlier run whose elites are "
                                "re-evaluated in this run's setting to fill the archive first; the "
                                "emitters start from the best.", per_run=True),
-    "fast_env": Flag(True, "Fly rollouts in the streamlined LunarLander-v3 (bitwise identical "
-                           "results, about a third less time per step); false uses gym.make's "
-                           "plain environment.", boolean),
+    "fast_env": Flag(True, "Fly rollouts in the task's streamlined copy where it has one "
+                           "(LunarLander-v3: bitwise identical results, about a third less time "
+                           "per step); false uses gym.make's plain environment.", boolean),
 }
 
 # resume: a run goes on as it was started unless told otherwise.
@@ -1102,6 +1283,18 @@ TERRAIN_FLAGS: dict[str, Flag] = {
 }
 
 
+def with_task(config: dict[str, Any]) -> dict[str, Any]:
+    """The config with its task's default measures if it names none, and its measures checked
+    against its task (a walker has no impact x)."""
+    env = config.get("env", DEFAULT_ENV)
+    task = ENVIRONMENTS[env]
+    measures = list(task.measures if config.get("measures") is None else config["measures"])
+    if wrong := [name for name in measures if MEASURES[name].family != task.family]:
+        raise UsageError(f"--measures {wrong[0]} is not a measure of --env {env}; its measures: "
+                         + ", ".join(family_measures(task.family)))
+    return {**config, "env": env, "measures": measures}
+
+
 def search_defaults() -> dict[str, Any]:
     return {name: flag.default for name, flag in SEARCH_FLAGS.items()}
 
@@ -1121,7 +1314,8 @@ def search(**flags: Any) -> None:
     config.json and run.log. Other commands (each with --help): resume, experiment, video, elites,
     trajectories, evaluate, explore, compare.
     """
-    flags = check_flags(SEARCH_FLAGS, flags)
+    flags = with_task(check_flags(SEARCH_FLAGS, flags))
+    check_spaces(flags["env"])
     check_archive_size(flags)
     from_archive = flags["from_archive"]
     seed_archive = load_archive(Path(from_archive), flags) if from_archive else None

@@ -46,13 +46,13 @@ from flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from lunar_lander import (
     _WORKER_ENVS,
     CLUSTER_FLAGS,
-    LANDED,
     MEASURES,
     SELECTION_FLAGS,
     STOP,
     TERRAIN_FLAGS,
     TUTORIAL_MEASURES,
     averaged,
+    task_of,
     dask_client,
     fly,
     gather_with_progress,
@@ -278,21 +278,22 @@ def shown_terrain(config: dict, env_seed: Any) -> int:
 def reflown(elite: dict, config: dict) -> tuple[float, list[float]]:
     """The elite flown again in its run's setting (every terrain, averaged as the engine does):
     rollouts are deterministic, so this is exactly its stored objective and measures."""
-    env, seeds = make_env(config["fast_env"]), config["env_seed"]
-    rows = [np.array([rollout(elite["solution"], seed, env, config["measures"]) for seed in seeds])]
+    env, seeds = make_env(config["fast_env"], env_name=config["env"]), config["env_seed"]
+    rows = [np.array([rollout(elite["solution"], seed, env, config["measures"], env_name=config["env"])
+                      for seed in seeds])]
     objectives, measures = averaged(per_terrain(rows, seeds))
     return float(objectives[0]), measures[0].tolist()
 
 
-def record_video(solution: np.ndarray, env_seed: int, path: Path) -> None:
+def record_video(solution: np.ndarray, env_seed: int, path: Path, env_name: str) -> None:
     """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
     + 1 frames (the reset's frame first); written aside and moved into place whole."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
-            env = Mp4Recorder(make_env(fast=False, render_mode="rgb_array"), Path(tmp) / "flight.mp4")
+            env = Mp4Recorder(make_env(False, "rgb_array", env_name), Path(tmp) / "flight.mp4")
             try:
-                fly(solution, env_seed, env)
+                fly(solution, env_seed, env, env_name=env_name)
             finally:
                 env.close()
             os.replace(env.path, path)
@@ -321,7 +322,7 @@ def video(run_dir: str, **flags: Any) -> None:
     for elite in chosen:
         STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
         path = folder / f"{elite['name']}.mp4"
-        record_video(elite["solution"], shown, path)
+        record_video(elite["solution"], shown, path, config["env"])
         print(f"{path}: {describe_elite(elite, measures)}")
         objective, values = reflown(elite, config)
         reproduced = objective == elite["objective"] and values == list(elite["measures"])
@@ -507,7 +508,7 @@ def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: in
 
         with contextlib.suppress(OSError, ValueError, KeyError):
             table = pd.read_csv(run_dir / "robustness.csv")
-            robust = {int(r["cell_index"]): (float(r["mean_objective"]), float(r["landed_share"]))
+            robust = {int(r["cell_index"]): (float(r["mean_objective"]), float(r["solved_share"]))
                       for r in table.to_dict("records")}
     elites = [{"index": int(index), "gx": int(cell[0]), "gy": int(cell[1]) if len(cell) > 1 else 0,
                "objective": float(objective), "measures": [float(m) for m in measures],
@@ -572,7 +573,7 @@ def explore(run_dir: str, **flags: Any) -> None:
 
 
 def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
-                     objectives: np.ndarray):
+                     objectives: np.ndarray, solved: float):
     """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
     elites that generalise best first."""
     import pandas as pd
@@ -581,7 +582,7 @@ def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: li
                           **{name: rows["measures"][:, i] for i, name in enumerate(measures)},
                           "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
                           "std_objective": objectives.std(axis=1),
-                          "landed_share": (objectives >= LANDED).mean(axis=1)})
+                          "solved_share": (objectives >= solved).mean(axis=1)})
     table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
                       axis=1)
     return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
@@ -594,8 +595,9 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
 
     Writes RUN_DIR/robustness.csv (per elite: its objective in the run, i.e. its mean over the
     run's terrains; mean, min and standard deviation of its objective over the new terrains, share
-    of landings >= 200, and each terrain's objective) and RUN_DIR/robustness_heatmap.png (the
-    archive coloured by the mean objective on the new terrains).
+    of terrains where it solves the task (a landing >= 200, a walk >= 300), and each terrain's
+    objective) and RUN_DIR/robustness_heatmap.png (the archive coloured by the mean objective on
+    the new terrains).
 
     Args:
         run_dir: A run folder written by this script.
@@ -613,19 +615,21 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
     scheduler_address = scheduler_of(flags)
     with dask_client(workers, scheduler_address, console_log()) as client:
-        futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"])
+        futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"],
+                                 env_name=config["env"])
         objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
     run = Path(str(run_dir))
-    table = robustness_table(rows, config["measures"], seeds, objectives)
+    solved = task_of(config).solved
+    table = robustness_table(rows, config["measures"], seeds, objectives, solved)
     write_csv(run / "robustness.csv", table)
     means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
                         ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
     means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
     save_heatmap(means, [MEASURES[m] for m in config["measures"]], run / "robustness_heatmap.png",
                  f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
-    landed = table["landed_share"]
+    solves = table["solved_share"]
     print(f"{len(table)} elites on {len(seeds)} terrains: "
           f"mean objective {table['mean_objective'].mean():.1f}; "
-          f"{(landed == 1).sum()} land (>= {LANDED:g}) on every terrain, {(landed >= 0.5).sum()} on at "
+          f"{(solves == 1).sum()} solve it (>= {solved:g}) on every terrain, {(solves >= 0.5).sum()} on at "
           f"least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
     print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")

@@ -41,7 +41,7 @@ def test_compare_writes_png_and_table(run_cli, tmp_path, two_runs):
         assert float(row["coverage"]) == pytest.approx(final["coverage"])
         assert float(row["best_objective"]) == pytest.approx(final["best_objective"])
         objectives = load_pickle(run_dir / "archive.pkl").data("objective")
-        assert int(row["cells_200+"]) == int((objectives >= 200).sum())
+        assert int(row["solved_cells"]) == int((objectives >= 200).sum())
     assert labels[0] in result.stdout and labels[1] in result.stdout
     assert f"{final['qd_score']:,.0f}" in result.stdout
 

@@ -177,7 +177,7 @@ def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
     elite = best_elite(run_dir)
     page.mouse.move(*cell_centre(page, elite["index"]))
     row = robust[elite["index"]]
-    assert (f"other terrains: mean {row['mean_objective']:.2f}, landed {100 * row['landed_share']:.0f}%"
+    assert (f"other terrains: mean {row['mean_objective']:.2f}, solved {100 * row['solved_share']:.0f}%"
             in page.inner_text("#tip"))
     before = page.evaluate("document.getElementById('heatmap').toDataURL()")
     page.check("input[value=robust]")

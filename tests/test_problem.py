@@ -53,7 +53,7 @@ def expected_measures(trace) -> dict[str, float]:
 def test_every_measure_matches_a_hand_made_trace(weights):
     trace = step_trace(weights, 52)
     expected = expected_measures(trace)
-    names = tuple(ll.MEASURES)
+    names = tuple(ll.family_measures("lander"))
 
     result = ll.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names)
 
@@ -87,7 +87,7 @@ def test_terrain_seed_changes_the_episode():
 
 
 def test_worker_chunk_matches_single_rollouts():
-    solutions = RNG.normal(size=(5, ll.SOLUTION_DIM))
+    solutions = RNG.normal(size=(5, ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim))
     seeds = np.array([52, 52, 7, 7, 3])
     env = gym.make("LunarLander-v3")
     expected = [ll.rollout(s, int(seed), env, ("fuel",)) for s, seed in zip(solutions, seeds)]
@@ -96,11 +96,11 @@ def test_worker_chunk_matches_single_rollouts():
 
 @pytest.mark.parametrize("terrains", [[52], [52, 7, 3]])
 def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains):
-    solutions = np.random.default_rng(1).normal(size=(11, ll.SOLUTION_DIM))
+    solutions = np.random.default_rng(1).normal(size=(11, ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim))
     measures = ["impact_x", "flight_time", "max_tilt"]
     env = gym.make("LunarLander-v3")
     direct = np.array([[ll.rollout(s, seed, env, measures) for seed in terrains] for s in solutions])
-    config = {"env_seed": terrains, "measures": measures, "fast_env": True}
+    config = {"env": "LunarLander-v3", "env_seed": terrains, "measures": measures, "fast_env": True}
 
     objectives, values = ll.evaluate_batch(dask_client, solutions, config)
 
@@ -112,7 +112,7 @@ def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains
 
 
 def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
-    solutions = np.zeros((6, ll.SOLUTION_DIM))
+    solutions = np.zeros((6, ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim))
     futures = ll.submit_flights(dask_client, solutions, list(range(40)), ())
     sizes = [len(chunk) for chunk in dask_client.gather(futures)]
     assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 4  # 2 per worker
