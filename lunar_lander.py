@@ -74,6 +74,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import Box2D
 import gymnasium as gym
 import numpy as np
 
@@ -228,6 +229,7 @@ def fly_walker(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environm
                on_step: Callable[[Any, np.ndarray], None] | None = None) -> Walk:
     """One BipedalWalker episode of the linear policy on the terrain of `env_seed`."""
     policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
+    renew_world(env.unwrapped)
     obs, _ = env.reset(seed=env_seed)
     hull, walk, done = env.unwrapped.hull, Walk(), False
     start_x, contacts, total_reward, angles, steps = hull.position.x, [0, 0], 0.0, 0.0, 0
@@ -237,14 +239,23 @@ def fly_walker(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environm
         done = terminated or truncated
         steps += 1
         total_reward += reward
-        angles += obs[0]
-        contacts[0] += obs[8] > 0
-        contacts[1] += obs[13] > 0
+        angles += float(obs[0])  # in float64: a float32 sum drifts over 1,600 steps
+        contacts[0] += obs[8] > 0.5
+        contacts[1] += obs[13] > 0.5
         if on_step is not None:
             on_step(action, obs)
     walk.reward, walk.steps, walk.contacts = total_reward, steps, contacts
     walk.distance, walk.hull_angles = float(hull.position.x - start_x), float(angles)
     return walk
+
+
+def renew_world(walker: Any) -> None:
+    """Give a BipedalWalker a new Box2D world before its reset. Its reset only destroys the last
+    episode's bodies, and a world that has held them solves contacts in another order: episodes
+    in a reused env differed from a fresh env's (measured). With a new world they are the same,
+    bit for bit."""
+    walker._destroy()
+    walker.world = Box2D.b2World()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1110,6 +1121,9 @@ def check_archive(archive: Any, path: Path, config: dict) -> None:
     lower, upper = zip(*grid["ranges"])
     expected = (grid["solution_dim"], tuple(grid["dims"]), np.round(lower, 9).tolist(),
                 np.round(upper, 9).tolist())
+    if shape[0] != expected[0]:
+        raise UsageError(f"{path}: its solutions have {shape[0]} weights, but --env "
+                         f"{config['env']}'s policy has {expected[0]}: an archive of another task's run")
     if shape != expected:
         raise UsageError(f"{path}: archive of another shape (solution size, grid, lower and upper "
                          f"bounds {shape}; the run's --measures {','.join(config['measures'])} and "
@@ -1377,8 +1391,8 @@ def where_to_look(run_dir: Path) -> str:
     folder = shlex.quote(str(run_dir))
     return (f"Results in {run_dir}: heatmap.png, progress.png, metrics.json, archive.csv. Look at "
             f"them with:\n  python lunar_lander.py explore {folder}      # a page to browse the "
-            f"archive and watch any landing\n  python lunar_lander.py video {folder} --best   # an "
-            f"mp4 of the best landing")
+            f"archive and watch any elite\n  python lunar_lander.py video {folder} --best   # an "
+            f"mp4 of the best elite")
 
 
 @contextlib.contextmanager

@@ -30,29 +30,22 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.box2d import lunar_lander as upstream
 
-from fast_env import (
-    FPS,
-    HALF_H,
-    HALF_W,
-    HEIGHT,
-    HELIPAD_Y,
-    PAD_Y,
-    SCALE,
-    WIDTH,
-    FastLunarLander,
-    seeded_randoms,
-)
+from fast_env import FPS, HALF_H, HALF_W, HEIGHT, HELIPAD_Y, PAD_Y, SCALE, WIDTH, seeded_randoms
 from flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from lunar_lander import (
-    _WORKER_ENVS,
     CLUSTER_FLAGS,
+    DEFAULT_ENV,
+    ENVIRONMENTS,
+    LEFT,
+    MAIN,
     MEASURES,
+    RIGHT,
     SELECTION_FLAGS,
     STOP,
     TERRAIN_FLAGS,
     TUTORIAL_MEASURES,
     averaged,
-    task_of,
+    burn,
     dask_client,
     fly,
     gather_with_progress,
@@ -64,6 +57,8 @@ from lunar_lander import (
     rollout,
     scheduler_of,
     submit_flights,
+    task_of,
+    worker_env,
 )
 from plots import HEATMAP_RANGE, save_heatmap
 from run_files import (
@@ -379,43 +374,77 @@ def terrain(env_seed: int) -> np.ndarray:
     return np.column_stack([(points[:, 0] - HALF_W) / HALF_W, (points[:, 1] - PAD_Y) / HALF_H])
 
 
-def fly_paths(chosen: list[dict], env_seed: int) -> list[tuple[np.ndarray, int]]:
-    """Each elite's (x, y) per step, and the index of its touchdown (its last step if none)."""
-    env, paths = make_env(), []
+def fly_paths(chosen: list[dict], env_seed: int, env_name: str) -> list[tuple[np.ndarray, int]]:
+    """Each elite's path, and the step marked on it: the lander's (x, y) per step and its
+    touchdown (its last step if none); the walker's hull (x, y) and its last step."""
+    env, paths = make_env(env_name=env_name), []
     for elite in chosen:
         STOP.check()
         path: list = []
-        flight = fly(elite["solution"], env_seed, env, path)
-        paths.append((np.array(path), (flight.touchdown_step or flight.steps) - 1))
+        summary = fly(elite["solution"], env_seed, env, path, env_name=env_name)
+        paths.append((np.array(path), (getattr(summary, "touchdown_step", None) or summary.steps) - 1))
     return paths
 
 
-def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]], env_seed: int,
-                         path: Path) -> None:
-    """The tutorial's "many ways to land" on one page: flight paths over the terrain, coloured by
-    objective, impacts marked. Equal metres on both axes (x and y are scaled differently)."""
+def path_figure(chosen: list[dict], paths: list[tuple[np.ndarray, int]]):
+    """A figure with each path coloured by its elite's objective and its marked step as a dot."""
     import matplotlib.pyplot as plt
     from matplotlib import cm, colors
 
     objectives = [float(elite["objective"]) for elite in chosen]
     norm = colors.Normalize(min(objectives) - 1e-9, max(objectives) + 1e-9)
     cmap = plt.get_cmap("viridis")
-    ground = terrain(env_seed)
     fig, ax = plt.subplots(figsize=(11, 7))
+    for elite, (path, step) in zip(chosen, paths):
+        colour = cmap(norm(float(elite["objective"])))
+        ax.plot(path[:, 0], path[:, 1], color=colour, lw=1.2, alpha=0.9,
+                label=elite["name"] if len(chosen) <= 12 else None)
+        ax.plot(*path[step], marker="o", ms=7, mec="black", color=colour, zorder=3)
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="Objective", shrink=0.8)
+    return fig, ax
+
+
+def draw_landings(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, env_name: str) -> str:
+    """The tutorial's "many ways to land": flight paths over the terrain, impacts marked. Equal
+    metres on both axes (x and y are scaled differently)."""
+    ground = terrain(env_seed)
     ax.fill_between(ground[:, 0], ground[:, 1], ground[:, 1].min() - 0.2, color="0.75", zorder=0)
     ax.plot([-0.2, 0.2], [ground[5, 1]] * 2, color="gold", lw=4, label="helipad", zorder=1)
-    for elite, (flight, step) in zip(chosen, paths):
-        colour = cmap(norm(float(elite["objective"])))
-        ax.plot(flight[:, 0], flight[:, 1], color=colour, lw=1.2, alpha=0.9,
-                label=elite["name"] if len(chosen) <= 12 else None)
-        ax.plot(*flight[step], marker="o", ms=7, mec="black", color=colour, zorder=3)
     ax.set_aspect(HALF_H / HALF_W)
     ax.set_xlim(-1.05, 1.05)
     ax.set_ylim(ground[:, 1].min() - 0.2, max(1.5, max(float(f[:, 1].max()) for f, _ in paths) + 0.05))
     ax.set_xlabel("x (observation units: -1 and 1 are the screen edges)")
     ax.set_ylabel("y of the lander's centre (0: resting on the helipad)")
-    ax.set_title(f"Flight paths of {len(chosen)} elites on terrain {env_seed} (dots: touchdown)")
-    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="Objective", shrink=0.8)
+    return "Flight paths of {} elites on terrain {} (dots: touchdown)"
+
+
+def draw_walks(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, env_name: str) -> str:
+    """The walkers' hull height against distance over the course's ground, where each ends."""
+    env = make_env(False, env_name=env_name)
+    env.reset(seed=env_seed)
+    for poly, _ in env.unwrapped.terrain_poly:
+        ax.fill(*zip(*poly), color="0.75", lw=0, zorder=0)
+    end = max(float(path[:, 0].max()) for path, _ in paths)
+    ax.set_xlim(0, min(env.unwrapped.terrain_x[-1], end + 5))
+    env.close()
+    ax.set_ylim(0, max(float(path[:, 1].max()) for path, _ in paths) + 1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x of the hull (m)")
+    ax.set_ylabel("height of the hull (m)")
+    return "Hull paths of {} elites on terrain {} (dots: the episode's end)"
+
+
+PATH_PICTURES = {"lander": draw_landings, "walker": draw_walks}
+
+
+def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]], env_seed: int,
+                         path: Path, env_name: str = DEFAULT_ENV) -> None:
+    """The chosen elites' paths on one page, drawn as their task's family draws them."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = path_figure(chosen, paths)
+    title = PATH_PICTURES[ENVIRONMENTS[env_name].family](ax, paths, env_seed, env_name)
+    ax.set_title(title.format(len(chosen), env_seed))
     ax.legend(fontsize=7, loc="upper left")
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
     plt.close(fig)
@@ -432,7 +461,7 @@ def trajectories(run_dir: str, **flags: Any) -> None:
     """
     config, chosen, shown = load_chosen_elites(run_dir, flags)
     path = Path(str(run_dir)) / "trajectories.png"
-    save_trajectory_plot(chosen, fly_paths(chosen, shown), shown, path)
+    save_trajectory_plot(chosen, fly_paths(chosen, shown, config["env"]), shown, path, config["env"])
     for elite in chosen:
         print(f"{elite['name']}: {describe_elite(elite, config['measures'])}")
     print(f"written to {path}")
@@ -463,44 +492,104 @@ def explorer_page(data: dict) -> str:
     block = json.dumps(data, separators=(",", ":")).translate(JSON_IN_HTML)
     return page.replace("/*POLICY*/", policy, 1).replace("/*DATA*/", block, 1)
 
-# The explorer page: every elite's flight, recorded as poses and packed into the page.
-# Per step, five numbers give the drawing: the lander's x, y and angle and its two legs' angles (a
-# leg hangs from the lander's centre by its joint, so its position follows from its angle), plus
-# the action (which engine fires). They are quantised to int16, 1 mm and 0.1 mrad (angles wrapped
-# to [-pi, pi]), and sent as base64: ~11 bytes a step, ~9 MB for a full 300-iteration archive
-# (~615,000 steps). The page decodes them with atob into an Int16Array.
-POSE_SCALE = (1000.0, 1000.0, 10000.0, 10000.0, 10000.0)  # int16 units per metre or radian
+# The explorer page: every elite's flight, recorded as poses and packed into the page. Per step,
+# a family's pose gives the drawing, quantised to int16 (POSE_SCALE: units per metre or radian;
+# angles wrapped to [-pi, pi]) and sent as base64; the page decodes them into an Int16Array.
+# - lander: x, y and angle, the two legs' angles (a leg hangs from the lander's centre by its
+#   joint, so its position follows from its angle), the main engine's power (0, or 0.5 to 1) and
+#   the side engines' (negative: the left one): 1 mm and 0.1 mrad, ~14 bytes a step, ~9 MB for a
+#   full 300-iteration archive (~615,000 steps);
+# - walker: the hull's and the four leg segments' x, y and angle: 1 cm (the course is ~90 m)
+#   and 0.1 mrad, 30 bytes a step.
+POSE_SCALE = {"lander": (1e3, 1e3, 1e4, 1e4, 1e4, 1e4, 1e4), "walker": (1e2, 1e2, 1e4) * 5}
+ANGLES = {"lander": [2, 3, 4], "walker": [2, 5, 8, 11, 14]}  # the pose's columns that are angles
 
 
-def record_poses(solutions: np.ndarray, env_seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Runs on a worker: each solution's flight as quantised poses (steps + 1, 5) and actions,
-    the reset's pose first (action 0), flown in the streamlined env as `rollout` flies it."""
-    env = _WORKER_ENVS.get(True) or _WORKER_ENVS.setdefault(True, make_env(True))
-    return [record_flight(solution, env_seed, env) for solution in solutions]
+def engine_powers(action: Any) -> tuple[float, float]:
+    """The lander's (main, side) engine powers of an action: a discrete one fires one engine at
+    full power; a continuous one as lunar_lander.burn weighs it (side < 0: the left engine)."""
+    if action is None:
+        return 0.0, 0.0
+    if np.ndim(action) == 0:
+        return {MAIN: (1.0, 0.0), LEFT: (0.0, -1.0), RIGHT: (0.0, 1.0)}.get(int(action), (0.0, 0.0))
+    firings = [0.0] * 4
+    burn(firings, action)
+    return firings[MAIN], firings[RIGHT] - firings[LEFT]
 
 
-def record_flight(solution: np.ndarray, env_seed: int, env: FastLunarLander) -> tuple[np.ndarray, np.ndarray]:
-    def pose() -> list[float]:
-        return [env.lander.position.x, env.lander.position.y, env.lander.angle,
-                env.legs[0].angle, env.legs[1].angle]
+def lander_pose(env: gym.Env, action: Any) -> list[float]:
+    lander = env.unwrapped
+    return [lander.lander.position.x, lander.lander.position.y, lander.lander.angle,
+            lander.legs[0].angle, lander.legs[1].angle, *engine_powers(action)]
 
+
+def walker_pose(env: gym.Env, action: Any) -> list[float]:
+    walker = env.unwrapped
+    return [value for body in (walker.hull, *walker.legs)
+            for value in (body.position.x, body.position.y, body.angle)]
+
+
+POSES = {"lander": lander_pose, "walker": walker_pose}
+
+
+def record_poses(solutions: np.ndarray, env_seed: int, env_name: str = DEFAULT_ENV) -> list[np.ndarray]:
+    """Runs on a worker: each solution's episode as quantised poses (steps + 1, pose size), the
+    reset's pose first, flown in the env `rollout` flies it in."""
+    env = worker_env(env_name, True)
+    return [record_flight(solution, env_seed, env, env_name) for solution in solutions]
+
+
+def record_flight(solution: np.ndarray, env_seed: int, env: gym.Env, env_name: str) -> np.ndarray:
+    family = ENVIRONMENTS[env_name].family
+    pose = POSES[family]
     env.reset(seed=env_seed)
-    poses, actions = [pose()], [0]
-    fly(solution, env_seed, env, on_step=lambda action, obs: (poses.append(pose()), actions.append(action)))
-    values = np.array(poses)  # the first pose is reset's; fly resets again, to the same pose
-    values[:, 2:] = (values[:, 2:] + np.pi) % (2 * np.pi) - np.pi
-    quantised = np.clip(np.round(values * POSE_SCALE), -32767, 32767).astype("<i2")
-    return quantised, np.array(actions, dtype=np.uint8)
+    poses = [pose(env, None)]  # reset's; fly resets again, to the same pose
+    fly(solution, env_seed, env, on_step=lambda action, obs: poses.append(pose(env, action)),
+        env_name=env_name)
+    values = np.array(poses)
+    angles = ANGLES[family]
+    values[:, angles] = (values[:, angles] + np.pi) % (2 * np.pi) - np.pi
+    return np.clip(np.round(values * POSE_SCALE[family]), -32767, 32767).astype("<i2")
 
 
-def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: int,
+def lander_world(env_seed: int, env_name: str) -> dict:
+    """What the page draws around a lander: the terrain, the helipad, the lander's shape."""
+    edges, _, _ = seeded_randoms(env_seed)
+    return {"width": WIDTH, "height": HEIGHT, "scale": SCALE, "helipad_y": HELIPAD_Y,
+            "helipad_x": [edges[3][1][0], edges[5][1][0]],
+            "ground": [edges[0][0], *(end for _, end in edges)],
+            "lander": [[x / SCALE, y / SCALE] for x, y in upstream.LANDER_POLY],
+            "leg": [upstream.LEG_AWAY / SCALE, upstream.LEG_DOWN / SCALE, upstream.LEG_W / SCALE,
+                    upstream.LEG_H / SCALE], "fps": FPS}
+
+
+def walker_world(env_seed: int, env_name: str) -> dict:
+    """What the page draws around a walker: the terrain's polygons (grass, stumps, stairs), the
+    hull's shape and the leg segments' half sizes."""
+    from gymnasium.envs.box2d import bipedal_walker as walker
+
+    env = make_env(False, env_name=env_name)
+    env.reset(seed=env_seed)
+    terrain = [[[round(float(x), 4), round(float(y), 4)] for x, y in poly]
+               for poly, _ in env.unwrapped.terrain_poly]
+    env.close()
+    return {"width": walker.VIEWPORT_W / walker.SCALE, "height": walker.VIEWPORT_H / walker.SCALE,
+            "terrain": terrain, "hull": [[x / walker.SCALE, y / walker.SCALE] for x, y in walker.HULL_POLY],
+            "legs": [[walker.LEG_W / 2, walker.LEG_H / 2], [0.8 * walker.LEG_W / 2, walker.LEG_H / 2]] * 2,
+            "fps": walker.FPS}
+
+
+WORLDS = {"lander": lander_world, "walker": walker_world}
+
+
+def explorer_data(archive, config: dict, rows: dict, flights: list[np.ndarray], env_seed: int,
                   run_dir: Path, metrics: list[dict]) -> dict:
     """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
     import base64
 
     import matplotlib
 
-    offsets = np.cumsum([0, *(len(actions) for _, actions in flights)])
+    offsets = np.cumsum([0, *(len(poses) for poses in flights)])
     grid = archive.int_to_grid_index(rows["index"])
     robust = {}
     if (run_dir / "robustness.csv").is_file():
@@ -512,28 +601,22 @@ def explorer_data(archive, config: dict, rows: dict, flights: list, env_seed: in
                       for r in table.to_dict("records")}
     elites = [{"index": int(index), "gx": int(cell[0]), "gy": int(cell[1]) if len(cell) > 1 else 0,
                "objective": float(objective), "measures": [float(m) for m in measures],
-               "offset": int(offset), "steps": int(len(actions) - 1),
+               "offset": int(offset), "steps": int(len(poses) - 1),
                **({"robust": robust[int(index)]} if int(index) in robust else {})}
-              for index, cell, objective, measures, offset, (_, actions)
+              for index, cell, objective, measures, offset, poses
               in zip(rows["index"], grid, rows["objective"], rows["measures"], offsets, flights)]
-    edges, _, _ = seeded_randoms(env_seed)
-    magma = matplotlib.colormaps["magma"]
+    magma, family = matplotlib.colormaps["magma"], task_of(config).family
     return {
         "run": str(run_dir), "algorithm": config["algorithm"], "env_seed": env_seed,
+        "env": config["env"], "kind": family,
         "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
                       "range": [float(lo), float(hi)]}
                      for name, lo, hi in zip(config["measures"], archive.lower_bounds, archive.upper_bounds)],
         "dims": [int(d) for d in archive.dims], "heat_range": list(HEATMAP_RANGE),
         "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
-        "elites": elites, "pose_scale": list(POSE_SCALE),
-        "poses": base64.b64encode(np.concatenate([p for p, _ in flights]).tobytes()).decode(),
-        "actions": base64.b64encode(np.concatenate([a for _, a in flights]).tobytes()).decode(),
-        "world": {"width": WIDTH, "height": HEIGHT, "scale": SCALE, "helipad_y": HELIPAD_Y,
-                  "helipad_x": [edges[3][1][0], edges[5][1][0]],
-                  "ground": [edges[0][0], *(end for _, end in edges)],
-                  "lander": [[x / SCALE, y / SCALE] for x, y in upstream.LANDER_POLY],
-                  "leg": [upstream.LEG_AWAY / SCALE, upstream.LEG_DOWN / SCALE, upstream.LEG_W / SCALE,
-                          upstream.LEG_H / SCALE], "fps": FPS},
+        "elites": elites, "pose_scale": list(POSE_SCALE[family]),
+        "poses": base64.b64encode(np.concatenate(flights).tobytes()).decode(),
+        "world": WORLDS[family](env_seed, config["env"]),
         "metrics": [{k: row.get(k) for k in ("iteration", "evaluations", "qd_score", "coverage",
                                              "best_objective")} for row in metrics],
         "robustness": bool(robust),
@@ -561,14 +644,14 @@ def explore(run_dir: str, **flags: Any) -> None:
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
-        futures = [client.submit(record_poses, chunk, shown, pure=False, retries=3)
+        futures = [client.submit(record_poses, chunk, shown, config["env"], pure=False, retries=3)
                    for chunk in chunks]
         flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
     data = explorer_data(archive, config, rows, flights, shown, run, metrics)
     page = explorer_page(data)
     atomic_write(run / "explorer.html", lambda f: f.write(page), mode="w")
     size = (run / "explorer.html").stat().st_size
-    print(f"{len(rows['index'])} elites, {sum(len(a) for _, a in flights):,} poses: wrote "
+    print(f"{len(rows['index'])} elites, {sum(len(poses) for poses in flights):,} poses: wrote "
           f"{run / 'explorer.html'} ({size / 1e6:.1f} MB); open it in a browser")
 
 

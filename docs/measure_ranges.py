@@ -32,7 +32,8 @@ def main(*run_dirs: str, random: int = 0, env_seed: int = 52) -> None:
                           for i, name in enumerate(config["measures"]))
         print(f"{run_dir}: {len(archive)} elites; on an axis's two edge cells: {edges}")
     solutions = [archive.data("solution") for archive, _ in archives]
-    solutions.append(np.random.default_rng(0).normal(size=(random, ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim)))
+    dim = ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim
+    solutions.append(np.random.default_rng(0).normal(size=(random, dim)))
     solutions = np.concatenate(solutions)
     env, names = ll.make_env(), tuple(ll.MEASURES)
     flown = np.array([ll.rollout(solution, env_seed, env, names) for solution in solutions])

@@ -47,9 +47,9 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     data = page_data(explored)
     archive = load_pickle(explored / "archive.pkl")
     assert len(data["elites"]) == len(archive)
-    poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, 5)
-    actions = np.frombuffer(base64.b64decode(data["actions"]), dtype=np.uint8)
-    assert len(poses) == len(actions) == sum(e["steps"] + 1 for e in data["elites"])
+    scale = np.array(results.POSE_SCALE["lander"])
+    poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, len(scale))
+    assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(archive.data("index"), archive.data("solution")))
     env = ll.make_env(fast=False)
     for elite in data["elites"][:5]:
@@ -57,7 +57,7 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
         objective, *measures = ll.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory)
         assert elite["objective"] == objective and elite["measures"] == measures
         assert elite["steps"] == len(trajectory)
-        flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / np.array(results.POSE_SCALE)
+        flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / scale
         # the observation's x and y, from the body's pose
         x = (flown[:, 0] - fast_env.HALF_W) / fast_env.HALF_W
         y = (flown[:, 1] - fast_env.PAD_Y) / fast_env.HALF_H

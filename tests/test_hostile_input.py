@@ -14,7 +14,7 @@ import results
 from util import Result, assert_one_line_error, checkpoint_iteration, folder_state
 
 INJECTION = "p</script><img src=x onerror=document.title=1337>"  # a folder p< holding script><img...
-TITLE = "Lunar Lander archive explorer"
+TITLE = "LunarLander-v3 archive explorer"
 
 
 @pytest.fixture(scope="module")

@@ -83,14 +83,14 @@ def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
 
 
 def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_cluster):
-    """Old config.json and checkpoint: no measures, no grid, env_seed a plain number."""
+    """Old config.json and checkpoint: no env, no measures, no grid, env_seed a plain number."""
     flags = tiny(dask_cluster, iterations=3, env_seed=52)
     ll.search(**flags, outdir=str(tmp_path / "whole"))
     old = tmp_path / "old"
     ll.search(**{**flags, "iterations": 1}, outdir=str(old))
     checkpoint = load_pickle(old / "checkpoint.pkl")
     for config in (checkpoint["config"], json.loads((old / "config.json").read_text())):
-        for key in ("measures", "grid"):
+        for key in ("measures", "grid", "env"):
             del config[key]
         config["env_seed"] = 52
         (old / "config.json").write_text(json.dumps(config))

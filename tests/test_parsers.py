@@ -122,8 +122,9 @@ def test_text_flags_reach_their_check_as_typed(args):
             assert ast.literal_eval(value) == original
 
 
-ARCHIVE = GridArchive(solution_dim=ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim, dims=(10, 10), ranges=[(-1, 1), (-3, 0)])
-ARCHIVE.add(np.zeros((3, ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim)), np.array([1.0, 2.0, 3.0]),
+LANDER_DIM = ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim
+ARCHIVE = GridArchive(solution_dim=LANDER_DIM, dims=(10, 10), ranges=[(-1, 1), (-3, 0)])
+ARCHIVE.add(np.zeros((3, LANDER_DIM)), np.array([1.0, 2.0, 3.0]),
             np.array([[0.0, -1.0], [0.5, -2.0], [-0.5, -0.5]]))
 
 

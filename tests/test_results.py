@@ -143,7 +143,8 @@ def test_trajectory_picture_of_the_top_elites(run_dir, archive):
     assert {name: after[name] for name in before if name in after} == before  # nothing else touched
 
     top = results.select_elites(archive, top=3)
-    for elite, (path, step) in zip(top, results.fly_paths(top, 52)):  # the drawn paths are their flights
+    paths = results.fly_paths(top, 52, ll.DEFAULT_ENV)
+    for elite, (path, step) in zip(top, paths):  # the drawn paths are their flights
         assert path[step, 0] == elite["measures"][0]  # the dot is at touchdown, where impact x is
 
 

@@ -62,8 +62,8 @@ def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys
     assert out.rstrip().splitlines()[-3:] == [
         f"Results in {run_dir}: heatmap.png, progress.png, metrics.json, archive.csv. Look at them with:",
         f"  python lunar_lander.py explore {run_dir}      # a page to browse the archive and watch "
-        f"any landing",
-        f"  python lunar_lander.py video {run_dir} --best   # an mp4 of the best landing"]
+        f"any elite",
+        f"  python lunar_lander.py video {run_dir} --best   # an mp4 of the best elite"]
 
 
 def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_run, run_cli):

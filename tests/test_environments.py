@@ -1,0 +1,263 @@
+"""Every row of ENVIRONMENTS: its policy fits its task, an episode is the same wherever it is
+flown, its measures are what a hand-made trace says, its runs are as exact as Lunar Lander's
+(1 worker = 2, resume = straight, an experiment's run = its lone twin), every command works on
+it, and bad input about tasks is one line."""
+
+import base64
+import json
+import shutil
+
+import gymnasium as gym
+import imageio_ffmpeg
+import numpy as np
+import pandas as pd
+import pytest
+from test_explorer import page_data
+
+import experiments
+import lunar_lander as ll
+import results
+from util import assert_one_line_error, assert_same_run, folder_state, run_archive, tiny_flags
+
+RNG = np.random.default_rng(20)
+OTHER_ROWS = [name for name in ll.ENVIRONMENTS if name != ll.DEFAULT_ENV]
+WALKER = "BipedalWalker-v3"
+
+
+def policies(env_name: str, count: int = 4) -> np.ndarray:
+    return RNG.normal(size=(count, ll.ENVIRONMENTS[env_name].solution_dim)) * 0.5
+
+
+@pytest.mark.parametrize("env_name", list(ll.ENVIRONMENTS))
+def test_an_episode_is_the_same_wherever_it_is_flown(env_name, dask_client):
+    """A fresh env, a reused one (another order), a rendering one and a Dask worker agree."""
+    ll.check_spaces(env_name)
+    task, solutions = ll.ENVIRONMENTS[env_name], policies(env_name)
+    fresh = [ll.rollout(s, 3, ll.make_env(env_name=env_name), env_name=env_name) for s in solutions]
+    env = ll.make_env(env_name=env_name)
+    reused = [ll.rollout(s, 3, env, env_name=env_name) for s in solutions[::-1]][::-1]
+    rendering = ll.make_env(False, "rgb_array", env_name)
+    rendering.reset(seed=0)
+    rendering.render()  # a frame drawn before the episode changes nothing
+    remote = dask_client.submit(ll.fly_chunk, solutions, np.full(len(solutions), 3), task.measures,
+                                True, env_name, pure=False).result()
+    assert fresh == reused
+    assert ll.rollout(solutions[0], 3, rendering, env_name=env_name) == fresh[0]
+    assert remote.tolist() == [list(row) for row in fresh]
+    assert len({row[0] for row in fresh}) == len(fresh)  # the policies do differ
+
+
+def test_walker_measures_match_a_hand_made_trace():
+    for solution in policies(WALKER, 3):
+        env = gym.make(WALKER)  # a fresh one: a reused walker env drifts (lunar_lander.renew_world)
+        obs, _ = env.reset(seed=5)
+        start, done, trace = env.unwrapped.hull.position.x, False, []
+        while not done:
+            obs, reward, terminated, truncated, _ = env.step(np.tanh(solution.reshape(4, 24) @ obs))
+            trace.append((obs, reward))
+            done = terminated or truncated
+        names = ll.family_measures("walker")
+        result = ll.rollout(solution, 5, ll.make_env(env_name=WALKER), names, env_name=WALKER)
+        steps = len(trace)
+        expected = {
+            "foot1_contact": sum(o[8] == 1 for o, _ in trace) / steps,
+            "foot2_contact": sum(o[13] == 1 for o, _ in trace) / steps,
+            "distance": env.unwrapped.hull.position.x - start,
+            "speed": (env.unwrapped.hull.position.x - start) / (steps / 50),
+            "hull_angle": sum(float(o[0]) for o, _ in trace) / steps,
+        }
+        assert result[0] == sum(r for _, r in trace)
+        assert dict(zip(names, result[1:])) == pytest.approx(expected, rel=1e-9, abs=1e-12)
+
+
+def test_the_continuous_landers_fuel_weighs_each_firing_by_its_power():
+    env, name = gym.make("LunarLander-v3", continuous=True), "LunarLanderContinuous-v3"
+    for solution in policies(name, 3):  # (a reused lander env flies the same episodes)
+        obs, _ = env.reset(seed=9)
+        done, fuel, steps = False, 0.0, 0
+        while not done:
+            main, side = np.tanh(solution.reshape(2, 8) @ obs)
+            fuel += (np.clip(main, 0, 1) + 1) / 2 if main > 0 else 0.0  # the env's m_power
+            fuel += 0.1 * np.clip(abs(side), 0.5, 1) if abs(side) > 0.5 else 0.0  # its s_power
+            obs, _, terminated, truncated, _ = env.step(np.array([main, side]))
+            done, steps = terminated or truncated, steps + 1
+        result = ll.rollout(solution, 9, ll.make_env(env_name=name), ("fuel",), env_name=name)
+        assert result[1] == pytest.approx(fuel, rel=1e-12) and result[1] > 0
+
+
+@pytest.fixture(scope="module")
+def task_runs(tmp_path_factory, dask_cluster):
+    """A tiny finished run of each row besides the default, on the shared cluster."""
+    runs = {}
+    for env_name in OTHER_ROWS:
+        runs[env_name] = tmp_path_factory.mktemp("tasks") / env_name
+        ll.search(**tiny_flags(dask_cluster, env=env_name), outdir=str(runs[env_name]))
+    return runs
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_name", OTHER_ROWS)
+def test_one_worker_and_a_resumed_run_equal_the_straight_run(env_name, task_runs, tmp_path,
+                                                            dask_cluster):
+    straight = task_runs[env_name]
+    config = json.loads((straight / "config.json").read_text())
+    assert config["env"] == env_name and config["measures"] == list(ll.ENVIRONMENTS[env_name].measures)
+    archive = run_archive(straight)
+    assert len(archive) > 0 and archive["solution_0"].notna().all()
+    ll.search(**tiny_flags(env=env_name, workers=1), outdir=str(tmp_path / "one"))
+    assert_same_run(tmp_path / "one", straight)
+    ll.search(**tiny_flags(dask_cluster, env=env_name, iterations=1), outdir=str(tmp_path / "resumed"))
+    ll.resume(str(tmp_path / "resumed"), iterations=3, scheduler_address=dask_cluster.scheduler_address)
+    assert_same_run(tmp_path / "resumed", straight)
+
+
+@pytest.fixture(scope="module")
+def walker_experiment(tmp_path_factory, dask_cluster):
+    folder = tmp_path_factory.mktemp("walkers") / "experiment"
+    flags = {k: v for k, v in tiny_flags(dask_cluster, env=WALKER, iterations=2).items()
+             if k not in ("seed", "algorithm")}
+    experiments.experiment(algorithms=["cma_me", "cma_mae"], seeds="7-8", outdir=str(folder), **flags)
+    return folder
+
+
+@pytest.mark.slow
+def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experiment, tmp_path,
+                                                               dask_cluster, run_cli):
+    ll.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8), outdir=str(tmp_path / "twin"))
+    assert_same_run(walker_experiment / "cma_me_n_emitters_2_batch_size_6_seed8", tmp_path / "twin")
+    result = run_cli("compare", str(walker_experiment), "--out", str(tmp_path / "walkers.png"))
+    assert result.returncode == 0, result.stderr
+    report = (tmp_path / "walkers.md").read_text()
+    assert report.startswith("| setting | runs | qd_score |")
+    assert "| cma_me n_emitters=2 batch_size=6 | 2 |" in report
+    assert "BipedalWalker-v3" in report and "returns at least 300" in report
+    stats = pd.read_csv(tmp_path / "walkers_settings.csv")
+    assert set(stats["setting"]) == {"cma_me n_emitters=2 batch_size=6",
+                                     "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5"}
+    assert stats["ci95_low"].notna().any()
+
+
+@pytest.mark.slow
+def test_compare_keeps_tasks_apart(task_runs, tiny_run, run_cli, tmp_path):
+    result = run_cli("compare", str(tiny_run), str(task_runs[WALKER]), "--out", str(tmp_path / "c"))
+    assert_one_line_error(result, "different tasks", "LunarLander-v3", WALKER)
+    assert not list(tmp_path.glob("c*"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_name", OTHER_ROWS)
+def test_video_and_elites_of_every_row(env_name, task_runs, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    shutil.copytree(task_runs[env_name], run_dir)
+    results.video(str(run_dir), best=True)
+    index = pd.read_csv(run_dir / "videos" / "index.csv")
+    assert index["reproduced"].tolist() == [True]
+    solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
+    steps = ll.fly(solution, 52, ll.make_env(env_name=env_name), env_name=env_name).steps
+    frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
+    assert frames == steps + 1
+    results.elites(str(run_dir), top=2)
+    table = pd.read_csv(run_dir / "elites.csv")
+    assert list(table.columns) == ["objective", *ll.ENVIRONMENTS[env_name].measures, "cell_index"]
+    assert "warning" not in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_walker_trajectories_are_its_hull_paths(task_runs, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(task_runs[WALKER], run_dir)
+    results.trajectories(str(run_dir), top=3)
+    assert (run_dir / "trajectories.png").stat().st_size > 10_000
+    chosen = results.select_elites(results.load_run(run_dir)[0], top=3, measures=list(ll.TUTORIAL_MEASURES))
+    env = ll.make_env(env_name=WALKER)
+    for elite, (path, end) in zip(chosen, results.fly_paths(chosen, 52, WALKER)):
+        walk = ll.fly(elite["solution"], 52, env, env_name=WALKER)
+        assert len(path) == walk.steps and end == walk.steps - 1
+        assert path[-1, 0] - path[0, 0] == pytest.approx(walk.distance, abs=0.2)  # one step's move
+
+
+def action_trace(solution: np.ndarray, env: gym.Env, env_name: str) -> list:
+    actions: list = []
+    ll.fly(solution, 52, env, on_step=lambda action, obs: actions.append(action), env_name=env_name)
+    return actions
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_name", OTHER_ROWS)
+def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, browser):
+    run_dir = tmp_path / "run"
+    shutil.copytree(task_runs[env_name], run_dir)
+    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    data, task = page_data(run_dir), ll.ENVIRONMENTS[env_name]
+    scale = np.array(data["pose_scale"])
+    poses = np.frombuffer(base64.b64decode(data["poses"]), "<i2").reshape(-1, len(scale)) / scale
+    assert data["kind"] == task.family and len(poses) == sum(e["steps"] + 1 for e in data["elites"])
+    solutions = dict(zip(*results.load_run(run_dir)[0].data(["index", "solution"]).values()))
+    env = ll.make_env(env_name=env_name)
+    for elite in data["elites"][:3]:
+        path: list = []
+        ll.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
+        actions = action_trace(solutions[elite["index"]], env, env_name)
+        flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]]
+        if task.family == "walker":  # the hull, to the centimetre
+            assert np.abs(flown[:, :2] - np.array(path)).max() < 0.006
+        else:  # the throttles: the main engine's power is drawn whenever it fires
+            assert ((flown[:, 5] > 0) == np.array([a[0] > 0 for a in actions])).all()
+    page = browser.new_page(viewport={"width": 1300, "height": 1000})
+    errors = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto((run_dir / "explorer.html").as_uri())
+    page.wait_for_function("window.explorerReady > 0", timeout=20000)
+    page.locator("#elites tbody tr").first.click()
+    page.wait_for_timeout(300)
+    assert errors == [] and page.title() == f"{env_name} archive explorer"
+    assert page.locator("#episode").text_content() == ("Walk" if task.family == "walker" else "Landing")
+    page.close()
+
+
+@pytest.mark.slow
+def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_cluster):
+    run_dir = tmp_path / "run"
+    shutil.copytree(task_runs[WALKER], run_dir)
+    results.evaluate_robustness(str(run_dir), env_seeds="3-4", top=2,
+                                scheduler_address=dask_cluster.scheduler_address)
+    table = pd.read_csv(run_dir / "robustness.csv")
+    env, rows = ll.make_env(env_name=WALKER), results.elite_rows(results.load_run(run_dir)[0])
+    solutions = dict(zip(rows["index"], rows["solution"]))
+    assert len(table) == 2
+    for row in table.to_dict("records"):
+        solution = solutions[row["cell_index"]]
+        direct = [ll.rollout(solution, seed, env, env_name=WALKER)[0] for seed in (3, 4)]
+        assert row["objective_seed3"] == direct[0] and row["objective_seed4"] == direct[1]
+        assert row["solved_share"] == np.mean(np.array(direct) >= 300)
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["--env", "CartPole-v1"], ["--env", "CartPole-v1", "BipedalWalker-v3"]),
+    (["--env", WALKER, "--measures", "impact_x"], ["impact_x", WALKER, "foot1_contact"]),
+    (["--measures", "foot1_contact"], ["foot1_contact", "LunarLander-v3", "impact_x"]),
+])
+def test_unknown_tasks_and_other_tasks_measures_are_refused(run_cli, tmp_path, args, fragments):
+    result = run_cli("--iterations", "1", "--outdir", str(tmp_path / "run"), *args)
+    assert_one_line_error(result, *fragments)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_row_the_linear_policy_cannot_serve_is_refused(run_cli, tmp_path, monkeypatch):
+    """Pendulum's torque is a box of [-2, 2]: tanh(W @ obs) can't reach it."""
+    row = ll.Environment("Pendulum-v1", {}, 3, 1, True, "walker", ll.fly_walker,
+                         ("foot1_contact",), -2000.0, "nothing", 0.0)
+    monkeypatch.setitem(ll.ENVIRONMENTS, "Pendulum-v1", row)
+    for command in ([], ["experiment", "--seeds", "1"]):
+        result = run_cli(*command, "--env", "Pendulum-v1", "--iterations", "1",
+                         "--outdir", str(tmp_path / "run"))
+        assert_one_line_error(result, "Pendulum-v1", "can't serve", "Box(-2.0, 2.0")
+        assert not (tmp_path / "run").exists()
+
+
+def test_an_archive_of_another_task_is_refused_as_a_warm_start(run_cli, tmp_path, tiny_run):
+    before = folder_state(tiny_run)
+    result = run_cli("--env", WALKER, "--from_archive", str(tiny_run / "archive.pkl"),
+                     "--iterations", "1", "--outdir", str(tmp_path / "run"))
+    assert_one_line_error(result, "32 weights", "96", "another task")
+    assert not (tmp_path / "run").exists() and folder_state(tiny_run) == before
