@@ -1,0 +1,109 @@
+#!/usr/bin/env python
+"""What does a step of each task cost, and does the engine keep 2 workers busy on it?
+
+    python benchmarks/bench_environments.py [--iterations 10] [--envs BipedalWalker-v3,LunarLander-v3]
+
+For each row of ENVIRONMENTS, the same seeded CMA-ME search (the default 5 emitters x 30, the
+task's default measures, terrain 52) runs for --iterations iterations twice:
+- serially, in this process, in the env the workers use (`lunar_lander.worker_env`): the cost
+  of a step, the mean episode length and rollouts per second on one core;
+- through the engine (`evaluate_batch`) on a local cluster of --workers worker processes:
+  seconds per iteration and the parallel efficiency, serial rollout time / (workers x search
+  time), which counts everything the engine adds, idle workers at an iteration's end included.
+Both must give the same archive. Prints a table and writes benchmarks/environments_results.json.
+Ratios are what to read on a shared machine; run it when the machine is quiet.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import fire
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import lunar_lander as ll  # noqa: E402  (imported by name so the workers import it too)
+import run_files  # noqa: E402
+
+
+def config_of(env_name: str) -> dict:
+    return ll.check_run_config({"seed": 1, "env": env_name})
+
+
+def serial_search(env_name: str, iterations: int) -> dict:
+    """The search with its rollouts in this process: seconds spent flying, steps, episodes."""
+    config = config_of(env_name)
+    scheduler, env = ll.build_scheduler(config), ll.worker_env(env_name)
+    flying, steps, episodes = 0.0, 0, 0
+    for _ in range(iterations):
+        rows = []
+        for solution in scheduler.ask():
+            start = time.perf_counter()
+            flight = ll.fly(solution, 52, env, env_name=env_name)
+            flying += time.perf_counter() - start
+            steps, episodes = steps + flight.steps, episodes + 1
+            rows.append([flight.reward, *(ll.MEASURES[m].of(flight) for m in config["measures"])])
+        rows = np.array(rows)
+        scheduler.tell(rows[:, 0], rows[:, 1:])
+    return {"fly_s": flying, "steps": steps, "episodes": episodes, "archive": archive_of(scheduler)}
+
+
+def engine_search(env_name: str, iterations: int, client) -> dict:
+    """The same search through the engine: its wall time (ask, evaluate, tell)."""
+    config = config_of(env_name)
+    scheduler = ll.build_scheduler(config)
+    start = time.perf_counter()
+    for _ in range(iterations):
+        solutions = scheduler.ask()
+        scheduler.tell(*ll.evaluate_batch(client, solutions, config))
+    return {"search_s": time.perf_counter() - start, "archive": archive_of(scheduler)}
+
+
+def archive_of(scheduler) -> list:
+    data = scheduler.result_archive.data(["index", "objective"])
+    return sorted(zip(data["index"].tolist(), data["objective"].tolist()))
+
+
+def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(ll.ENVIRONMENTS)) -> None:
+    from dask.distributed import Client, LocalCluster
+
+    envs = [name.strip() for name in str(envs).split(",")]
+    rows = []
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None, silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        for env_name in envs:
+            client.gather(client.map(ll.fly_chunk, [np.zeros((1, ll.ENVIRONMENTS[env_name].solution_dim))]
+                                     * workers, [[52]] * workers, [()] * workers, [True] * workers,
+                                     [env_name] * workers, pure=False))  # workers warm
+            serial, engine = serial_search(env_name, iterations), engine_search(env_name, iterations, client)
+            rows.append({
+                "env": env_name, "iterations": iterations, "episodes": serial["episodes"],
+                "mean_steps": round(serial["steps"] / serial["episodes"], 1),
+                "us_per_step": round(1e6 * serial["fly_s"] / serial["steps"], 1),
+                "rollouts_per_s_one_core": round(serial["episodes"] / serial["fly_s"], 1),
+                "engine_s_per_iteration": round(engine["search_s"] / iterations, 3),
+                "efficiency": round(serial["fly_s"] / (workers * engine["search_s"]), 3),
+                "same_archive": serial["archive"] == engine["archive"]})
+            print(rows[-1], flush=True)
+    result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
+              "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+              "workers": workers, "rows": rows, "versions": run_files.library_versions()}
+    out = Path(__file__).with_name("environments_results.json")
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"| env | mean steps | us/step | rollouts/s (1 core) | s/iteration ({workers} workers) | "
+          f"efficiency | same archive |\n| --- | --- | --- | --- | --- | --- | --- |")
+    for row in rows:
+        print(f"| {row['env']} | {row['mean_steps']} | {row['us_per_step']} | "
+              f"{row['rollouts_per_s_one_core']} | {row['engine_s_per_iteration']} | "
+              f"{row['efficiency']} | {row['same_archive']} |")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    fire.Fire(main)
