@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Search Gymnasium's Lunar Lander for many different good landings with CMA-ME (pyribs), on Dask.
+"""Search Gymnasium's Lunar Lander for many different good landings with CMA-ME (pyribs), on Dask;
+and other Gymnasium tasks (BipedalWalker, the continuous lander) through the same tables.
 
 The problem, the algorithm and the results follow the pyribs tutorial "Using CMA-ME to Land a Lunar
 Lander Like a Space Shuttle"; this script adds what a research run needs around them: a Dask
@@ -8,6 +9,7 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
     python lunar_lander.py --iterations 300 --workers 2     # search; writes outputs/<run>/
     python lunar_lander.py --algorithm cma_mae               # or map_elites; default cma_me
     python lunar_lander.py --measures fuel,flight_time --env_seed 0-4   # other axes, 5 terrains
+    python lunar_lander.py --env BipedalWalker-v3            # another task: a row of ENVIRONMENTS
     python lunar_lander.py resume outputs/RUN                # continue a run from its checkpoint
     python lunar_lander.py experiment --algorithms "[cma_me, cma_mae]" --seeds 1-5   # many runs
     python lunar_lander.py video outputs/RUN --cells "[(-0.4, -0.1)]"   # or --best, --top K
@@ -19,8 +21,10 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
     python lunar_lander.py COMMAND --help                    # every flag of a command
 
 This file tells the tutorial's story, top to bottom:
-- The problem. A measure: add a row to MEASURES (label, range, short name, how a Flight gives
-  it); `fly` gathers what measures read from an episode. The objective is `Flight.reward`.
+- The problem. A task: a row of ENVIRONMENTS (Gymnasium id, the linear policy's shape, its
+  family's episode function, default measures, QD offset). A measure: a row of MEASURES (label,
+  range, short name, how an episode's summary gives it, its family). `fly_lander` and
+  `fly_walker` gather what measures read from an episode; the objective is its total reward.
 - The algorithms: a row of ALGORITHMS (archive kwargs, emitter class and kwargs).
 - The evaluation engine: `submit_flights` chunks (solution, terrain) pairs for Dask; `fly_chunk`
   runs on the workers; `evaluate_batch` averages each solution over the run's terrains.
@@ -1320,7 +1324,8 @@ def before_the_flags() -> dict[str, Any]:
 
 @takes(SEARCH_FLAGS)
 def search(**flags: Any) -> None:
-    """Search Lunar Lander landings with a QD algorithm and write a run folder.
+    """Search a task (--env; Lunar Lander's landings by default) with a QD algorithm and write a
+    run folder.
 
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:

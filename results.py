@@ -7,9 +7,11 @@ Map:
   `select_elites`, `load_chosen_elites`, `shown_terrain`;
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
-  `save_trajectory_plot`, `terrain`);
-- `explore`: every elite's flight recorded as poses on the cluster (`record_poses`, which runs
-  on the workers) and packed with the archive into explorer_page.html (`explorer_data`);
+  `save_trajectory_plot`, drawn per family by `PATH_PICTURES`: landings over the terrain, walks
+  as hull height against distance);
+- `explore`: every elite's episode recorded as poses on the cluster (`record_poses`, which runs
+  on the workers; `POSES` and `WORLDS` per family of tasks: a lander, a walker) and packed with
+  the archive into explorer_page.html (`explorer_data`);
 - `evaluate_robustness` (the `evaluate` command): the elites on other terrains, `robustness_table`.
 """
 

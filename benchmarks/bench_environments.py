@@ -75,12 +75,13 @@ def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(ll.ENVIRON
 
     envs = [name.strip() for name in str(envs).split(",")]
     rows = []
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None, silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None, silence_logs=logging.ERROR)
+    with cluster, Client(cluster) as client:
         for env_name in envs:
-            client.gather(client.map(ll.fly_chunk, [np.zeros((1, ll.ENVIRONMENTS[env_name].solution_dim))]
-                                     * workers, [[52]] * workers, [()] * workers, [True] * workers,
-                                     [env_name] * workers, pure=False))  # workers warm
+            nothing = np.zeros((1, ll.ENVIRONMENTS[env_name].solution_dim))
+            client.gather(client.map(ll.fly_chunk, [nothing] * workers, [[52]] * workers, [()] * workers,
+                                     [True] * workers, [env_name] * workers, pure=False))  # warm
             serial, engine = serial_search(env_name, iterations), engine_search(env_name, iterations, client)
             rows.append({
                 "env": env_name, "iterations": iterations, "episodes": serial["episodes"],

@@ -3,14 +3,17 @@
 
     python benchmarks/bench_scale.py                          # 60 runs x 20 iterations; N = 16..512
     python benchmarks/bench_scale.py --workers "[16, 256]" --runs 60 --iterations 40
+    python benchmarks/bench_scale.py --env BipedalWalker-v3 --measured 6 --iterations 10 \
+        --workers "[64, 256, 512]" --out benchmarks/scale_results_walker.json   # long episodes
 
 A real experiment (`experiments.experiment`: the real driver, real pyribs ask and tell, real run
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
 cluster, and worker processes with many threads each. Each thread is a simulated worker: its task
 sleeps as long as the real chunk would take and returns made-up objectives and measures (a
-smooth function of each policy). How long a rollout takes comes from real ones: a real 20-iteration
-search flown first, in this process, gives each episode's steps and the cost of a step; each
-simulated policy is given one of those episode lengths (by a hash of its weights).
+smooth function of each policy). How long a rollout takes comes from real ones: a real search of
+--measured iterations in the task of --env, flown first in this process, gives each episode's
+steps and the cost of a step; each simulated policy is given one of those episode lengths (by a
+hash of its weights).
 
 For each number of simulated workers N it prints, from one experiment:
 - the driver's main-process CPU per task and per iteration (everything the driving process did:
@@ -48,16 +51,16 @@ import run_files  # noqa: E402
 TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start, end), time.time()
 
 
-def measure_rollouts(iterations: int = 20) -> tuple[list[int], float]:
-    """Episode lengths of a real CMA-ME search's rollouts (the default setting, serial, in this
-    process), and the seconds a step costs, from the same rollouts."""
-    config = ll.check_run_config({"seed": 1})
-    scheduler, env, lengths, steps_time = ll.build_scheduler(config), ll.make_env(), [], 0.0
+def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
+    """Episode lengths of a real CMA-ME search's rollouts (the default setting of the task,
+    serial, in this process), and the seconds a step costs, from the same rollouts."""
+    config = ll.check_run_config({"seed": 1, "env": env_name})
+    scheduler, env, lengths, steps_time = ll.build_scheduler(config), ll.worker_env(env_name), [], 0.0
     for _ in range(iterations):
         solutions, rows = scheduler.ask(), []
         for solution in solutions:
             start = time.perf_counter()
-            flight = ll.fly(solution, 52, env)
+            flight = ll.fly(solution, 52, env, env_name=env_name)
             steps_time += time.perf_counter() - start
             lengths.append(flight.steps)
             rows.append([flight.reward, *(ll.MEASURES[m].of(flight) for m in config["measures"])])
@@ -68,7 +71,7 @@ def measure_rollouts(iterations: int = 20) -> tuple[list[int], float]:
 
 def simulated_chunk(lengths: list[int], step_s: float):
     """The stand-in for lunar_lander.fly_chunk on the simulated workers."""
-    def fly_chunk(solutions, env_seeds, measures, fast_env=True):
+    def fly_chunk(solutions, env_seeds, measures, fast_env=True, env_name=ll.DEFAULT_ENV):
         from distributed.worker import thread_state
 
         start = time.time()
@@ -101,9 +104,9 @@ class Recorder:
             recorder.launch(experiment, live)
         self.patched_launch = launch
 
-    def __call__(self, client, solutions, env_seeds, measures, fast_env=True, sharing=1, threads=None):
+    def __call__(self, client, solutions, env_seeds, measures, *args, **kwargs):
         submitted, cpu = time.time(), time.process_time()
-        futures = self.original(client, solutions, env_seeds, measures, fast_env, sharing, threads)
+        futures = self.original(client, solutions, env_seeds, measures, *args, **kwargs)
         # the chunks of a batch, as submit_flights splits it (one terrain: rows of solutions)
         sizes = [len(c) for c in np.array_split(np.arange(len(solutions)), len(futures))]
         bounds = np.cumsum([0, *sizes])
@@ -137,7 +140,7 @@ def start_cluster(folder: Path, workers: int, processes: int):
 
 
 def one_size(workers: int, runs: int, iterations: int, processes: int, lengths: list[int],
-             step_s: float) -> dict:
+             step_s: float, env_name: str) -> dict:
     from dask.distributed import Client
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -152,7 +155,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, lengths: 
                 experiments.Experiment.launch = recorder.patched_launch
                 try:
                     experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
-                                           log_every=iterations, outdir=str(folder / "exp"),
+                                           log_every=iterations, outdir=str(folder / "exp"), env=env_name,
                                            scheduler_file=str(scheduler_file))
                 finally:
                     experiments.submit_flights = recorder.original
@@ -208,13 +211,14 @@ def summarise(workers: int, runs: int, iterations: int, batches: list[dict], log
 
 
 def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20,
-         processes: int = 4, out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
-    lengths, step_s = measure_rollouts()
+         processes: int = 4, env: str = ll.DEFAULT_ENV, measured: int = 20,
+         out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
+    lengths, step_s = measure_rollouts(measured, env)
     print(f"real rollouts: {len(lengths)} episodes, {np.mean(lengths):.0f} steps on average "
           f"(median {np.median(lengths):.0f}, max {max(lengths)}), {1e6 * step_s:.1f} us a step")
     rows = []
     for n in workers:
-        rows.append(one_size(int(n), runs, iterations, processes, lengths, step_s))
+        rows.append(one_size(int(n), runs, iterations, processes, lengths, step_s, env))
         print(json.dumps(rows[-1]))
     print("| simulated workers | tasks per batch | ideal s | search s | efficiency | main CPU ms "
           "per task | per iteration | submission to first start, median (p90) ms |")
@@ -224,6 +228,7 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
               f"{r['efficiency']} | {r['main_cpu_ms_per_task']} | {r['main_cpu_ms_per_iteration']} | "
               f"{r['first_start_ms_median']} ({r['first_start_ms_p90']}) |")
     run_files.write_json(Path(out), {
+        "date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "env": env,
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
         "episodes": {"count": len(lengths), "mean_steps": float(np.mean(lengths)),
                      "us_per_step": round(1e6 * step_s, 2)}, "rows": rows})

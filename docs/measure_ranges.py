@@ -3,10 +3,12 @@
 
     python docs/measure_ranges.py outputs/seed42 --random 1000        # values outside each range
     python docs/measure_ranges.py outputs/ranges_fuel outputs/ranges_vx_angle   # edge cells
+    python docs/measure_ranges.py outputs/walker_300/* --env BipedalWalker-v3 --random 300 --good 0
 
 For the policies given (the elites of each run folder's archive, plus --random policies with
-weights drawn from N(0, 1), seeded), each flown on terrain 52: the share of each measure's values
-that fall outside its range, among all of them and among those scoring over 100. For each run
+weights drawn from N(0, 1), seeded), each flown on terrain 52 of --env: the share of each of the
+task's measures' values that fall outside its range, among all of them and among those scoring
+over --good. For each run
 folder: the share of its elites on the two edge cells of each of its axes (a uniform spread over
 a 50-cell axis puts 4% there).
 """
@@ -24,7 +26,8 @@ import lunar_lander as ll  # noqa: E402
 from results import load_run  # noqa: E402
 
 
-def main(*run_dirs: str, random: int = 0, env_seed: int = 52) -> None:
+def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = ll.DEFAULT_ENV,
+         good: float = 100.0) -> None:
     archives = [load_run(run_dir) for run_dir in run_dirs]
     for run_dir, (archive, config) in zip(run_dirs, archives):
         cells = archive.int_to_grid_index(archive.data("index"))
@@ -32,18 +35,20 @@ def main(*run_dirs: str, random: int = 0, env_seed: int = 52) -> None:
                           for i, name in enumerate(config["measures"]))
         print(f"{run_dir}: {len(archive)} elites; on an axis's two edge cells: {edges}")
     solutions = [archive.data("solution") for archive, _ in archives]
-    dim = ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim
-    solutions.append(np.random.default_rng(0).normal(size=(random, dim)))
+    task = ll.ENVIRONMENTS[env]
+    solutions.append(np.random.default_rng(0).normal(size=(random, task.solution_dim)))
     solutions = np.concatenate(solutions)
-    env, names = ll.make_env(), tuple(ll.MEASURES)
-    flown = np.array([ll.rollout(solution, env_seed, env, names) for solution in solutions])
-    good = flown[:, 0] > 100
-    print(f"{len(flown)} policies on terrain {env_seed} ({good.sum()} scoring over 100): "
-          f"share outside each range, all / over 100")
+    names = tuple(ll.family_measures(task.family))
+    flown = np.array([ll.rollout(solution, env_seed, ll.worker_env(env), names, env_name=env)
+                      for solution in solutions])
+    best = flown[:, 0] > good
+    print(f"{len(flown)} policies on terrain {env_seed} of {env} ({best.sum()} scoring over "
+          f"{good:g}): share outside each range, all / over {good:g}; lowest return {flown[:, 0].min():.1f}")
     for i, name in enumerate(names):
         low, high = ll.MEASURES[name].range
         outside = (flown[:, 1 + i] < low) | (flown[:, 1 + i] > high)
-        print(f"  {name:18s} [{low:g}, {high:g}]: {outside.mean():.1%} / {outside[good].mean():.1%}")
+        print(f"  {name:18s} [{low:g}, {high:g}]: {outside.mean():.1%} / {outside[best].mean():.1%}; "
+              f"values from {flown[:, 1 + i].min():.3g} to {flown[:, 1 + i].max():.3g}")
 
 
 if __name__ == "__main__":
