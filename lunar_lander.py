@@ -299,7 +299,7 @@ ENVIRONMENTS: dict[str, Environment] = {
     # Throttles instead of switches: main engine and lateral engine, each in [-1, 1].
     "LunarLanderContinuous-v3": Environment(
         "LunarLander-v3", {"continuous": True}, 8, 2, True, "lander", fly_lander,
-        ("impact_x", "impact_y_velocity"), -800.0, "the terrain and the initial push", 200.0),
+        ("impact_x", "impact_y_velocity"), -1200.0, "the terrain and the initial push", 200.0),
     # Hull angle, speeds, 4 joints' angles and speeds, 2 foot contacts, 10 lidar readings; 4
     # torques. An episode ends when the hull touches the ground, or after 1,600 steps.
     "BipedalWalker-v3": Environment(

@@ -429,10 +429,10 @@ def draw_walks(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, env_name:
     end = max(float(path[:, 0].max()) for path, _ in paths)
     ax.set_xlim(0, min(env.unwrapped.terrain_x[-1], end + 5))
     env.close()
-    ax.set_ylim(0, max(float(path[:, 1].max()) for path, _ in paths) + 1)
-    ax.set_aspect("equal")
+    low = min(float(path[:, 1].min()) for path, _ in paths)
+    ax.set_ylim(max(0.0, low - 2), max(float(path[:, 1].max()) for path, _ in paths) + 1)
     ax.set_xlabel("x of the hull (m)")
-    ax.set_ylabel("height of the hull (m)")
+    ax.set_ylabel("height of the hull (m; heights are stretched)")
     return "Hull paths of {} elites on terrain {} (dots: the episode's end)"
 
 
