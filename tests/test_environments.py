@@ -111,11 +111,23 @@ def test_one_worker_and_a_resumed_run_equal_the_straight_run(env_name, task_runs
     assert_same_run(tmp_path / "resumed", straight)
 
 
+def experiment_flags(search_flags: dict) -> dict:
+    """A search's flags, as an experiment passes them to its runs (it sets seed and algorithm)."""
+    return {k: v for k, v in search_flags.items() if k not in ("seed", "algorithm")}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_name", OTHER_ROWS)
+def test_an_experiments_run_equals_its_lone_twin(env_name, task_runs, tmp_path, dask_cluster):
+    flags = experiment_flags(tiny_flags(dask_cluster, env=env_name))
+    experiments.experiment(algorithms="cma_me", seeds="7", outdir=str(tmp_path / "exp"), **flags)
+    assert_same_run(tmp_path / "exp" / "cma_me_n_emitters_2_batch_size_6_seed7", task_runs[env_name])
+
+
 @pytest.fixture(scope="module")
 def walker_experiment(tmp_path_factory, dask_cluster):
     folder = tmp_path_factory.mktemp("walkers") / "experiment"
-    flags = {k: v for k, v in tiny_flags(dask_cluster, env=WALKER, iterations=2).items()
-             if k not in ("seed", "algorithm")}
+    flags = experiment_flags(tiny_flags(dask_cluster, env=WALKER, iterations=2))
     experiments.experiment(algorithms=["cma_me", "cma_mae"], seeds="7-8", outdir=str(folder), **flags)
     return folder
 
