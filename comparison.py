@@ -26,7 +26,7 @@ import numpy as np
 
 from experiments import read_experiment, run_setting
 from flags import UsageError, boolean
-from lunar_lander import Environment, load_metrics, load_run_config, task_of
+from lunar_lander import Environment, load_checked_config, load_metrics, task_of
 from plots import save_metric_panels
 from run_files import atomic_write, check_parent_folder, read_pickle, write_csv
 
@@ -51,7 +51,7 @@ def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
     """A run's config and its metrics rows (at least one, each field of its type), both checked
     as every command checks them."""
     metrics = load_metrics(run_dir)
-    return load_run_config(run_dir), metrics
+    return load_checked_config(run_dir), metrics
 
 
 def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:

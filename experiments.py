@@ -29,26 +29,25 @@ from typing import Any
 
 import numpy as np
 
-from flags import UsageError, check_flags, one_of, positive_int, seed_list, shown, takes
+from cluster import STOP, SchedulerLost, dask_client, scheduler_of
+from flags import UsageError, check_flags, clipped, one_of, positive_int, seed_list, shown, takes
 from lunar_lander import (
     ALGORITHMS,
     CLUSTER_FLAGS,
     DEFAULT_ENV,
     SEARCH_FLAGS,
-    STOP,
     Run,
     Saver,
     averaged,
     before_the_flags,
-    check_archive_size,
+    check_sizes,
     check_spaces,
-    dask_client,
+    checked,
     describe_progress,
     ignores,
     load_run_state,
     own_flags,
     per_terrain,
-    scheduler_of,
     search_defaults,
     submit_flights,
     with_task,
@@ -100,7 +99,7 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
     """
     cluster = {name: search_flags.pop(name) for name in CLUSTER_FLAGS}
     axes, common, seeds = experiment_grid(algorithms, seeds, search_flags)
-    workers = positive_int("workers", cluster["workers"])
+    workers = checked("workers", cluster["workers"])
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
     scheduler_address = scheduler_of(cluster)
     with new_folder(outdir, "experiment") as folder:
@@ -142,7 +141,7 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
     common = with_task(check_flags(SEARCH_FLAGS, common))
     check_spaces(common["env"])
     for setting in itertools.product(*axes.values()):
-        check_archive_size({**common, **dict(zip(axes, setting))})
+        check_sizes({**common, **dict(zip(axes, setting))})
     return axes, common, seed_list("seeds", seeds)
 
 
@@ -213,10 +212,6 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
             new = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
             raise RunError(f"{fault_text(error)}; every run keeps its last checkpoint; continue "
                            f"with: python lunar_lander.py resume {folder}{new}") from None
-
-
-class SchedulerLost(RunError):
-    """The cluster's scheduler is gone (ended, killed, its job preempted): every run stops."""
 
 
 class RunsFailed(RunError):
@@ -415,7 +410,7 @@ class Experiment:
         keeps its checkpoint) rather than failing its runs one by one."""
         if self.client.status != "running":
             raise SchedulerLost(f"lost the Dask scheduler at {self.client.scheduler.address} "
-                                f"({fault_text(error)})") from None
+                                f"({clipped(fault_text(error))})") from None
 
     def fail(self, live: LiveRun, error: BaseException) -> None:
         with contextlib.suppress(Exception):
@@ -483,10 +478,10 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
     scheduler_address = scheduler_of(cluster)
     with folder_lock(folder):
         plan = read_experiment(folder)
-        workers = positive_int("workers", plan["workers"] if workers is None else workers)
+        workers = checked("workers", plan["workers"] if workers is None else workers)
         planned = max(entry["config"]["iterations"] for entry in plan["runs"])
         if iterations is not None:
-            iterations = positive_int("iterations", iterations)
+            iterations = checked("iterations", iterations)
             if iterations < planned:
                 raise UsageError(f"the runs of {folder} go to iteration {planned}; --iterations must "
                                  f"be at least that")
@@ -522,7 +517,7 @@ def read_experiment(folder: Path) -> dict:
                 and entry.get("state") in RUN_STATES and isinstance(entry.get("setting"), str))
         try:
             if fits:
-                positive_int("iterations", config.get("iterations"))
+                checked("iterations", config.get("iterations"))
                 check_flags(SEARCH_FLAGS, {"seed": config.get("seed")})
         except UsageError as error:
             fits, why = False, f": {error}"

@@ -8,9 +8,10 @@ and a direct call all see one declaration.
 
 Map:
 - `UsageError`: bad input, reported as one line and exit code 2;
-- the checkers, each `(flag name, value) -> checked value`: `positive_int`, `seed_number`,
-  `positive_float`, `fraction`, `boolean`, `one_of`, `seed_list`, `distinct_names`; `shown`
-  quotes a bad value, `one_line` keeps a message on one line;
+- the checkers, each `(flag name, value) -> checked value`: `positive_int`,
+  `whole_number_up_to`, `seed_number`, `positive_float`, `fraction`, `boolean`, `one_of`,
+  `seed_list`, `distinct_names`; `shown` quotes a bad value, `clipped` cuts a library's
+  message, `one_line` keeps a message on one line;
 - `Flag`, `check_flags` (values through their entries' checks) and `takes` (the decorator).
 """
 
@@ -39,6 +40,16 @@ def positive_int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise UsageError(f"--{name} must be a positive whole number, got {shown(value)}")
     return value
+
+
+def whole_number_up_to(most: int) -> Check:
+    """A check for a positive whole number of at most `most` (a size: bounded before anything
+    is allocated or written)."""
+    def check(name: str, value: Any) -> int:
+        if positive_int(name, value) > most:
+            raise UsageError(f"--{name} must be at most {most:,}, got {shown(value)}")
+        return value
+    return check
 
 
 MAX_SEED = 2**32 - 1  # what numpy's and Box2D's seeding take
@@ -113,6 +124,12 @@ def one_line(text: str) -> str:
 def shown(value: Any, limit: int = 80) -> str:
     """A value as an error message quotes it: its repr, cut to `limit` characters, on one line."""
     text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def clipped(text: str, limit: int = 200) -> str:
+    """A message's text (a library's error, which may quote what it was given whole) cut to
+    `limit` characters."""
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 

@@ -40,12 +40,14 @@ The supporting work lives in sibling modules, each opening with a map of itself:
 - results.py: the commands that look at a run (video, elites, trajectories, evaluate, explore),
   with the explorer's page in explorer_page.html;
 - comparison.py: `compare` and its statistics across seeds;
+- cluster.py: the Dask cluster: found, checked and joined with bounded waits, or started locally;
+  STOP (Ctrl-C and SIGTERM);
 - fast_env.py: the streamlined Lunar Lander the rollouts fly in (bitwise gym.make's);
 - plots.py: the heatmaps and progress curves;
 - run_files.py: locks, atomic writes, JSON and pickles, logs;
 - flags.py: the `Flag` entry, the checkers and UsageError.
-They import this module; this module imports only fast_env, plots, run_files and flags at load
-time.
+They import this module; this module imports only cluster, fast_env, plots, run_files and flags
+at load time.
 """
 
 from __future__ import annotations
@@ -62,9 +64,7 @@ if __name__ == "__main__":
 import contextlib
 import dataclasses
 import datetime
-import hashlib
 import importlib
-import json
 import logging
 import math
 import os
@@ -73,7 +73,6 @@ import secrets
 import shlex
 import signal
 import time
-import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -82,6 +81,7 @@ import Box2D
 import gymnasium as gym
 import numpy as np
 
+from cluster import STOP, SchedulerLost, dask_client, scheduler_of
 from fast_env import FastLunarLander
 from flags import (
     Flag,
@@ -99,6 +99,7 @@ from flags import (
     seed_number,
     shown,
     takes,
+    whole_number_up_to,
 )
 from plots import save_heatmap, save_progress_plot
 from run_files import (
@@ -431,7 +432,15 @@ def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[s
 # The algorithm: an archive of elites, emitters that propose solutions, a scheduler tying them
 # ================================================================================================
 
+# Every size a user gives is bounded before anything is allocated or written (check_sizes and the
+# flags' checks): each bound is far past what QD papers run (1,000s of solutions per iteration,
+# 10,000s of iterations), and what it lets a run hold at once stays within a laptop's memory.
 MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps one solution
+MAX_ITERATIONS = 1_000_000  # the checkpoint keeps a row of metrics (~1 KB in memory) per iteration
+MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights covariance)
+MAX_SOLUTIONS = 100_000  # asked per iteration (n_emitters * batch_size): 173 MB of 216 weights
+MAX_ROLLOUTS = 10_000_000  # solutions x terrains flown in one batch: ~32 bytes of results each
+MAX_WORKERS = 1_024  # worker processes of a local cluster (and what memory holds: check_local_memory)
 
 # One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
 # whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
@@ -625,231 +634,10 @@ def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndar
     return averaged(per_terrain(client.gather(futures), config["env_seed"]))
 
 
-# The modules a worker imports to run tasks, in the order they import each other.
-SHIPPED = ("flags", "run_files", "plots", "fast_env", "lunar_lander", "results")
-
-
-def ship_code(client) -> None:
-    """Make this exact code importable by the scheduler and every worker of a cluster.
-
-    Tasks refer to their functions by module and name (`lunar_lander.fly_chunk`,
-    `results.record_poses`), so the scheduler (which unpickles task graphs) and the workers must
-    import those modules. Machines elsewhere have the libraries but not this code, or an older
-    copy: then every module is uploaded, in import order (to workers that join later too). Where
-    all already import these very files (a local cluster), nothing is reloaded.
-    """
-    def digests_of_importable_modules(names: tuple[str, ...]) -> list[str | None]:  # runs remotely
-        import hashlib
-        import importlib.util
-
-        found = []
-        for name in names:
-            spec = importlib.util.find_spec(name)
-            if spec is None or not spec.origin or not spec.origin.endswith(".py"):
-                found.append(None)
-                continue
-            with open(spec.origin, "rb") as file:
-                found.append(hashlib.sha256(file.read()).hexdigest())
-        return found
-
-    paths = [Path(importlib.import_module(name).__file__).resolve() for name in SHIPPED]
-    ours = [hashlib.sha256(path.read_bytes()).hexdigest() for path in paths]
-    theirs = [client.run_on_scheduler(digests_of_importable_modules, SHIPPED),
-              *client.run(digests_of_importable_modules, SHIPPED).values()]
-    if any(digests != ours for digests in theirs):
-        for path in paths:
-            client.upload_file(str(path))
-
-
-# What a run imports while its cluster starts (ribs alone brings scikit-learn, scipy, numba and
-# pandas: ~2 s of the main process).
-RUN_IMPORTS = ("ribs.archives", "ribs.emitters", "ribs.schedulers", "ribs.visualize",
-               "matplotlib.pyplot", "matplotlib.backends.backend_agg", "pandas.io.formats.csvs", "tqdm")
-
-
-@contextlib.contextmanager
-def preloading(modules: tuple[str, ...]) -> Iterator[None]:
-    """Import `modules` in a thread while the block runs. A local cluster's start is mostly the
-    main process waiting for its worker processes to spawn and import: time to import what comes
-    next. An import that fails here (even one of Python's rare cross-thread import deadlocks)
-    costs nothing: the module is imported again where it is used."""
-    import threading
-
-    def load() -> None:
-        for module in modules:
-            with contextlib.suppress(Exception):
-                importlib.import_module(module)
-
-    thread = threading.Thread(target=load, name="preload", daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        thread.join()
-
-
-@contextlib.contextmanager
-def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
-    """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
-    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit).
-
-    A local cluster listens on localhost only: it runs whatever code it is sent.
-    """
-    import dask
-    from dask.distributed import Client, LocalCluster
-
-    logging.getLogger("asyncio").addFilter(not_dask_stop)  # once: the same filter is kept once
-    # A client that loses its scheduler logs each failed reconnection and closed comm with a
-    # traceback; the loss is reported once, in one line (experiments.SchedulerLost, run_session).
-    quiet_dask_logs()
-    if scheduler_address:
-        try:
-            client = Client(scheduler_address, timeout="20s")
-        except (OSError, ValueError) as error:
-            raise UsageError(f"cannot connect to the Dask scheduler at {scheduler_address}: "
-                             f"{str(error).splitlines()[0]}") from None
-        with client:
-            ship_code(client)
-            log.info(f"Dask cluster at {scheduler_address}: {len(client.nthreads())} worker(s); "
-                     f"dashboard {client.dashboard_link}")
-            yield client
-        return
-    if os.environ.get("DASK_SCHEDULER_ADDRESS"):
-        log.info("note: DASK_SCHEDULER_ADDRESS is set, but this command starts a cluster of its own; "
-                 "to join that scheduler, pass --scheduler_address (or --scheduler_file)")
-    # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
-    warnings.filterwarnings("ignore", message="Port 8787 is already in use")
-    # The imports are over before the search starts: ribs' CMA-ES rebuilds its thread-pool
-    # controller whenever the number of imported modules has changed.
-    with preloading(RUN_IMPORTS), dask.config.set(QUIET_CLUSTER):
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address="127.0.0.1:8787",
-                               silence_logs=logging.ERROR)
-    quiet_dask_logs()  # LocalCluster's silence_logs set its own level
-    with cluster, Client(cluster) as client:
-        log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
-        yield client
-
-
-def quiet_dask_logs() -> None:
-    """Dask's own log lines (and their tracebacks) stay out of the console: every fault a user
-    must know of is reported by this script, in one line."""
-    for name in ("distributed", "distributed.client"):
-        logging.getLogger(name).setLevel(logging.CRITICAL)
-
-
-def not_dask_stop(record: logging.LogRecord) -> bool:
-    """Ctrl-C during a gather leaves Dask's wait task with its AllExit, which asyncio would print
-    with a traceback when it is collected: the stop is ours, and is reported in one line."""
-    return not (record.exc_info and type(record.exc_info[1]).__name__ == "AllExit")
-
-
-# Dask's housekeeping runs in the main process (the scheduler, and the nannies of the local
-# workers): at its default pace (memory checks every 100 ms per worker, system monitor every
-# 500 ms, event-loop ticks every 20 ms) it took ~6% of a core here, from the workers' 2 cores.
-QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
-                 "distributed.admin.system-monitor.interval": "2s",
-                 "distributed.admin.tick.interval": "200ms"}
-
-
-def scheduler_of(cluster: dict[str, Any]) -> str | None:
-    """The address of the Dask scheduler a command joins (None: it starts a local cluster), found
-    and checked before anything is written: --scheduler_address, or the address in
-    --scheduler_file once that file appears (a batch job's scheduler writes it when it starts).
-
-    DASK_SCHEDULER_ADDRESS in the environment is not used: a variable left over from another job
-    must not send runs to another cluster unasked (dask_client says so when it is set).
-    """
-    address, path = cluster.get("scheduler_address"), cluster.get("scheduler_file")
-    if address is not None and path is not None:
-        raise UsageError("give --scheduler_address or --scheduler_file, not both")
-    if path is not None:
-        timeout = positive_float("scheduler_timeout", cluster.get("scheduler_timeout"))
-        address = read_scheduler_file(Path(str(path)), timeout)
-    if address is not None:
-        check_scheduler_reachable(str(address), path)
-    return address
-
-
-def read_scheduler_file(path: Path, timeout: float) -> str:
-    """The scheduler's address in a scheduler file, waiting up to `timeout` seconds for the file
-    to appear (Ctrl-C stops the wait), and a moment more for a file still being written."""
-    deadline = time.monotonic() + timeout
-    while not path.is_file():
-        STOP.check()
-        if time.monotonic() > deadline:
-            raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
-                             f"scheduler running? --scheduler_timeout waits longer)")
-        time.sleep(0.2)
-    for _ in range(10):
-        try:
-            address = json.loads(path.read_text())["address"]
-            if isinstance(address, str):
-                return address
-            why = f"its address is {shown(address)}"
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
-            why = f"{type(error).__name__}: {fault_text(error)}"
-        time.sleep(0.2)
-    raise UsageError(f"{path}: not a Dask scheduler file ({why})")
-
-
-def check_scheduler_reachable(address: str, scheduler_file: Any = None) -> None:
-    """Fail before anything is written if the scheduler's address is malformed or nobody listens
-    (for a scheduler file: a stale file, left by a scheduler that has ended)."""
-    import socket
-
-    from distributed.comm import get_address_host_port
-
-    try:
-        host, port = get_address_host_port(address)
-        socket.create_connection((host, port), timeout=10).close()
-    except (OSError, ValueError) as error:
-        named = f" (named by {scheduler_file}: a file left by a scheduler that has ended?)" if (
-            scheduler_file is not None) else ""
-        raise UsageError(f"cannot reach the Dask scheduler at {address}{named}: {error}") from None
-
-
 # ================================================================================================
 # The run: ask -> evaluate -> tell, with metrics, checkpoints and outputs
 # ================================================================================================
 
-class StopRequests:
-    """Ctrl-C and SIGTERM, acted on only where stopping is safe.
-
-    A signal only records the request, except inside `interruptible()` (waiting for the cluster's
-    results), where it stops the wait at once. So a stop never cuts a checkpoint write, an import
-    or a tell in half: the iteration in flight is abandoned and the last completed one is kept.
-    """
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._raise_now = False
-
-    def install(self) -> None:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._on_signal)
-
-    def _on_signal(self, signum: int, frame: Any) -> None:
-        self.requested = True
-        if self._raise_now:
-            self._raise_now = False
-            raise KeyboardInterrupt
-
-    def check(self) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-
-    @contextlib.contextmanager
-    def interruptible(self) -> Iterator[None]:
-        self.check()
-        self._raise_now = True
-        try:
-            yield
-        finally:
-            self._raise_now = False
-
-
-STOP = StopRequests()
 CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
 
 
@@ -1084,6 +872,16 @@ def load_run_config(run_dir: Path) -> dict:
         raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
 
 
+def load_checked_config(run_dir: Path) -> dict:
+    """What the results commands read of a run: its config.json, checked, and checked against its
+    checkpoint where it has one (an edit to another task of the same shape would go unseen by
+    the archive's own checks)."""
+    config = load_run_config(run_dir)
+    if (run_dir / "checkpoint.pkl").is_file():
+        check_same_config(config, load_checkpoint(run_dir / "checkpoint.pkl")["config"], run_dir)
+    return config
+
+
 # Flags that config.json may hold apart from its checkpoint: resume writes a larger --iterations
 # into config.json before the run's next checkpoint records it.
 MAY_DIFFER = ("iterations",)
@@ -1134,10 +932,24 @@ def check_archive(archive: Any, path: Path, config: dict) -> None:
                          f"--grid {config['grid']} need {expected})")
 
 
-def check_archive_size(config: dict) -> None:
-    if config["grid"] ** len(config["measures"]) > MAX_CELLS:
+def check_sizes(config: dict) -> None:
+    """The sizes that flags make together are bounded too: the archive's cells, the solutions
+    asked per iteration and the rollouts they are flown in."""
+    cells, solutions = config["grid"] ** len(config["measures"]), config["n_emitters"] * config["batch_size"]
+    if cells > MAX_CELLS:
         raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
-                         f"{config['grid'] ** len(config['measures']):,} cells; at most {MAX_CELLS:,}")
+                         f"{cells:,} cells; at most {MAX_CELLS:,}")
+    if solutions > MAX_SOLUTIONS:
+        raise UsageError(f"--n_emitters {config['n_emitters']} x --batch_size {config['batch_size']} "
+                         f"asks {solutions:,} solutions per iteration; at most {MAX_SOLUTIONS:,}")
+    check_rollouts(solutions, len(config["env_seed"]), "per iteration")
+
+
+def check_rollouts(solutions: int, terrains: int, when: str) -> None:
+    """At most MAX_ROLLOUTS rollouts in one batch: their results are held at once."""
+    if solutions * terrains > MAX_ROLLOUTS:
+        raise UsageError(f"{solutions:,} solutions on {terrains:,} terrain(s) make "
+                         f"{solutions * terrains:,} rollouts {when}; at most {MAX_ROLLOUTS:,}")
 
 
 def load_archive(path: Path, config: dict):
@@ -1153,13 +965,20 @@ def check_run_config(config: Any) -> dict:
     """A run's recorded config, every flag valid (a UsageError says which is not); a config from
     before a flag existed ran with what that flag now sets it to (its entry's `before`, or its
     default)."""
-    try:
-        config = {**search_defaults(), **before_the_flags(), **config}
-        config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
-    except TypeError as error:
-        raise UsageError(str(error)) from None
+    if not isinstance(config, dict):
+        raise UsageError(f"holds a {type(config).__name__}, not the flags of a run")
+    config = {**search_defaults(), **before_the_flags(), **config}
+    for name, flag in SEARCH_FLAGS.items():
+        if config[name] is None and flag.default is not None:  # a check passes None: refuse it here
+            raise UsageError(f"--{name} is null")
+        if flag.check is None and not isinstance(config[name], (str, type(None))):
+            raise UsageError(f"--{name} is {shown(config[name])}, not a path or an address")
+    config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
+    if not isinstance(config.get("resumed", []), list):
+        raise UsageError(f"resumed is {shown(config['resumed'])}, not a list of resumptions")
     config = with_task(config)
     seed_number("seed", config["seed"])
+    check_sizes(config)
     return config
 
 
@@ -1213,7 +1032,8 @@ def save_outputs(run_dir: Path, checkpoint: dict) -> None:
 
 CLUSTER_FLAGS: dict[str, Flag] = {  # every command that flies policies on a cluster
     "workers": Flag(2, "Number of Dask worker processes (one thread each) of the local cluster "
-                       "flying the rollouts.", positive_int, per_run=True),
+                       f"flying the rollouts (at most {MAX_WORKERS:,}, and what memory holds).",
+                    whole_number_up_to(MAX_WORKERS), per_run=True),
     "scheduler_address": Flag(None, "Address of a running Dask scheduler (tcp://HOST:PORT) to "
                                     "evaluate on instead of starting a local cluster; --workers "
                                     "is then ignored.", per_run=True),
@@ -1221,12 +1041,17 @@ CLUSTER_FLAGS: dict[str, Flag] = {  # every command that flies policies on a clu
                                  "--scheduler-file, dask-mpi or dask-jobqueue's SLURMRunner): "
                                  "wait for it to appear, then join the scheduler it names; "
                                  "instead of --scheduler_address.", per_run=True),
-    "scheduler_timeout": Flag(120, "Seconds to wait for --scheduler_file to appear.",
+    "scheduler_timeout": Flag(120, "Seconds to wait for --scheduler_file to appear; the "
+                                   "scheduler must answer within this too (at most 20 s).",
                               positive_float, per_run=True),
+    "worker_timeout": Flag(600, "Seconds to wait for the first worker of the cluster named by "
+                                "--scheduler_address or --scheduler_file to join (it says it waits).",
+                           positive_float, per_run=True),
 }
 
 SEARCH_FLAGS: dict[str, Flag] = {
-    "iterations": Flag(300, "Number of ask-evaluate-tell iterations.", positive_int),
+    "iterations": Flag(300, f"Number of ask-evaluate-tell iterations (at most {MAX_ITERATIONS:,}).",
+                       whole_number_up_to(MAX_ITERATIONS)),
     "workers": CLUSTER_FLAGS["workers"],
     "seed": Flag(None, "Seed of the archive and emitters; drawn and recorded in config.json if "
                        "omitted. The same seed gives the same archive whatever the number of "
@@ -1249,10 +1074,12 @@ SEARCH_FLAGS: dict[str, Flag] = {
                                 "(CMA-MAE) or map_elites (MAP-Elites with Gaussian mutation); "
                                 "each asks n_emitters * batch_size solutions per iteration.",
                       one_of(ALGORITHMS), per_run=True),
-    "n_emitters": Flag(5, "Number of emitters.", positive_int, sweep=True, label=4),
+    "n_emitters": Flag(5, f"Number of emitters (at most {MAX_EMITTERS:,}).",
+                       whole_number_up_to(MAX_EMITTERS), sweep=True, label=4),
     "sigma0": Flag(1.0, "Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed "
                         "sigma of its Gaussian mutation.", positive_float, sweep=True, label=6),
-    "batch_size": Flag(30, "Solutions each emitter proposes per iteration.", positive_int,
+    "batch_size": Flag(30, f"Solutions each emitter proposes per iteration (n_emitters * "
+                           f"batch_size: at most {MAX_SOLUTIONS:,}).", whole_number_up_to(MAX_SOLUTIONS),
                        sweep=True, label=5),
     "learning_rate": Flag(0.5, "cma_mae only: how fast a cell's threshold follows its "
                                "improvements, in (0, 1]. 0.5 did best of 0.01, 0.1 and 0.5 over "
@@ -1266,6 +1093,7 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "scheduler_address": CLUSTER_FLAGS["scheduler_address"],
     "scheduler_file": CLUSTER_FLAGS["scheduler_file"],
     "scheduler_timeout": CLUSTER_FLAGS["scheduler_timeout"],
+    "worker_timeout": CLUSTER_FLAGS["worker_timeout"],
     "from_archive": Flag(None, "Warm start: an archive.pkl of an earlier run whose elites are "
                                "re-evaluated in this run's setting to fill the archive first; the "
                                "emitters start from the best.", per_run=True),
@@ -1281,7 +1109,7 @@ RESUME_FLAGS: dict[str, Flag] = {
         "the run was started with. A larger number extends a finished run."),
     "workers": dataclasses.replace(CLUSTER_FLAGS["workers"], default=None, help=(
         CLUSTER_FLAGS["workers"].help + " Default: as the run was started.")),
-    **{name: CLUSTER_FLAGS[name] for name in ("scheduler_address", "scheduler_file", "scheduler_timeout")},
+    **{name: flag for name, flag in CLUSTER_FLAGS.items() if name != "workers"},
 }
 
 # Which elites a results command shows (video, trajectories), and on which terrain (explore too).
@@ -1299,6 +1127,11 @@ TERRAIN_FLAGS: dict[str, Flag] = {
     "env_seed": Flag(None, "The terrain to fly on, one of the run's; default: the run's first.",
                      seed_number),
 }
+
+
+def checked(name: str, value: Any) -> Any:
+    """A value checked as the flag `name` of SEARCH_FLAGS checks it (None included: refused)."""
+    return SEARCH_FLAGS[name].check(name, value)
 
 
 def with_task(config: dict[str, Any]) -> dict[str, Any]:
@@ -1335,7 +1168,7 @@ def search(**flags: Any) -> None:
     """
     flags = with_task(check_flags(SEARCH_FLAGS, flags))
     check_spaces(flags["env"])
-    check_archive_size(flags)
+    check_sizes(flags)
     from_archive = flags["from_archive"]
     seed_archive = load_archive(Path(from_archive), flags) if from_archive else None
     address = scheduler_of(flags)
@@ -1370,8 +1203,8 @@ def resume(run_dir: str, **flags: Any) -> None:
     scheduler_address = scheduler_of(flags)
     with folder_lock(path):
         config, checkpoint = load_run_state(path)  # as the last writer left it
-        iterations = positive_int("iterations", config["iterations"] if iterations is None else iterations)
-        workers = positive_int("workers", config["workers"] if workers is None else workers)
+        iterations = checked("iterations", config["iterations"] if iterations is None else iterations)
+        workers = checked("workers", config["workers"] if workers is None else workers)
         done = checkpoint["iteration"] if checkpoint else 0
         if iterations < done:
             raise UsageError(f"{path} is already at iteration {done}; --iterations must be at least that")
@@ -1420,16 +1253,18 @@ def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> I
             log.info(f"Stopped; {checkpoint_state(run_dir)}")
             raise
         except (RunError, OSError) as error:
-            raise RunError(f"{fault_text(error)}; {checkpoint_state(run_dir)}") from None
+            elsewhere = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
+            raise RunError(f"{fault_text(error)}; {checkpoint_state(run_dir, elsewhere)}") from None
 
 
-def checkpoint_state(run_dir: Path) -> str:
-    """What a stopped or failed run folder holds, and the command that continues it."""
+def checkpoint_state(run_dir: Path, flags: str = "") -> str:
+    """What a stopped or failed run folder holds, and the command that continues it (with
+    `flags`, such as a new cluster's)."""
     try:
         held = f"its checkpoint holds iteration {read_pickle(run_dir / 'checkpoint.pkl', '')['iteration']}"
     except (UsageError, KeyError, TypeError):
         held = "it holds no checkpoint yet (resume starts the run from its config.json)"
-    return f"{held}; continue with: python lunar_lander.py resume {run_dir}"
+    return f"{held}; continue with: python lunar_lander.py resume {shlex.quote(str(run_dir))}{flags}"
 
 
 # The commands, each the module and function that implement it: a command's module is imported
@@ -1469,14 +1304,20 @@ def text_flags(function: Callable) -> set[str]:
 
 
 def reject_unknown_flags(function: Callable, args: list[str]) -> None:
-    """Fire would print a page of usage for a mistyped flag; one line naming it is clearer."""
-    known = known_flags(function)
+    """Fire would print a page of usage for a mistyped flag; one line naming it is clearer. A
+    flag given twice is refused too."""
+    known, given = known_flags(function), set()
     for arg in args:
-        if arg.startswith("--") and arg not in ("--help", "--"):
+        if arg == "--":
+            return
+        if arg.startswith("--") and arg != "--help":
             name = arg[2:].split("=", 1)[0].replace("-", "_")
             if name not in known:
                 raise UsageError(f"unknown flag --{name}; valid flags: "
                                  + ", ".join(f"--{flag}" for flag in known))
+            if name in given:  # Fire would silently keep the last
+                raise UsageError(f"--{name} is given twice; give each flag once")
+            given.add(name)
 
 
 def main(argv: list[str]) -> int:

@@ -32,6 +32,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.box2d import lunar_lander as upstream
 
+from cluster import STOP, dask_client, scheduler_of
 from fast_env import FPS, HALF_H, HALF_W, HEIGHT, HELIPAD_Y, PAD_Y, SCALE, WIDTH, seeded_randoms
 from flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from lunar_lander import (
@@ -43,21 +44,20 @@ from lunar_lander import (
     MEASURES,
     RIGHT,
     SELECTION_FLAGS,
-    STOP,
     TERRAIN_FLAGS,
     TUTORIAL_MEASURES,
     averaged,
     burn,
-    dask_client,
+    check_rollouts,
+    checked,
     fly,
     gather_with_progress,
     load_archive,
+    load_checked_config,
     load_metrics,
-    load_run_config,
     make_env,
     per_terrain,
     rollout,
-    scheduler_of,
     submit_flights,
     task_of,
     worker_env,
@@ -81,7 +81,7 @@ def load_run(run_dir: Any) -> tuple[Any, dict]:
         raise UsageError(f"{path}: no such run folder")
     if not (path / "archive.pkl").is_file():
         raise UsageError(f"{path / 'archive.pkl'}: no such file (is {path} a run folder of lunar_lander.py?)")
-    config = load_run_config(path)
+    config = load_checked_config(path)
     return load_archive(path / "archive.pkl", config), config
 
 
@@ -255,6 +255,7 @@ def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[dict, list[
     archive, config = load_run(run_dir)
     shown = shown_terrain(config, flags["env_seed"])
     selection = {name: flags[name] for name in SELECTION_FLAGS}
+    check_writable(Path(str(run_dir)))  # before any elite is flown
     return config, select_elites(archive, **selection, measures=config["measures"]), shown
 
 
@@ -566,17 +567,25 @@ def lander_world(env_seed: int, env_name: str) -> dict:
 
 
 def walker_world(env_seed: int, env_name: str) -> dict:
-    """What the page draws around a walker: the terrain's polygons (grass, stumps, stairs), the
-    hull's shape and the leg segments' half sizes."""
+    """What the page draws around a walker: the ground's polygons (grass, pits, stairs' outline),
+    the hardcore course's obstacles (stumps, stair steps, pit walls: bodies of their own, drawn
+    as the env draws them), the hull's shape and the leg segments' half sizes."""
+    import Box2D
     from gymnasium.envs.box2d import bipedal_walker as walker
+
+    def points(vertices) -> list[list[float]]:
+        return [[round(float(x), 4), round(float(y), 4)] for x, y in vertices]
 
     env = make_env(False, env_name=env_name)
     env.reset(seed=env_seed)
-    terrain = [[[round(float(x), 4), round(float(y), 4)] for x, y in poly]
-               for poly, _ in env.unwrapped.terrain_poly]
+    terrain = [points(poly) for poly, _ in env.unwrapped.terrain_poly]
+    obstacles = [points(body.transform * vertex for vertex in fixture.shape.vertices)
+                 for body in env.unwrapped.terrain for fixture in body.fixtures
+                 if isinstance(fixture.shape, Box2D.b2PolygonShape)]
     env.close()
     return {"width": walker.VIEWPORT_W / walker.SCALE, "height": walker.VIEWPORT_H / walker.SCALE,
-            "terrain": terrain, "hull": [[x / walker.SCALE, y / walker.SCALE] for x, y in walker.HULL_POLY],
+            "terrain": terrain, "obstacles": obstacles,
+            "hull": [[x / walker.SCALE, y / walker.SCALE] for x, y in walker.HULL_POLY],
             "legs": [[walker.LEG_W / 2, walker.LEG_H / 2], [0.8 * walker.LEG_W / 2, walker.LEG_H / 2]] * 2,
             "fps": walker.FPS}
 
@@ -639,7 +648,7 @@ def explore(run_dir: str, **flags: Any) -> None:
     env_seed, workers = flags["env_seed"], flags["workers"]
     archive, config = load_run(run_dir)
     shown = shown_terrain(config, env_seed)
-    workers, run = positive_int("workers", workers), Path(str(run_dir))
+    workers, run = checked("workers", workers), Path(str(run_dir))
     metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown
     check_writable(run)
     scheduler_address = scheduler_of(flags)
@@ -692,10 +701,13 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
     from ribs.archives import GridArchive
 
     archive, config = load_run(run_dir)
-    seeds, workers = seed_list("env_seeds", env_seeds), positive_int("workers", flags["workers"])
+    seeds, workers = seed_list("env_seeds", env_seeds), checked("workers", flags["workers"])
     rows = elite_rows(archive)
     if top is not None:
         rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
+    check_rollouts(len(rows["solution"]), len(seeds), "to fly")
+    run = Path(str(run_dir))
+    check_writable(run)  # before any elite is flown
     if seen := sorted(set(seeds) & set(config["env_seed"])):
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
     scheduler_address = scheduler_of(flags)
@@ -703,7 +715,6 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
         futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"],
                                  env_name=config["env"])
         objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
-    run = Path(str(run_dir))
     solved = task_of(config).solved
     table = robustness_table(rows, config["measures"], seeds, objectives, solved)
     write_csv(run / "robustness.csv", table)

@@ -4,7 +4,8 @@ of error, and guarded so that one process at a time writes a folder.
 Map:
 - `RunError`: a fault of the machine (a full disk), not of the input: exit code 1;
 - folders: `folder_lock` (flock: a kill -9 leaves no stale lock), `new_folder` (never writes
-  over a folder that holds anything), `check_writable`;
+  over a folder that holds anything; removed again if the command is refused in it:
+  `make_folders`, `remove_unworked`), `check_writable`;
 - writing: `atomic_write` (a temporary file, then os.replace), `write_json`, `write_pickle`,
   `write_csv`;
 - reading: `read_run_json`, `read_pickle` (a UsageError that names the file and the fault);
@@ -84,19 +85,61 @@ def new_folder(outdir: str | None, name: str) -> Iterator[Path]:
         run_dir = Path(outdir)
     taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
                        f"(to continue a run there: python lunar_lander.py resume {run_dir})")
+    if run_dir.is_symlink() and not run_dir.exists():
+        raise UsageError(f"{run_dir} is a symbolic link to {os.readlink(run_dir)}, which does not "
+                         f"exist; choose another --outdir")
     if run_dir.exists() and not run_dir.is_dir():
         raise UsageError(f"{run_dir} exists and is not a folder; choose another --outdir")
     if holds_files(run_dir):
         raise taken
     check_parent_folder(run_dir)
+    made = make_folders(run_dir)
     try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise UsageError(f"cannot write the run folder {run_dir}: {error.strerror or error}") from None
-    with folder_lock(run_dir):
-        if holds_files(run_dir):  # another process filled it between the check and the lock
-            raise taken
-        yield run_dir
+        with folder_lock(run_dir):
+            if holds_files(run_dir):  # another process filled it between the check and the lock
+                raise taken
+            yield run_dir
+    except UsageError:  # refused before any work: the folder goes, as if never asked for
+        remove_unworked(run_dir, made)
+        raise
+
+
+def make_folders(folder: Path) -> list[Path]:
+    """Make `folder` and its missing parents; the folders made, outermost first. If one can't be
+    made (a name too long, a read-only disk), those made before it are removed again."""
+    missing = [path for path in [*reversed(folder.parents), folder] if not path.exists()]
+    made: list[Path] = []
+    for path in missing:
+        try:
+            path.mkdir()
+        except FileExistsError:  # made meanwhile by another process: not ours to remove
+            continue
+        except OSError as error:
+            remove_unworked(folder, made)
+            raise UsageError(f"cannot write the run folder {folder}: {error.strerror or error}") from None
+        made.append(path)
+    return made
+
+
+# What a command writes in a new folder before any work; a folder holding nothing else may go.
+BEFORE_ANY_WORK = {LOCK_FILE, "config.json", "run.log", "experiment.json", "experiment.log"}
+
+
+def remove_unworked(folder: Path, made: list[Path]) -> None:
+    """Remove what a refused command wrote in `folder`, and the folders of `made` (innermost
+    first), if it holds nothing but what a command writes before any work; anything else (a
+    checkpoint, another's file) keeps them all."""
+    try:
+        names = {path.name for path in folder.iterdir()}
+    except OSError:  # never made (its name too long, say)
+        names = set()
+    if not names <= BEFORE_ANY_WORK:
+        return
+    with contextlib.suppress(OSError):
+        for name in names - ({LOCK_FILE} if folder not in made else set()):
+            (folder / name).unlink()
+        for path in reversed(made):
+            path.rmdir()  # only if empty: a file someone else put there keeps it
 
 
 def check_parent_folder(path: Path) -> None:

@@ -48,7 +48,7 @@ def can_import_the_code(client) -> list[bool]:
     """Whether each worker can import every module of ours that tasks need."""
     import importlib.util
 
-    from lunar_lander import SHIPPED
+    from cluster import SHIPPED
 
     def finds_all() -> bool:
         return all(importlib.util.find_spec(name) is not None for name in SHIPPED)

@@ -1,0 +1,431 @@
+"""The Dask cluster a command flies its policies on: found and checked before anything is
+written, joined with every wait bounded and stoppable, started locally (again, if a worker dies
+while it starts), and reported in one line when it is lost.
+
+Map:
+- `StopRequests` and `STOP`: Ctrl-C and SIGTERM, acted on where stopping is safe (every wait);
+- finding a scheduler: `scheduler_of` (--scheduler_address, or --scheduler_file through
+  `read_scheduler_file`), `check_scheduler_reachable`, `scheduler_identity` (the bounded
+  handshake that tells a Dask scheduler from a web server or a silent port) and
+  `wait_for_workers` (the first worker, up to --worker_timeout);
+- `dask_client`: a client of that scheduler or of a new local cluster (`start_local_cluster`, in
+  the memory there is: `check_local_memory`), the code shipped to it (`ship_code`); a lost
+  scheduler leaves it as a `SchedulerLost`;
+- the quiet: `quiet_dask_logs`, `not_dask_stop`, `QUIET_CLUSTER`; `preloading` imports what a run
+  needs while its cluster starts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib
+import json
+import logging
+import os
+import signal
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from flags import UsageError, clipped, positive_float, shown
+from run_files import RunError, fault_text
+
+
+class StopRequests:
+    """Ctrl-C and SIGTERM, acted on only where stopping is safe.
+
+    A signal only records the request, except inside `interruptible()` (waiting for the cluster),
+    where it stops the wait at once. So a stop never cuts a checkpoint write, an import or a tell
+    in half: the iteration in flight is abandoned and the last completed one is kept.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._raise_now = False
+
+    def install(self) -> None:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.requested = True
+        if self._raise_now:
+            self._raise_now = False
+            raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def interruptible(self) -> Iterator[None]:
+        self.check()
+        self._raise_now = True
+        try:
+            yield
+        finally:
+            self._raise_now = False
+
+
+STOP = StopRequests()
+
+
+class SchedulerLost(RunError):
+    """The cluster's scheduler is gone (ended, killed, its job preempted): the command stops, and
+    a run keeps its last checkpoint."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Finding the scheduler, before anything is written
+# ------------------------------------------------------------------------------------------------
+
+# A Dask scheduler answers the handshake in milliseconds (measured here: ~3 ms, no workers); a web
+# server or a port that accepts and stays silent never does. The handshake waits at most this, or
+# --scheduler_timeout if shorter (whose default is sized for a batch job's scheduler to start).
+HANDSHAKE_TIMEOUT = 20.0
+WORKER_POLL = 0.5  # s between asking the scheduler whether a worker has joined
+
+
+def scheduler_of(cluster: dict[str, Any]) -> str | None:
+    """The address of the Dask scheduler a command joins (None: it starts a local cluster), found
+    and checked before anything is written: --scheduler_address, or the address in
+    --scheduler_file once that file appears (a batch job's scheduler writes it when it starts).
+    The scheduler must answer as one, and have a worker within --worker_timeout.
+
+    DASK_SCHEDULER_ADDRESS in the environment is not used: a variable left over from another job
+    must not send runs to another cluster unasked (dask_client says so when it is set).
+    """
+    address, path = cluster.get("scheduler_address"), cluster.get("scheduler_file")
+    if address is not None and path is not None:
+        raise UsageError("give --scheduler_address or --scheduler_file, not both")
+    timeout = positive_float("scheduler_timeout", cluster.get("scheduler_timeout"))
+    if path is not None:
+        address = read_scheduler_file(path, timeout)
+    if address is None:
+        if cluster.get("workers") is not None:
+            check_local_memory(cluster["workers"])
+        return None
+    if not isinstance(address, str):
+        raise UsageError(f"--scheduler_address must be an address such as tcp://HOST:PORT, got "
+                         f"{clipped(address)}")
+    handshake = min(timeout, HANDSHAKE_TIMEOUT)
+    identity = check_scheduler_reachable(address, path, handshake)
+    wait_for_workers(address, identity, positive_float("worker_timeout", cluster.get("worker_timeout")),
+                     handshake)
+    return address
+
+
+def read_scheduler_file(named: Any, timeout: float) -> str:
+    """The scheduler's address in a scheduler file, waiting up to `timeout` seconds for the file
+    to appear (Ctrl-C stops the wait), and a moment more for a file still being written."""
+    if not str(named).strip():
+        raise UsageError("--scheduler_file is empty: name the file the scheduler writes")
+    path = Path(str(named))
+    deadline = time.monotonic() + timeout
+    while not path.is_file():
+        STOP.check()
+        if path.is_dir():
+            raise UsageError(f"{path} is a folder, not a scheduler file")
+        if time.monotonic() > deadline:
+            raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
+                             f"scheduler running? --scheduler_timeout waits longer)")
+        time.sleep(0.2)
+    for _ in range(10):
+        try:
+            address = json.loads(path.read_text())["address"]
+            if isinstance(address, str):
+                return address
+            why = f"its address is {clipped(address)}"
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
+            why = f"{type(error).__name__}: {clipped(fault_text(error))}"
+        time.sleep(0.2)
+    raise UsageError(f"{path}: not a Dask scheduler file ({why})")
+
+
+def check_scheduler_reachable(address: str, scheduler_file: Any = None,
+                              handshake: float = HANDSHAKE_TIMEOUT) -> dict:
+    """The scheduler's identity, or a UsageError before anything is written: a malformed address,
+    nobody listening (for a scheduler file: a stale file, left by a scheduler that has ended), or
+    a peer that is not a Dask scheduler."""
+    import socket
+
+    from distributed.comm import get_address_host_port
+
+    named = f" (named by {scheduler_file}: a file left by a scheduler that has ended?)" if (
+        scheduler_file is not None) else ""
+    try:
+        host, port = get_address_host_port(address)
+        with STOP.interruptible():
+            socket.create_connection((host, port), timeout=handshake).close()
+    except (OSError, ValueError) as error:
+        raise UsageError(f"cannot reach the Dask scheduler at {clipped(address)}{named}: "
+                         f"{clipped(fault_text(error))}") from None
+    return scheduler_identity(address, handshake)
+
+
+def scheduler_identity(address: str, timeout: float = HANDSHAKE_TIMEOUT) -> dict:
+    """What the scheduler at `address` says of itself (its worker count among it), asked with
+    Dask's own protocol and security settings, within `timeout` seconds; Ctrl-C stops the wait."""
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    async def ask() -> Any:
+        comm = await connect(address, timeout=timeout, **Security().get_connection_args("client"))
+        try:
+            await comm.write({"op": "identity", "n_workers": 0})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        with STOP.interruptible():
+            reply = in_own_thread(lambda: asyncio.run(asyncio.wait_for(ask(), timeout)))
+        why = f"it answered {shown(reply)}"
+    except (asyncio.TimeoutError, TimeoutError):
+        reply, why = None, f"no answer in {timeout:g} s"
+    except Exception as error:  # anything the comm layer raises on a peer speaking another protocol
+        reply, why = None, f"{type(error).__name__}: {clipped(fault_text(error))}"
+    if not (isinstance(reply, dict) and reply.get("type") == "Scheduler"
+            and isinstance(reply.get("n_workers"), int)):
+        raise UsageError(f"{clipped(address)} is not a Dask scheduler ({why}); give the address "
+                         f"(or scheduler file) of a running `dask scheduler`")
+    return reply
+
+
+def in_own_thread(work: Callable[[], Any]) -> Any:
+    """`work()`, run in a thread of its own (an event loop of its own, whatever loop this thread
+    runs, such as Playwright's) while this one waits, stoppable by Ctrl-C; its fault is raised."""
+    import concurrent.futures
+    import threading
+
+    done: concurrent.futures.Future = concurrent.futures.Future()
+
+    def run() -> None:
+        try:
+            done.set_result(work())
+        except BaseException as error:
+            done.set_exception(error)
+
+    threading.Thread(target=run, name="handshake", daemon=True).start()
+    return done.result()
+
+
+def wait_for_workers(address: str, identity: dict, timeout: float,
+                     handshake: float = HANDSHAKE_TIMEOUT) -> None:
+    """Return once the scheduler has a worker, saying what it waits for meanwhile; a UsageError
+    after `timeout` seconds without one (Ctrl-C stops the wait)."""
+    if identity["n_workers"]:
+        return
+    print(f"waiting for workers at {clipped(address)}: none has joined yet (up to {timeout:g} s, "
+          f"--worker_timeout)", file=sys.stderr, flush=True)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        STOP.check()
+        time.sleep(min(WORKER_POLL, max(0.0, deadline - time.monotonic())))
+        STOP.check()
+        if scheduler_identity(address, handshake)["n_workers"]:
+            return
+    raise UsageError(f"no worker joined the Dask scheduler at {clipped(address)} in {timeout:g} s; "
+                     f"start some (dask worker --scheduler-file FILE), or --worker_timeout waits "
+                     f"longer")
+
+
+# ------------------------------------------------------------------------------------------------
+# Joining it, or starting a local cluster
+# ------------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
+    """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
+    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit).
+    A scheduler lost while the block runs ends it with a SchedulerLost.
+
+    A local cluster listens on localhost only: it runs whatever code it is sent.
+    """
+    import dask
+    from dask.distributed import Client
+
+    logging.getLogger("asyncio").addFilter(not_dask_stop)  # once: the same filter is kept once
+    # A client that loses its scheduler logs each failed reconnection and closed comm with a
+    # traceback; the loss is reported once, in one line (SchedulerLost).
+    quiet_dask_logs()
+    if scheduler_address:
+        try:
+            with STOP.interruptible():
+                client = Client(scheduler_address, timeout=f"{HANDSHAKE_TIMEOUT}s")
+        except (OSError, ValueError) as error:
+            raise UsageError(f"cannot connect to the Dask scheduler at {clipped(scheduler_address)}: "
+                             f"{clipped(fault_text(error))}") from None
+        with client, losing_the_scheduler(client, scheduler_address):
+            ship_code(client)
+            log.info(f"Dask cluster at {scheduler_address}: {len(client.nthreads())} worker(s); "
+                     f"{dashboard_of(client)}")
+            yield client
+        return
+    if os.environ.get("DASK_SCHEDULER_ADDRESS"):
+        log.info("note: DASK_SCHEDULER_ADDRESS is set, but this command starts a cluster of its own; "
+                 "to join that scheduler, pass --scheduler_address (or --scheduler_file)")
+    # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
+    warnings.filterwarnings("ignore", message="Port 8787 is already in use")
+    # The imports are over before the search starts: ribs' CMA-ES rebuilds its thread-pool
+    # controller whenever the number of imported modules has changed.
+    with preloading(RUN_IMPORTS), dask.config.set(QUIET_CLUSTER):
+        cluster = start_local_cluster(workers, log)
+    quiet_dask_logs()  # LocalCluster's silence_logs set its own level
+    with cluster, Client(cluster) as client, losing_the_scheduler(client, cluster.scheduler_address):
+        log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
+        yield client
+
+
+LOCAL_START_TRIES = 3  # a worker process killed while the cluster starts fails the whole start
+# What a local worker process holds: 81 MB measured here once it has flown the lander (the
+# libraries, the env, Dask's own); the rest is headroom for the walker's and larger tasks.
+WORKER_MEMORY = 120e6
+
+
+def check_local_memory(workers: int) -> None:
+    """Refuse a local cluster whose worker processes would not fit in the memory free now."""
+    import psutil
+
+    need, free = workers * WORKER_MEMORY, psutil.virtual_memory().available
+    if need > free:
+        raise UsageError(f"--workers {workers} would need about {need / 1e9:.1f} GB "
+                         f"({WORKER_MEMORY / 1e6:.0f} MB per worker process), but {free / 1e9:.1f} GB "
+                         f"is free; give fewer")
+
+
+def start_local_cluster(workers: int, log: logging.Logger):
+    """A local cluster of `workers` single-threaded worker processes on localhost. A worker killed
+    while it starts ("Nanny failed to start") fails LocalCluster as a whole, which then closes
+    what it started: it is started again, as a worker lost later would be replaced."""
+    from dask.distributed import LocalCluster
+
+    check_local_memory(workers)
+    for attempt in range(1, LOCAL_START_TRIES + 1):
+        STOP.check()
+        try:
+            return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                host="127.0.0.1", dashboard_address="127.0.0.1:8787",
+                                silence_logs=logging.ERROR)
+        except Exception as error:
+            if attempt == LOCAL_START_TRIES:
+                raise RunError(f"could not start a local Dask cluster of {workers} worker "
+                               f"process(es) in {LOCAL_START_TRIES} tries: {fault_text(error)}") from None
+            log.info(f"a worker process failed while the local cluster started "
+                     f"({fault_text(error)}); starting it again")
+
+
+@contextlib.contextmanager
+def losing_the_scheduler(client, address: str) -> Iterator[None]:
+    """A fault while the client has lost its scheduler (its tasks cancelled, its comms closed) is
+    the scheduler's loss, reported as such in one line, not the fault of whatever was waiting."""
+    try:
+        yield
+    except Exception as error:
+        if client.status != "running" and not isinstance(error, SchedulerLost):
+            raise SchedulerLost(f"lost the Dask scheduler at {clipped(address)} "
+                                f"({clipped(fault_text(error))})") from None
+        raise
+
+
+def dashboard_of(client) -> str:
+    """The dashboard's link where one answers; a scheduler started with --no-dashboard still
+    names port 8787 (its HTTP server answers there, without the dashboard's pages)."""
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(client.dashboard_link, timeout=2) as page:
+            if page.status == 200:
+                return f"dashboard {client.dashboard_link}"
+    except (OSError, ValueError):
+        pass
+    return "no dashboard"
+
+
+# The modules a worker imports to run tasks, in the order they import each other.
+SHIPPED = ("flags", "run_files", "cluster", "plots", "fast_env", "lunar_lander", "results")
+
+
+def ship_code(client) -> None:
+    """Make this exact code importable by the scheduler and every worker of a cluster.
+
+    Tasks refer to their functions by module and name (`lunar_lander.fly_chunk`,
+    `results.record_poses`), so the scheduler (which unpickles task graphs) and the workers must
+    import those modules. Machines elsewhere have the libraries but not this code, or an older
+    copy: then every module is uploaded, in import order (to workers that join later too). Where
+    all already import these very files (a local cluster), nothing is reloaded.
+    """
+    def digests_of_importable_modules(names: tuple[str, ...]) -> list[str | None]:  # runs remotely
+        import hashlib
+        import importlib.util
+
+        found = []
+        for name in names:
+            spec = importlib.util.find_spec(name)
+            if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+                found.append(None)
+                continue
+            with open(spec.origin, "rb") as file:
+                found.append(hashlib.sha256(file.read()).hexdigest())
+        return found
+
+    paths = [Path(importlib.import_module(name).__file__).resolve() for name in SHIPPED]
+    ours = [hashlib.sha256(path.read_bytes()).hexdigest() for path in paths]
+    theirs = [client.run_on_scheduler(digests_of_importable_modules, SHIPPED),
+              *client.run(digests_of_importable_modules, SHIPPED).values()]
+    if any(digests != ours for digests in theirs):
+        for path in paths:
+            client.upload_file(str(path))
+
+
+# What a run imports while its cluster starts (ribs alone brings scikit-learn, scipy, numba and
+# pandas: ~2 s of the main process).
+RUN_IMPORTS = ("ribs.archives", "ribs.emitters", "ribs.schedulers", "ribs.visualize",
+               "matplotlib.pyplot", "matplotlib.backends.backend_agg", "pandas.io.formats.csvs", "tqdm")
+
+
+@contextlib.contextmanager
+def preloading(modules: tuple[str, ...]) -> Iterator[None]:
+    """Import `modules` in a thread while the block runs. A local cluster's start is mostly the
+    main process waiting for its worker processes to spawn and import: time to import what comes
+    next. An import that fails here (even one of Python's rare cross-thread import deadlocks)
+    costs nothing: the module is imported again where it is used."""
+    import threading
+
+    def load() -> None:
+        for module in modules:
+            with contextlib.suppress(Exception):
+                importlib.import_module(module)
+
+    thread = threading.Thread(target=load, name="preload", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        thread.join()
+
+
+def quiet_dask_logs() -> None:
+    """Dask's own log lines (and their tracebacks) stay out of the console: every fault a user
+    must know of is reported by this script, in one line."""
+    for name in ("distributed", "distributed.client"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
+def not_dask_stop(record: logging.LogRecord) -> bool:
+    """Ctrl-C during a gather leaves Dask's wait task with its AllExit, which asyncio would print
+    with a traceback when it is collected: the stop is ours, and is reported in one line."""
+    return not (record.exc_info and type(record.exc_info[1]).__name__ == "AllExit")
+
+
+# Dask's housekeeping runs in the main process (the scheduler, and the nannies of the local
+# workers): at its default pace (memory checks every 100 ms per worker, system monitor every
+# 500 ms, event-loop ticks every 20 ms) it took ~6% of a core here, from the workers' 2 cores.
+QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
+                 "distributed.admin.system-monitor.interval": "2s",
+                 "distributed.admin.tick.interval": "200ms"}
