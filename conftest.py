@@ -1,9 +1,10 @@
 """Shared fixtures: one real Dask LocalCluster for the session, the tiny run and the reference run
 (util.py has their flags), the command line in-process or as a process, and a headless browser.
 
-numba would compile ribs' CMA-ES code in every process that runs a search (5-8 s each);
-NUMBA_DISABLE_JIT gives bitwise-identical results, so the tests (and the processes they start)
-run with it.
+numba would compile ribs' CMA-ES code in every process that runs a search (3-5 s each), and its
+compiled code's last bits differ from the uncompiled code the script runs by default
+(docs/performance.md): the tests (and the processes they start) run with NUMBA_DISABLE_JIT, as
+the script does.
 """
 
 import contextlib

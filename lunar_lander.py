@@ -120,8 +120,10 @@ from run_files import (
 # Plots are written to files, never shown: no display is needed (set before matplotlib loads).
 os.environ.setdefault("MPLBACKEND", "Agg")
 # ribs' CMA-ES code is written for numba, which compiles it on the first ask/tell of a process
-# (3-8 s). For 32 parameters the uncompiled code is as fast once warm (1.4 vs 1.3 ms per ask+tell,
-# measured) and gives bitwise-identical results, so compilation is off unless asked for.
+# (2.6-4.5 s). The compiled code's last bits differ (from the 26th iteration on, for 32 weights),
+# and it is not much faster: 1.31 vs 1.39 ms per ask+tell for 32 weights (the lander), 1.79 vs
+# 2.01 for 96 (the walker), 3.39 vs 4.02 for 216 (benchmarks/bench_ask_tell.py, 2026-11-24). So
+# compilation is off unless asked for, and every search computes the same bits.
 os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
 
 # Dask spawns worker processes that re-import this script, so the heavy libraries that only the
@@ -569,11 +571,16 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
-# Two chunks per worker even out episodes of 60 to 1000 steps across workers as well as more do
-# (measured: 1, 2, 3, 4, 8), while each task costs the main process ~0.6 ms of scheduling.
+# Two chunks per worker even out lander episodes (60 to 1,000 steps) across workers as well as
+# more do (measured: 1, 2, 3, 4, 8), while each task costs the main process ~0.6 ms of
+# scheduling. Walker episodes (60 to 1,600 steps) too: 1, 4 and 8 chunks per worker took 0.96,
+# 0.95 and 1.01 of the time of 2, within this machine's noise (benchmarks/bench_chunking.py,
+# 6 rounds of 150 policies on 2 workers, 2026-11-24).
 CHUNKS_PER_WORKER = 2
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
-MAX_CHUNK = 1000  # rollouts per task at most (a few seconds), so big batches report progress
+# Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
+# few seconds of lander episodes (<= 1,000 steps of ~27 us), up to minutes of walker ones.
+MAX_CHUNK = 1000
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],

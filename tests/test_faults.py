@@ -110,6 +110,14 @@ def test_the_reported_hang_is_one_line_from_a_real_process(run_process, tmp_path
     assert not (tmp_path / "X").exists()
 
 
+def catches_sigterm(pid: int) -> bool:
+    """Whether the process has its own SIGTERM handler yet (main installs the stop handlers first
+    thing; a signal before that would end it as an unprepared process would end)."""
+    with open(f"/proc/{pid}/status") as status:
+        caught = next(line for line in status if line.startswith("SigCgt:")).split()[1]
+    return bool(int(caught, 16) >> (signal.SIGTERM - 1) & 1)
+
+
 @pytest.mark.slow
 def test_ctrl_c_and_sigterm_stop_every_wait(tmp_path):
     """Waiting on a silent port's handshake, on workers that never come, or on a scheduler file
@@ -121,7 +129,8 @@ def test_ctrl_c_and_sigterm_stop_every_wait(tmp_path):
                                   ({"scheduler_file": scheduler_file}, signal.SIGINT),
                                   ({"scheduler_file": tmp_path / "never.json"}, signal.SIGTERM)]:
                 process = launch(iterations=2, outdir=tmp_path / "out", **flags)
-                time.sleep(4)  # well into the wait (the script starts in ~1-2 s)
+                wait_for(lambda pid=process.pid: catches_sigterm(pid), process, "the stop handlers installed")
+                time.sleep(1)  # into the wait, which follows at once
                 assert process.poll() is None
                 process.send_signal(signum)
                 out, err = process.communicate(timeout=15)

@@ -1,0 +1,55 @@
+#!/usr/bin/env python
+"""How many chunks per worker a batch is split into (CHUNKS_PER_WORKER in lunar_lander.py), for a
+task's episodes: the seconds of one batch of the default search (5 emitters x 30 policies) on a
+local cluster of --workers processes, for each chunk count, in interleaved rounds (the same
+batches for every count), with the median and its ratio to today's count.
+
+Policies are N(0, sigma^2) weights: for the walker they mix episodes that fall within ~60 steps
+with ones that stand or shuffle to the 1,600-step limit, the unevenness chunking must absorb.
+
+    python benchmarks/bench_chunking.py --env BipedalWalker-v3 --counts "[1, 2, 3, 4, 8]" --rounds 3
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import fire
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import lunar_lander as ll  # noqa: E402
+from cluster import dask_client  # noqa: E402
+
+
+def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8), rounds: int = 3,
+         workers: int = 2, batch: int = 150, sigma: float = 0.5) -> None:
+    task = ll.ENVIRONMENTS[env]
+    config = {**ll.search_defaults(), "env": env, "env_seed": [52], "measures": list(task.measures)}
+    today = ll.CHUNKS_PER_WORKER
+    times: dict[int, list[float]] = {count: [] for count in counts}
+    with dask_client(workers, None, logging.getLogger("bench")) as client:
+        ll.evaluate_batch(client, np.zeros((workers * 4, task.solution_dim)), config)  # warm the workers
+        for round_ in range(rounds):
+            solutions = np.random.default_rng(round_).normal(0, sigma, (batch, task.solution_dim))
+            for count in counts:
+                ll.CHUNKS_PER_WORKER = count
+                start = time.perf_counter()
+                ll.evaluate_batch(client, solutions, config)
+                times[count].append(time.perf_counter() - start)
+    ll.CHUNKS_PER_WORKER = today
+    base = statistics.median(times[today]) if today in times else None
+    print(f"{env}, {batch} policies per batch, {workers} workers, {rounds} rounds")
+    print(f"{'chunks/worker':>13} {'median s':>9} {'vs ' + str(today):>7}")
+    for count in counts:
+        median = statistics.median(times[count])
+        print(f"{count:>13} {median:>9.2f} {median / base if base else float('nan'):>7.3f}")
+
+
+if __name__ == "__main__":
+    fire.Fire(main)
