@@ -15,6 +15,8 @@ import signal
 import sys
 from pathlib import Path
 
+from qdsearch import run
+
 os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
 
 import pytest
@@ -59,11 +61,10 @@ def dask_client(dask_cluster):
 def tiny_run(tmp_path_factory, dask_cluster):
     """A tiny finished run folder (3 iterations, a few dozen elites), shared: only read it; a test
     that writes in a run folder copies it first."""
-    import lunar_lander as ll
     from util import tiny_flags
 
     run_dir = tmp_path_factory.mktemp("tiny") / "run"
-    ll.search(**tiny_flags(dask_cluster), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster), outdir=str(run_dir))
     return run_dir
 
 
@@ -71,11 +72,10 @@ def tiny_run(tmp_path_factory, dask_cluster):
 def reference(tmp_path_factory, dask_cluster):
     """The uninterrupted run every stopped-and-resumed (or faulted) run must end equal to: the tiny
     run carried on to REFERENCE_ITERATIONS, saved once at its end (only the end is compared)."""
-    import lunar_lander as ll
     from util import REFERENCE_ITERATIONS, tiny_flags
 
     run_dir = tmp_path_factory.mktemp("reference") / "run"
-    ll.search(**tiny_flags(dask_cluster, iterations=REFERENCE_ITERATIONS,
+    run.search(**tiny_flags(dask_cluster, iterations=REFERENCE_ITERATIONS,
                            log_every=REFERENCE_ITERATIONS), outdir=str(run_dir))
     return run_dir
 

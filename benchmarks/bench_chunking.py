@@ -23,26 +23,26 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import lunar_lander as ll  # noqa: E402
-from cluster import dask_client  # noqa: E402
+from qdsearch import engine, options, tasks  # noqa: E402
+from qdsearch.cluster import dask_client  # noqa: E402
 
 
 def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8), rounds: int = 3,
          workers: int = 2, batch: int = 150, sigma: float = 0.5) -> None:
-    task = ll.ENVIRONMENTS[env]
-    config = {**ll.search_defaults(), "env": env, "env_seed": [52], "measures": list(task.measures)}
-    today = ll.CHUNKS_PER_WORKER
+    task = tasks.ENVIRONMENTS[env]
+    config = {**options.search_defaults(), "env": env, "env_seed": [52], "measures": list(task.measures)}
+    today = engine.CHUNKS_PER_WORKER
     times: dict[int, list[float]] = {count: [] for count in counts}
     with dask_client(workers, None, logging.getLogger("bench")) as client:
-        ll.evaluate_batch(client, np.zeros((workers * 4, task.solution_dim)), config)  # warm the workers
+        engine.evaluate_batch(client, np.zeros((workers * 4, task.solution_dim)), config)  # warm the workers
         for round_ in range(rounds):
             solutions = np.random.default_rng(round_).normal(0, sigma, (batch, task.solution_dim))
             for count in counts:
-                ll.CHUNKS_PER_WORKER = count
+                engine.CHUNKS_PER_WORKER = count
                 start = time.perf_counter()
-                ll.evaluate_batch(client, solutions, config)
+                engine.evaluate_batch(client, solutions, config)
                 times[count].append(time.perf_counter() - start)
-    ll.CHUNKS_PER_WORKER = today
+    engine.CHUNKS_PER_WORKER = today
     base = statistics.median(times[today]) if today in times else None
     print(f"{env}, {batch} policies per batch, {workers} workers, {rounds} rounds")
     print(f"{'chunks/worker':>13} {'median s':>9} {'vs ' + str(today):>7}")

@@ -28,27 +28,27 @@ import fire
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import lunar_lander as ll  # noqa: E402  (imported by name so the workers import it too)
-import run_files  # noqa: E402
+
+from qdsearch import algorithms, engine, run, run_files, tasks  # noqa: E402
 
 
 def config_of(env_name: str) -> dict:
-    return ll.check_run_config({"seed": 1, "env": env_name})
+    return run.check_run_config({"seed": 1, "env": env_name})
 
 
 def serial_search(env_name: str, iterations: int) -> dict:
     """The search with its rollouts in this process: seconds spent flying, steps, episodes."""
     config = config_of(env_name)
-    scheduler, env = ll.build_scheduler(config), ll.worker_env(env_name)
+    scheduler, env = algorithms.build_scheduler(config), engine.worker_env(env_name)
     flying, steps, episodes = 0.0, 0, 0
     for _ in range(iterations):
         rows = []
         for solution in scheduler.ask():
             start = time.perf_counter()
-            flight = ll.fly(solution, 52, env, env_name=env_name)
+            flight = tasks.fly(solution, 52, env, env_name=env_name)
             flying += time.perf_counter() - start
             steps, episodes = steps + flight.steps, episodes + 1
-            rows.append([flight.reward, *(ll.MEASURES[m].of(flight) for m in config["measures"])])
+            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config["measures"])])
         rows = np.array(rows)
         scheduler.tell(rows[:, 0], rows[:, 1:])
     return {"fly_s": flying, "steps": steps, "episodes": episodes, "archive": archive_of(scheduler)}
@@ -57,11 +57,11 @@ def serial_search(env_name: str, iterations: int) -> dict:
 def engine_search(env_name: str, iterations: int, client) -> dict:
     """The same search through the engine: its wall time (ask, evaluate, tell)."""
     config = config_of(env_name)
-    scheduler = ll.build_scheduler(config)
+    scheduler = algorithms.build_scheduler(config)
     start = time.perf_counter()
     for _ in range(iterations):
         solutions = scheduler.ask()
-        scheduler.tell(*ll.evaluate_batch(client, solutions, config))
+        scheduler.tell(*engine.evaluate_batch(client, solutions, config))
     return {"search_s": time.perf_counter() - start, "archive": archive_of(scheduler)}
 
 
@@ -70,7 +70,7 @@ def archive_of(scheduler) -> list:
     return sorted(zip(data["index"].tolist(), data["objective"].tolist()))
 
 
-def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(ll.ENVIRONMENTS)) -> None:
+def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVIRONMENTS)) -> None:
     from dask.distributed import Client, LocalCluster
 
     envs = [name.strip() for name in str(envs).split(",")]
@@ -79,18 +79,18 @@ def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(ll.ENVIRON
                            dashboard_address=None, silence_logs=logging.ERROR)
     with cluster, Client(cluster) as client:
         for env_name in envs:
-            nothing = np.zeros((1, ll.ENVIRONMENTS[env_name].solution_dim))
-            client.gather(client.map(ll.fly_chunk, [nothing] * workers, [[52]] * workers, [()] * workers,
+            nothing = np.zeros((1, tasks.ENVIRONMENTS[env_name].solution_dim))
+            client.gather(client.map(engine.fly_chunk, [nothing] * workers, [[52]] * workers, [()] * workers,
                                      [True] * workers, [env_name] * workers, pure=False))  # warm
-            serial, engine = serial_search(env_name, iterations), engine_search(env_name, iterations, client)
+            serial, engined = serial_search(env_name, iterations), engine_search(env_name, iterations, client)
             rows.append({
                 "env": env_name, "iterations": iterations, "episodes": serial["episodes"],
                 "mean_steps": round(serial["steps"] / serial["episodes"], 1),
                 "us_per_step": round(1e6 * serial["fly_s"] / serial["steps"], 1),
                 "rollouts_per_s_one_core": round(serial["episodes"] / serial["fly_s"], 1),
-                "engine_s_per_iteration": round(engine["search_s"] / iterations, 3),
-                "efficiency": round(serial["fly_s"] / (workers * engine["search_s"]), 3),
-                "same_archive": serial["archive"] == engine["archive"]})
+                "engine_s_per_iteration": round(engined["search_s"] / iterations, 3),
+                "efficiency": round(serial["fly_s"] / (workers * engined["search_s"]), 3),
+                "same_archive": serial["archive"] == engined["archive"]})
             print(rows[-1], flush=True)
     result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
               "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},

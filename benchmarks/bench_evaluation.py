@@ -34,12 +34,11 @@ import gymnasium as gym
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import fast_env  # noqa: E402
-import lunar_lander as ll  # noqa: E402  (the product, imported by name so workers import it too)
-import run_files  # noqa: E402
+
+from qdsearch import algorithms, engine, fast_env, run_files, tasks  # noqa: E402
 
 CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
-              measures=list(ll.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True)
+              measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True)
 
 
 def tutorial_simulate(model: np.ndarray, seed: int) -> tuple[float, float, float]:
@@ -79,17 +78,17 @@ def serial_evaluate(rollout: Callable) -> Callable:
 
 
 def streamlined_rollout(solution: np.ndarray, seed: int, env) -> tuple[float, ...]:
-    return ll.rollout(solution, seed, env)
+    return tasks.rollout(solution, seed, env)
 
 
 def engine_evaluate(client, solutions: np.ndarray, env_seed: int):
-    return ll.evaluate_batch(client, solutions, {**CONFIG, "env_seed": [env_seed]})
+    return engine.evaluate_batch(client, solutions, {**CONFIG, "env_seed": [env_seed]})
 
 
 def run_search(evaluate: Callable, client, iterations: int) -> dict:
     """The search loop, timed: wall time, this process's CPU time (all its threads, the Dask
     scheduler's included), and time spent inside `evaluate`."""
-    scheduler = ll.build_scheduler(CONFIG)
+    scheduler = algorithms.build_scheduler(CONFIG)
     wall, cpu, evaluating = time.perf_counter(), time.process_time(), 0.0
     for _ in range(iterations):
         solutions = scheduler.ask()
@@ -103,12 +102,12 @@ def run_search(evaluate: Callable, client, iterations: int) -> dict:
 
 def count_steps(iterations: int) -> int:
     """Environment steps the benchmark's search takes (counted once, untimed)."""
-    scheduler, env, steps = ll.build_scheduler(CONFIG), fast_env.FastLunarLander(), 0
+    scheduler, env, steps = algorithms.build_scheduler(CONFIG), fast_env.FastLunarLander(), 0
     for _ in range(iterations):
         solutions, results = scheduler.ask(), []
         for solution in solutions:
             path: list = []
-            results.append(ll.rollout(solution, 52, env, trajectory=path))
+            results.append(tasks.rollout(solution, 52, env, trajectory=path))
             steps += len(path)
         results = np.array(results)
         scheduler.tell(results[:, 0], results[:, 1:])
@@ -123,8 +122,8 @@ def local_client(workers: int):
     client = Client(cluster)
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
-    client.gather(client.map(ll.fly_chunk, [np.zeros((1, 32))] * workers,
-                             env_seeds=[52], measures=ll.TUTORIAL_MEASURES, pure=False))
+    client.gather(client.map(engine.fly_chunk, [np.zeros((1, 32))] * workers,
+                             env_seeds=[52], measures=tasks.TUTORIAL_MEASURES, pure=False))
     return cluster, client
 
 

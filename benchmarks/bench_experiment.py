@@ -34,8 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 sys.path.insert(0, str(ROOT))
-import lunar_lander as ll  # noqa: E402  (the product)
-import run_files  # noqa: E402
+
+from qdsearch import algorithms, run_files, tasks  # noqa: E402
 
 
 def timed(*args: str) -> float:
@@ -48,13 +48,13 @@ def timed(*args: str) -> float:
 
 def serial_rollout_seconds(configs: list[dict]) -> float:
     """The runs again, in this process: only their rollouts are timed, one after another."""
-    env, total = ll.make_env(), 0.0
+    env, total = tasks.make_env(), 0.0
     for config in configs:
-        scheduler = ll.build_scheduler(config)
+        scheduler = algorithms.build_scheduler(config)
         for _ in range(config["iterations"]):
             solutions = scheduler.ask()
             tic = time.perf_counter()
-            rows = np.array([ll.rollout(s, config["env_seed"][0], env, config["measures"])
+            rows = np.array([tasks.rollout(s, config["env_seed"][0], env, config["measures"])
                              for s in solutions])
             total += time.perf_counter() - tic
             scheduler.tell(rows[:, 0], rows[:, 1:])

@@ -48,8 +48,8 @@ def one_search(script: Path, folder: Path) -> dict:
 
 def import_floor() -> float:
     """Wall seconds of a fresh process that only imports what a search imports."""
-    code = ("import importlib, lunar_lander\n"
-            "for name in (*lunar_lander.RUN_IMPORTS, 'dask.distributed'):\n"
+    code = ("import importlib, lunar_lander, qdsearch.run, qdsearch.cluster\n"
+            "for name in (*qdsearch.cluster.RUN_IMPORTS, 'dask.distributed'):\n"
             "    importlib.import_module(name)\n")
     tic = time.perf_counter()
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -44,9 +44,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-import experiments  # noqa: E402
-import lunar_lander as ll  # noqa: E402
-import run_files  # noqa: E402
+
+from qdsearch import algorithms, engine, experiments, run, run_files, tasks  # noqa: E402
 
 TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start, end), time.time()
 
@@ -54,16 +53,17 @@ TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start
 def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
     """Episode lengths of a real CMA-ME search's rollouts (the default setting of the task,
     serial, in this process), and the seconds a step costs, from the same rollouts."""
-    config = ll.check_run_config({"seed": 1, "env": env_name})
-    scheduler, env, lengths, steps_time = ll.build_scheduler(config), ll.worker_env(env_name), [], 0.0
+    config = run.check_run_config({"seed": 1, "env": env_name})
+    scheduler, env = algorithms.build_scheduler(config), engine.worker_env(env_name)
+    lengths, steps_time = [], 0.0
     for _ in range(iterations):
         solutions, rows = scheduler.ask(), []
         for solution in solutions:
             start = time.perf_counter()
-            flight = ll.fly(solution, 52, env, env_name=env_name)
+            flight = tasks.fly(solution, 52, env, env_name=env_name)
             steps_time += time.perf_counter() - start
             lengths.append(flight.steps)
-            rows.append([flight.reward, *(ll.MEASURES[m].of(flight) for m in config["measures"])])
+            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config["measures"])])
         rows = np.array(rows)
         scheduler.tell(rows[:, 0], rows[:, 1:])
     return lengths, steps_time / sum(lengths)
@@ -71,7 +71,7 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
 
 def simulated_chunk(lengths: list[int], step_s: float):
     """The stand-in for lunar_lander.fly_chunk on the simulated workers."""
-    def fly_chunk(solutions, env_seeds, measures, fast_env=True, env_name=ll.DEFAULT_ENV):
+    def fly_chunk(solutions, env_seeds, measures, fast_env=True, env_name=tasks.DEFAULT_ENV):
         from distributed.worker import thread_state
 
         start = time.time()
@@ -80,7 +80,7 @@ def simulated_chunk(lengths: list[int], step_s: float):
         TASK_LOG[thread_state.key] = (start, time.time())
         objective = 300 - 100 * np.sum(np.square(solutions), axis=1)
         values = [lo + (hi - lo) * (np.tanh(solutions[:, i]) + 1) / 2 for i, (lo, hi) in
-                  enumerate(ll.MEASURES[name].range for name in measures)]
+                  enumerate(tasks.MEASURES[name].range for name in measures)]
         return np.column_stack([objective, *values])
     return fly_chunk
 
@@ -96,7 +96,7 @@ class Recorder:
 
     def __init__(self, lengths: list[int], step_s: float) -> None:
         self.lengths, self.step_s, self.batches, self.run = lengths, step_s, [], ""
-        self.original, self.launch = ll.submit_flights, experiments.Experiment.launch
+        self.original, self.launch = engine.submit_flights, experiments.Experiment.launch
         recorder = self
 
         def launch(experiment, live) -> None:  # which run the next batch is of
@@ -173,12 +173,12 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, lengths: 
 
 
 def install_simulation(lengths: list[int], step_s: float) -> None:
-    """On each worker process: lunar_lander.fly_chunk becomes the simulated chunk."""
+    """On each worker process: the engine's fly_chunk becomes the simulated chunk."""
     import bench_scale
 
-    import lunar_lander
+    from qdsearch import engine
 
-    lunar_lander.fly_chunk = bench_scale.simulated_chunk(lengths, step_s)
+    engine.fly_chunk = bench_scale.simulated_chunk(lengths, step_s)
 
 
 def summarise(workers: int, runs: int, iterations: int, batches: list[dict], log: dict,
@@ -211,7 +211,7 @@ def summarise(workers: int, runs: int, iterations: int, batches: list[dict], log
 
 
 def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20,
-         processes: int = 4, env: str = ll.DEFAULT_ENV, measured: int = 20,
+         processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20,
          out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
     lengths, step_s = measure_rollouts(measured, env)
     print(f"real rollouts: {len(lengths)} episodes, {np.mean(lengths):.0f} steps on average "

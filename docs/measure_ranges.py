@@ -22,11 +22,12 @@ import fire
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import lunar_lander as ll  # noqa: E402
-from results import load_run  # noqa: E402
+
+from qdsearch import engine, tasks  # noqa: E402
+from qdsearch.results import load_run  # noqa: E402
 
 
-def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = ll.DEFAULT_ENV,
+def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = tasks.DEFAULT_ENV,
          good: float = 100.0) -> None:
     archives = [load_run(run_dir) for run_dir in run_dirs]
     for run_dir, (archive, config) in zip(run_dirs, archives):
@@ -35,17 +36,17 @@ def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = ll.DEFA
                           for i, name in enumerate(config["measures"]))
         print(f"{run_dir}: {len(archive)} elites; on an axis's two edge cells: {edges}")
     solutions = [archive.data("solution") for archive, _ in archives]
-    task = ll.ENVIRONMENTS[env]
+    task = tasks.ENVIRONMENTS[env]
     solutions.append(np.random.default_rng(0).normal(size=(random, task.solution_dim)))
     solutions = np.concatenate(solutions)
-    names = tuple(ll.family_measures(task.family))
-    flown = np.array([ll.rollout(solution, env_seed, ll.worker_env(env), names, env_name=env)
+    names = tuple(tasks.family_measures(task.family))
+    flown = np.array([tasks.rollout(solution, env_seed, engine.worker_env(env), names, env_name=env)
                       for solution in solutions])
     best = flown[:, 0] > good
     print(f"{len(flown)} policies on terrain {env_seed} of {env} ({best.sum()} scoring over "
           f"{good:g}): share outside each range, all / over {good:g}; lowest return {flown[:, 0].min():.1f}")
     for i, name in enumerate(names):
-        low, high = ll.MEASURES[name].range
+        low, high = tasks.MEASURES[name].range
         outside = (flown[:, 1 + i] < low) | (flown[:, 1 + i] > high)
         print(f"  {name:18s} [{low:g}, {high:g}]: {outside.mean():.1%} / {outside[best].mean():.1%}; "
               f"values from {flown[:, 1 + i].min():.3g} to {flown[:, 1 + i].max():.3g}")

@@ -11,9 +11,7 @@ from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter
 from ribs.emitters.rankers import ImprovementRanker, TwoStageImprovementRanker
 from ribs.schedulers import Scheduler
 
-import lunar_lander as ll
-import results
-import run_files
+from qdsearch import algorithms, experiments, options, results, run, run_files, tasks
 from util import (
     archive_table,
     assert_one_line_error,
@@ -29,11 +27,11 @@ RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "met
 
 
 CONFIG = dict(algorithm="cma_me", seed=3, n_emitters=5, sigma0=1.0, batch_size=30,
-              measures=list(ll.TUTORIAL_MEASURES), grid=50)
+              measures=list(tasks.TUTORIAL_MEASURES), grid=50)
 
 
 def test_cma_me_is_the_tutorial_setup():
-    scheduler = ll.build_scheduler(CONFIG)
+    scheduler = algorithms.build_scheduler(CONFIG)
     archive = scheduler.archive
 
     assert isinstance(scheduler, Scheduler)
@@ -53,9 +51,9 @@ def test_cma_me_is_the_tutorial_setup():
 
 
 def test_seed_fixes_the_proposals_and_emitters_differ():
-    first = ll.build_scheduler(CONFIG).ask()
-    again = ll.build_scheduler(CONFIG).ask()
-    other = ll.build_scheduler({**CONFIG, "seed": 4}).ask()
+    first = algorithms.build_scheduler(CONFIG).ask()
+    again = algorithms.build_scheduler(CONFIG).ask()
+    other = algorithms.build_scheduler({**CONFIG, "seed": 4}).ask()
 
     assert np.array_equal(first, again)
     assert not np.array_equal(first, other)
@@ -73,14 +71,14 @@ def tiny_runs(tmp_path_factory, dask_cluster):
     """A 2-iteration run folder of each algorithm."""
     root = tmp_path_factory.mktemp("algorithms")
     for algorithm in ALGORITHMS:
-        ll.search(**algorithm_flags(dask_cluster, algorithm), outdir=str(root / algorithm))
+        run.search(**algorithm_flags(dask_cluster, algorithm), outdir=str(root / algorithm))
     return {algorithm: root / algorithm for algorithm in ALGORITHMS}
 
 
 def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
     config = dict(seed=3, n_emitters=5, sigma0=1.0, batch_size=30, learning_rate=0.01,
-                  measures=list(ll.TUTORIAL_MEASURES), grid=50)
-    schedulers = {name: ll.build_scheduler({**config, "algorithm": name}) for name in ALGORITHMS}
+                  measures=list(tasks.TUTORIAL_MEASURES), grid=50)
+    schedulers = {name: algorithms.build_scheduler({**config, "algorithm": name}) for name in ALGORITHMS}
 
     mae = schedulers["cma_mae"]
     assert mae.archive.learning_rate == 0.01 and mae.archive.threshold_min == -600
@@ -125,7 +123,7 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
     result_qd_score = float(scheduler.result_archive.stats.qd_score)
     assert run_metrics(run_dir)[-1]["qd_score"] == pytest.approx(result_qd_score)
     # The soft archive keeps later, worse solutions that passed a threshold: the best are elsewhere.
-    assert scheduler.archive.learning_rate == ll.search_defaults()["learning_rate"]
+    assert scheduler.archive.learning_rate == options.search_defaults()["learning_rate"]
     assert saved.stats.obj_max >= scheduler.archive.stats.obj_max
 
 
@@ -133,8 +131,8 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 @pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_runs, algorithm):
     run_dir = tmp_path / "run"
-    ll.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
-    ll.resume(str(run_dir), iterations=2, scheduler_address=dask_cluster.scheduler_address)
+    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
+    experiments.resume(str(run_dir), iterations=2, scheduler_address=dask_cluster.scheduler_address)
 
     reference = tiny_runs[algorithm]
     assert run_archive(run_dir).equals(run_archive(reference))
@@ -149,7 +147,7 @@ def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_
 def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algorithm):
     source = tiny_runs["cma_me"] / "archive.pkl"
     run_dir = tmp_path / "warm"
-    ll.search(**algorithm_flags(dask_cluster, algorithm, iterations=1),
+    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1),
               outdir=str(run_dir), from_archive=str(source))
 
     elites = len(load_pickle(source))
@@ -184,7 +182,7 @@ def test_checkpoint_from_before_learning_rate_still_resumes(tmp_path, tiny_runs)
     del checkpoint["config"]["learning_rate"]
     run_files.write_pickle(tmp_path / "checkpoint.pkl", checkpoint)
 
-    assert ll.load_checkpoint(tmp_path / "checkpoint.pkl")["config"]["learning_rate"] == 0.01
+    assert run.load_checkpoint(tmp_path / "checkpoint.pkl")["config"]["learning_rate"] == 0.01
 
 
 def test_unknown_algorithm_and_bad_learning_rate_are_one_line_errors(run_cli, tmp_path):

@@ -5,13 +5,14 @@ import inspect
 import pytest
 
 import lunar_lander as ll
+from qdsearch import options, run
 from util import assert_one_line_error
 
 
 def test_help_documents_every_flag(run_cli):
     result = run_cli("--help")
     assert result.returncode == 0
-    for flag in inspect.signature(ll.search).parameters:
+    for flag in inspect.signature(run.search).parameters:
         assert f"--{flag}" in result.stdout + result.stderr, flag
 
 
@@ -58,8 +59,8 @@ def test_the_readmes_flag_table_says_what_the_flag_table_declares():
     shown = {None: ["none", "drawn", "the task's"], "cma_me": ["`cma_me`"],
              "LunarLander-v3": ["`LunarLander-v3`"]}
     for name, default in rows:
-        assert name in ll.SEARCH_FLAGS, name
-        flag = ll.SEARCH_FLAGS[name]
+        assert name in options.SEARCH_FLAGS, name
+        flag = options.SEARCH_FLAGS[name]
         expected = shown.get(flag.default, [str(flag.default)]) if name != "outdir" else [
             "`outputs/<timestamp>_seed<seed>`"]
         assert default.strip() in expected, (name, default)
@@ -79,7 +80,8 @@ def test_every_command_documents_its_flags_from_the_tables(run_cli):
             assert f"--{flag}" in result.stdout + result.stderr, (name, flag)
         shown = " ".join((result.stdout + result.stderr).split())
         own = inspect.signature(getattr(function, "__wrapped__", function)).parameters
-        tables = (ll.SEARCH_FLAGS, ll.CLUSTER_FLAGS, ll.RESUME_FLAGS, ll.SELECTION_FLAGS, ll.TERRAIN_FLAGS)
+        tables = (options.SEARCH_FLAGS, options.CLUSTER_FLAGS, options.RESUME_FLAGS, options.SELECTION_FLAGS,
+                  options.TERRAIN_FLAGS)
         for flag in (flag for flag in parameters if flag not in own):  # taken from a table
             helps = [" ".join(table[flag].help.split()[:6]) for table in tables if flag in table]
             assert any(help in shown for help in helps), (name, flag)

@@ -11,7 +11,7 @@ import time
 import pytest
 from dask.distributed import Client
 
-import lunar_lander as ll
+from qdsearch import run
 from util import (
     Result,
     assert_one_line_error,
@@ -38,7 +38,7 @@ def twins(tmp_path_factory, dask_cluster):
     root = tmp_path_factory.mktemp("twins")
     flags = {k: v for k, v in RUNS.items() if k not in ("algorithms", "seeds")}
     for seed in (1, 2):
-        ll.search(**tiny_flags(dask_cluster, **flags, seed=seed), outdir=str(root / str(seed)))
+        run.search(**tiny_flags(dask_cluster, **flags, seed=seed), outdir=str(root / str(seed)))
     return {seed: root / str(seed) for seed in (1, 2)}
 
 
@@ -47,10 +47,10 @@ def plan_of(folder):
 
 
 def assert_runs_equal_their_twins(folder, twins):
-    for run in plan_of(folder)["runs"]:
-        assert run["state"] == "done"
-        assert run_archive(folder / run["name"]).equals(run_archive(twins[run["seed"]]))
-        assert run_metrics(folder / run["name"]) == run_metrics(twins[run["seed"]])
+    for entry in plan_of(folder)["runs"]:
+        assert entry["state"] == "done"
+        assert run_archive(folder / entry["name"]).equals(run_archive(twins[entry["seed"]]))
+        assert run_metrics(folder / entry["name"]) == run_metrics(twins[entry["seed"]])
 
 
 def executed(client, worker: str) -> int:
@@ -64,7 +64,7 @@ def experiment_under_way(folder, scheduler_file, processes):
     experiment = launch("experiment", **RUNS, outdir=folder, scheduler_file=scheduler_file)
     processes.append(experiment)
     wait_for(lambda: (folder / "experiment.json").exists() and all(
-        checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+        checkpoint_iteration(folder / entry["name"]) >= 2 for entry in plan_of(folder)["runs"]),
         experiment, "both runs past iteration 2")
     return experiment
 
@@ -112,8 +112,9 @@ def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_
         out, err = experiment.communicate(timeout=180)
         assert_one_line_error(Result(experiment.returncode, out, err), "lost the Dask scheduler",
                               f"resume {folder} --scheduler_file", code=1)
-        held = {run["name"]: checkpoint_iteration(folder / run["name"]) for run in plan_of(folder)["runs"]}
-        assert {run["state"] for run in plan_of(folder)["runs"]} == {"stopped"}
+        held = {entry["name"]: checkpoint_iteration(folder / entry["name"])
+                for entry in plan_of(folder)["runs"]}
+        assert {entry["state"] for entry in plan_of(folder)["runs"]} == {"stopped"}
         assert all(iteration >= 2 for iteration in held.values())
 
         # resume is started before the new scheduler exists: it waits for the file

@@ -9,9 +9,7 @@ import pandas as pd
 import pytest
 from scipy.stats import bootstrap, mannwhitneyu
 
-import comparison
-import experiments
-import lunar_lander as ll
+from qdsearch import comparison, experiments, options, run
 from util import assert_one_line_error, folder_state, load_pickle, run_metrics, tiny_flags
 
 
@@ -19,7 +17,7 @@ from util import assert_one_line_error, folder_state, load_pickle, run_metrics, 
 def two_runs(tmp_path_factory, dask_cluster, tiny_run):
     """The tiny run (cma_me) and its cma_mae twin."""
     mae = tmp_path_factory.mktemp("compare") / "cma_mae"
-    ll.search(**tiny_flags(dask_cluster, algorithm="cma_mae"), outdir=str(mae))
+    run.search(**tiny_flags(dask_cluster, algorithm="cma_mae"), outdir=str(mae))
     return [tiny_run, mae]
 
 
@@ -64,7 +62,7 @@ def test_compare_refuses_bad_run_folders(run_cli, tmp_path, tiny_run):
 
 
 def test_runs_are_labelled_by_the_flags_that_shape_them():
-    defaults, label = ll.search_defaults(), experiments.run_setting
+    defaults, label = options.search_defaults(), experiments.run_setting
     # An algorithm's own flag is always named: the label does not change with the default.
     assert label({**defaults, "algorithm": "cma_mae"}) == f"cma_mae learning_rate={defaults['learning_rate']}"
     assert label({**defaults, "algorithm": "cma_me"}) == "cma_me"

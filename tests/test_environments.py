@@ -12,37 +12,41 @@ import imageio_ffmpeg
 import numpy as np
 import pandas as pd
 import pytest
-from test_explorer import page_data
 
-import experiments
-import lunar_lander as ll
-import results
-from util import assert_one_line_error, assert_same_run, folder_state, run_archive, tiny_flags
+from qdsearch import engine, experiments, results, run, tasks
+from util import (
+    assert_one_line_error,
+    assert_same_run,
+    folder_state,
+    page_data,
+    run_archive,
+    tiny_flags,
+)
 
 RNG = np.random.default_rng(20)
-OTHER_ROWS = [name for name in ll.ENVIRONMENTS if name != ll.DEFAULT_ENV]
+OTHER_ROWS = [name for name in tasks.ENVIRONMENTS if name != tasks.DEFAULT_ENV]
 WALKER = "BipedalWalker-v3"
 
 
 def policies(env_name: str, count: int = 4) -> np.ndarray:
-    return RNG.normal(size=(count, ll.ENVIRONMENTS[env_name].solution_dim)) * 0.5
+    return RNG.normal(size=(count, tasks.ENVIRONMENTS[env_name].solution_dim)) * 0.5
 
 
-@pytest.mark.parametrize("env_name", list(ll.ENVIRONMENTS))
+@pytest.mark.parametrize("env_name", list(tasks.ENVIRONMENTS))
 def test_an_episode_is_the_same_wherever_it_is_flown(env_name, dask_client):
     """A fresh env, a reused one (another order), a rendering one and a Dask worker agree."""
-    ll.check_spaces(env_name)
-    task, solutions = ll.ENVIRONMENTS[env_name], policies(env_name)
-    fresh = [ll.rollout(s, 3, ll.make_env(env_name=env_name), env_name=env_name) for s in solutions]
-    env = ll.make_env(env_name=env_name)
-    reused = [ll.rollout(s, 3, env, env_name=env_name) for s in solutions[::-1]][::-1]
-    rendering = ll.make_env(False, "rgb_array", env_name)
+    tasks.check_spaces(env_name)
+    task, solutions = tasks.ENVIRONMENTS[env_name], policies(env_name)
+    fresh = [tasks.rollout(s, 3, tasks.make_env(env_name=env_name), env_name=env_name) for s in solutions]
+    env = tasks.make_env(env_name=env_name)
+    reused = [tasks.rollout(s, 3, env, env_name=env_name) for s in solutions[::-1]][::-1]
+    rendering = tasks.make_env(False, "rgb_array", env_name)
     rendering.reset(seed=0)
     rendering.render()  # a frame drawn before the episode changes nothing
-    remote = dask_client.submit(ll.fly_chunk, solutions, np.full(len(solutions), 3), task.measures,
+    remote = dask_client.submit(engine.fly_chunk, solutions, np.full(len(solutions), 3), task.measures,
                                 True, env_name, pure=False).result()
     assert fresh == reused
-    assert ll.rollout(solutions[0], 3, rendering, env_name=env_name) == fresh[0]
+    assert tasks.rollout(solutions[0], 3, rendering, env_name=env_name) == fresh[0]
     assert remote.tolist() == [list(row) for row in fresh]
     assert len({row[0] for row in fresh}) == len(fresh)  # the policies do differ
 
@@ -56,8 +60,8 @@ def test_walker_measures_match_a_hand_made_trace():
             obs, reward, terminated, truncated, _ = env.step(np.tanh(solution.reshape(4, 24) @ obs))
             trace.append((obs, reward))
             done = terminated or truncated
-        names = ll.family_measures("walker")
-        result = ll.rollout(solution, 5, ll.make_env(env_name=WALKER), names, env_name=WALKER)
+        names = tasks.family_measures("walker")
+        result = tasks.rollout(solution, 5, tasks.make_env(env_name=WALKER), names, env_name=WALKER)
         steps = len(trace)
         expected = {
             "foot1_contact": sum(o[8] == 1 for o, _ in trace) / steps,
@@ -81,7 +85,7 @@ def test_the_continuous_landers_fuel_weighs_each_firing_by_its_power():
             fuel += 0.1 * np.clip(abs(side), 0.5, 1) if abs(side) > 0.5 else 0.0  # its s_power
             obs, _, terminated, truncated, _ = env.step(np.array([main, side]))
             done, steps = terminated or truncated, steps + 1
-        result = ll.rollout(solution, 9, ll.make_env(env_name=name), ("fuel",), env_name=name)
+        result = tasks.rollout(solution, 9, tasks.make_env(env_name=name), ("fuel",), env_name=name)
         assert result[1] == pytest.approx(fuel, rel=1e-12) and result[1] > 0
 
 
@@ -91,7 +95,7 @@ def task_runs(tmp_path_factory, dask_cluster):
     runs = {}
     for env_name in OTHER_ROWS:
         runs[env_name] = tmp_path_factory.mktemp("tasks") / env_name
-        ll.search(**tiny_flags(dask_cluster, env=env_name), outdir=str(runs[env_name]))
+        run.search(**tiny_flags(dask_cluster, env=env_name), outdir=str(runs[env_name]))
     return runs
 
 
@@ -101,13 +105,14 @@ def test_one_worker_and_a_resumed_run_equal_the_straight_run(env_name, task_runs
                                                             dask_cluster):
     straight = task_runs[env_name]
     config = json.loads((straight / "config.json").read_text())
-    assert config["env"] == env_name and config["measures"] == list(ll.ENVIRONMENTS[env_name].measures)
+    assert config["env"] == env_name and config["measures"] == list(tasks.ENVIRONMENTS[env_name].measures)
     archive = run_archive(straight)
     assert len(archive) > 0 and archive["solution_0"].notna().all()
-    ll.search(**tiny_flags(env=env_name, workers=1), outdir=str(tmp_path / "one"))
+    run.search(**tiny_flags(env=env_name, workers=1), outdir=str(tmp_path / "one"))
     assert_same_run(tmp_path / "one", straight)
-    ll.search(**tiny_flags(dask_cluster, env=env_name, iterations=1), outdir=str(tmp_path / "resumed"))
-    ll.resume(str(tmp_path / "resumed"), iterations=3, scheduler_address=dask_cluster.scheduler_address)
+    run.search(**tiny_flags(dask_cluster, env=env_name, iterations=1), outdir=str(tmp_path / "resumed"))
+    experiments.resume(str(tmp_path / "resumed"), iterations=3,
+                       scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(tmp_path / "resumed", straight)
 
 
@@ -135,7 +140,7 @@ def walker_experiment(tmp_path_factory, dask_cluster):
 @pytest.mark.slow
 def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experiment, tmp_path,
                                                                dask_cluster, run_cli):
-    ll.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8), outdir=str(tmp_path / "twin"))
+    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8), outdir=str(tmp_path / "twin"))
     assert_same_run(walker_experiment / "cma_me_n_emitters_2_batch_size_6_seed8", tmp_path / "twin")
     result = run_cli("compare", str(walker_experiment), "--out", str(tmp_path / "walkers.png"))
     assert result.returncode == 0, result.stderr
@@ -165,12 +170,12 @@ def test_video_and_elites_of_every_row(env_name, task_runs, tmp_path, capsys):
     index = pd.read_csv(run_dir / "videos" / "index.csv")
     assert index["reproduced"].tolist() == [True]
     solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
-    steps = ll.fly(solution, 52, ll.make_env(env_name=env_name), env_name=env_name).steps
+    steps = tasks.fly(solution, 52, tasks.make_env(env_name=env_name), env_name=env_name).steps
     frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
     assert frames == steps + 1
     results.elites(str(run_dir), top=2)
     table = pd.read_csv(run_dir / "elites.csv")
-    assert list(table.columns) == ["objective", *ll.ENVIRONMENTS[env_name].measures, "cell_index"]
+    assert list(table.columns) == ["objective", *tasks.ENVIRONMENTS[env_name].measures, "cell_index"]
     assert "warning" not in capsys.readouterr().err
 
 
@@ -180,17 +185,18 @@ def test_walker_trajectories_are_its_hull_paths(task_runs, tmp_path):
     shutil.copytree(task_runs[WALKER], run_dir)
     results.trajectories(str(run_dir), top=3)
     assert (run_dir / "trajectories.png").stat().st_size > 10_000
-    chosen = results.select_elites(results.load_run(run_dir)[0], top=3, measures=list(ll.TUTORIAL_MEASURES))
-    env = ll.make_env(env_name=WALKER)
+    chosen = results.select_elites(results.load_run(run_dir)[0], top=3,
+                                   measures=list(tasks.TUTORIAL_MEASURES))
+    env = tasks.make_env(env_name=WALKER)
     for elite, (path, end) in zip(chosen, results.fly_paths(chosen, 52, WALKER)):
-        walk = ll.fly(elite["solution"], 52, env, env_name=WALKER)
+        walk = tasks.fly(elite["solution"], 52, env, env_name=WALKER)
         assert len(path) == walk.steps and end == walk.steps - 1
         assert path[-1, 0] - path[0, 0] == pytest.approx(walk.distance, abs=0.2)  # one step's move
 
 
 def action_trace(solution: np.ndarray, env: gym.Env, env_name: str) -> list:
     actions: list = []
-    ll.fly(solution, 52, env, on_step=lambda action, obs: actions.append(action), env_name=env_name)
+    tasks.fly(solution, 52, env, on_step=lambda action, obs: actions.append(action), env_name=env_name)
     return actions
 
 
@@ -200,15 +206,15 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
     results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
-    data, task = page_data(run_dir), ll.ENVIRONMENTS[env_name]
+    data, task = page_data(run_dir), tasks.ENVIRONMENTS[env_name]
     scale = np.array(data["pose_scale"])
     poses = np.frombuffer(base64.b64decode(data["poses"]), "<i2").reshape(-1, len(scale)) / scale
     assert data["kind"] == task.family and len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(*results.load_run(run_dir)[0].data(["index", "solution"]).values()))
-    env = ll.make_env(env_name=env_name)
+    env = tasks.make_env(env_name=env_name)
     for elite in data["elites"][:3]:
         path: list = []
-        ll.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
+        tasks.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
         actions = action_trace(solutions[elite["index"]], env, env_name)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]]
         if task.family == "walker":  # the hull, to the centimetre
@@ -234,12 +240,12 @@ def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_c
     results.evaluate_robustness(str(run_dir), env_seeds="3-4", top=2,
                                 scheduler_address=dask_cluster.scheduler_address)
     table = pd.read_csv(run_dir / "robustness.csv")
-    env, rows = ll.make_env(env_name=WALKER), results.elite_rows(results.load_run(run_dir)[0])
+    env, rows = tasks.make_env(env_name=WALKER), results.elite_rows(results.load_run(run_dir)[0])
     solutions = dict(zip(rows["index"], rows["solution"]))
     assert len(table) == 2
     for row in table.to_dict("records"):
         solution = solutions[row["cell_index"]]
-        direct = [ll.rollout(solution, seed, env, env_name=WALKER)[0] for seed in (3, 4)]
+        direct = [tasks.rollout(solution, seed, env, env_name=WALKER)[0] for seed in (3, 4)]
         assert row["objective_seed3"] == direct[0] and row["objective_seed4"] == direct[1]
         assert row["solved_share"] == np.mean(np.array(direct) >= 300)
 
@@ -257,9 +263,9 @@ def test_unknown_tasks_and_other_tasks_measures_are_refused(run_cli, tmp_path, a
 
 def test_a_row_the_linear_policy_cannot_serve_is_refused(run_cli, tmp_path, monkeypatch):
     """Pendulum's torque is a box of [-2, 2]: tanh(W @ obs) can't reach it."""
-    row = ll.Environment("Pendulum-v1", {}, 3, 1, True, "walker", ll.fly_walker,
+    row = tasks.Environment("Pendulum-v1", {}, 3, 1, True, "walker", tasks.fly_walker,
                          ("foot1_contact",), -2000.0, "nothing", 0.0)
-    monkeypatch.setitem(ll.ENVIRONMENTS, "Pendulum-v1", row)
+    monkeypatch.setitem(tasks.ENVIRONMENTS, "Pendulum-v1", row)
     for command in ([], ["experiment", "--seeds", "1"]):
         result = run_cli(*command, "--env", "Pendulum-v1", "--iterations", "1",
                          "--outdir", str(tmp_path / "run"))

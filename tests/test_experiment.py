@@ -11,9 +11,8 @@ import pandas as pd
 import pytest
 from scipy.stats import mannwhitneyu
 
-import comparison
-import experiments
 import lunar_lander as ll
+from qdsearch import comparison, experiments, options, run
 from util import (
     Result,
     assert_one_line_error,
@@ -45,16 +44,16 @@ def plan_of(folder):
 
 def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
     plan = plan_of(experiment_dir)
-    settings = [run["setting"] for run in plan["runs"]]
+    settings = [entry["setting"] for entry in plan["runs"]]
     assert list(dict.fromkeys(settings)) == [  # learning_rate is cma_mae's own: no duplicates
         "cma_me n_emitters=2 batch_size=6", "map_elites n_emitters=2 batch_size=6",
         "cma_mae n_emitters=2 batch_size=6 learning_rate=0.01",
         "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5"]
-    assert [run["seed"] for run in plan["runs"]] == [1, 2] * 4
-    assert all(run["state"] == "done" for run in plan["runs"])
+    assert [entry["seed"] for entry in plan["runs"]] == [1, 2] * 4
+    assert all(entry["state"] == "done" for entry in plan["runs"])
     assert plan["axes"] == {"algorithm": ["cma_me", "map_elites", "cma_mae"], "learning_rate": [0.01, 0.5]}
-    for run in plan["runs"]:
-        run_dir = experiment_dir / run["name"]
+    for entry in plan["runs"]:
+        run_dir = experiment_dir / entry["name"]
         assert {"config.json", "checkpoint.pkl", "archive.pkl", "metrics.json", "heatmap.png",
                 "progress.png", "run.log"} <= {p.name for p in run_dir.iterdir()}
         assert [row["iteration"] for row in run_metrics(run_dir)] == [1, 2, 3, 4]
@@ -63,18 +62,19 @@ def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
 
 @pytest.mark.parametrize("which", [1, 6])
 def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_cluster, which):
-    run = plan_of(experiment_dir)["runs"][which]
-    flags = {k: v for k, v in run["config"].items() if k in ll.search_defaults()}
-    ll.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
-    assert run_archive(experiment_dir / run["name"]).equals(run_archive(tmp_path / "twin"))
-    assert run_metrics(experiment_dir / run["name"]) == run_metrics(tmp_path / "twin")
+    entry = plan_of(experiment_dir)["runs"][which]
+    flags = {k: v for k, v in entry["config"].items() if k in options.search_defaults()}
+    run.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
+    assert run_archive(experiment_dir / entry["name"]).equals(run_archive(tmp_path / "twin"))
+    assert run_metrics(experiment_dir / entry["name"]) == run_metrics(tmp_path / "twin")
 
 
 def test_one_run_at_a_time_gives_the_same_runs(experiment_dir, tmp_path, dask_cluster):
     experiments.experiment(algorithms="cma_mae", seeds="2", learning_rate=[0.5], max_in_flight=1,
-                  outdir=str(tmp_path / "exp"), scheduler_address=dask_cluster.scheduler_address, **TINY)
-    [run] = plan_of(tmp_path / "exp")["runs"]
-    assert run_archive(tmp_path / "exp" / run["name"]).equals(run_archive(experiment_dir / run["name"]))
+                           outdir=str(tmp_path / "exp"), scheduler_address=dask_cluster.scheduler_address,
+                           **TINY)
+    [entry] = plan_of(tmp_path / "exp")["runs"]
+    assert run_archive(tmp_path / "exp" / entry["name"]).equals(run_archive(experiment_dir / entry["name"]))
 
 
 def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_cluster, experiment_dir):
@@ -83,18 +83,18 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
                      n_emitters=2, batch_size=6, log_every=2, outdir=folder,
                      scheduler_address=dask_cluster.scheduler_address)
     wait_for(lambda: (folder / "experiment.json").exists() and all(
-        checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+        checkpoint_iteration(folder / entry["name"]) >= 2 for entry in plan_of(folder)["runs"]),
         process, "every run past iteration 2")
     process.send_signal(signal.SIGTERM)
     out, err = process.communicate(timeout=60)
     assert process.returncode == 130, err
     assert f"resume {folder}" in out and "Traceback" not in err
-    states = {run["state"] for run in plan_of(folder)["runs"]}
+    states = {entry["state"] for entry in plan_of(folder)["runs"]}
     assert states <= {"stopped", "done"} and "stopped" in states
-    held = {run["name"]: checkpoint_iteration(folder / run["name"]) for run in plan_of(folder)["runs"]}
+    held = {entry["name"]: checkpoint_iteration(folder / entry["name"]) for entry in plan_of(folder)["runs"]}
     assert all(2 <= iteration <= 8 for iteration in held.values())
 
-    ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
 
     # The resumed drive flew only what the checkpoints lacked: no run started again from 0.
     assert plan_of(folder)["timing"]["iterations"] == sum(8 - iteration for iteration in held.values())
@@ -103,10 +103,10 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
     experiments.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
                   batch_size=6, log_every=2, outdir=str(whole),
                   scheduler_address=dask_cluster.scheduler_address)
-    for run in plan_of(folder)["runs"]:
-        assert run["state"] == "done"
-        assert run_archive(folder / run["name"]).equals(run_archive(whole / run["name"]))
-        assert run_metrics(folder / run["name"]) == run_metrics(whole / run["name"])
+    for entry in plan_of(folder)["runs"]:
+        assert entry["state"] == "done"
+        assert run_archive(folder / entry["name"]).equals(run_archive(whole / entry["name"]))
+        assert run_metrics(folder / entry["name"]) == run_metrics(whole / entry["name"])
 
 
 def test_resume_of_an_experiment_being_driven_is_refused(tmp_path, dask_cluster, capsys):
@@ -116,7 +116,7 @@ def test_resume_of_an_experiment_being_driven_is_refused(tmp_path, dask_cluster,
                      scheduler_address=dask_cluster.scheduler_address)
     try:
         wait_for(lambda: (folder / "experiment.json").exists() and all(
-            checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+            checkpoint_iteration(folder / entry["name"]) >= 2 for entry in plan_of(folder)["runs"]),
             process, "a run past iteration 2")
 
         code = ll.main(["resume", str(folder), "--scheduler_address", dask_cluster.scheduler_address])
@@ -143,8 +143,8 @@ def test_a_failing_run_is_recorded_and_the_others_go_on(tmp_path, dask_cluster, 
     assert_one_line_error(Result(code, "", capsys.readouterr().err), "1 of 8 runs failed", broken, code=1)
     runs = plan_of(folder)["runs"]
     assert runs[2]["state"] == "failed" and "heatmaps" in runs[2]["error"]
-    for run in runs[:2] + runs[3:]:
-        assert run["state"] == "done" and run_metrics(folder / run["name"])[-1]["iteration"] == 6
+    for entry in runs[:2] + runs[3:]:
+        assert entry["state"] == "done" and run_metrics(folder / entry["name"])[-1]["iteration"] == 6
     assert checkpoint_iteration(folder / broken) >= 4  # its checkpoint is intact
 
 
@@ -219,11 +219,11 @@ def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
                      batch_size=6, log_every=2, outdir=folder,
                      scheduler_address=dask_cluster.scheduler_address)
     wait_for(lambda: (folder / "experiment.json").exists() and any(
-        checkpoint_iteration(folder / run["name"]) >= 2 for run in plan_of(folder)["runs"]),
+        checkpoint_iteration(folder / entry["name"]) >= 2 for entry in plan_of(folder)["runs"]),
         process, "a run past iteration 2")
     os.killpg(process.pid, signal.SIGKILL)
     process.communicate(timeout=60)
 
-    ll.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
-    assert all(run["state"] == "done" for run in plan_of(folder)["runs"])
-    assert all(run_metrics(folder / run["name"])[-1]["iteration"] == 8 for run in plan_of(folder)["runs"])
+    experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+    assert all(entry["state"] == "done" for entry in plan_of(folder)["runs"])
+    assert all(run_metrics(folder / entry["name"])[-1]["iteration"] == 8 for entry in plan_of(folder)["runs"])

@@ -3,20 +3,15 @@ loads it from file:// without errors, shows a cell's numbers on hover, plays a l
 (the lander drawn where the poses put it) and plays a table row."""
 
 import base64
-import json
 import shutil
 import subprocess
 
 import numpy as np
 import pandas as pd
 import pytest
-from test_run_folder import small_disk
 
-import fast_env
-import lunar_lander as ll
-import results
-import run_files
-from util import folder_state, load_pickle
+from qdsearch import fast_env, results, run_files, tasks
+from util import DATA_BLOCK, folder_state, load_pickle, page_data, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
 
@@ -30,13 +25,7 @@ def explored(tmp_path_factory, dask_cluster, tiny_run):
     return run_dir
 
 
-DATA_BLOCK = '<script id="data" type="application/json">'
 
-
-def page_data(run_dir) -> dict:
-    html = (run_dir / "explorer.html").read_text()
-    start = html.index(DATA_BLOCK) + len(DATA_BLOCK)
-    return json.loads(html[start:html.index("</script>", start)])
 
 
 def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
@@ -51,10 +40,10 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, len(scale))
     assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(archive.data("index"), archive.data("solution")))
-    env = ll.make_env(fast=False)
+    env = tasks.make_env(fast=False)
     for elite in data["elites"][:5]:
         trajectory = []
-        objective, *measures = ll.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory)
+        objective, *measures = tasks.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory)
         assert elite["objective"] == objective and elite["measures"] == measures
         assert elite["steps"] == len(trajectory)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / scale

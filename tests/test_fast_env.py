@@ -10,19 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import fast_env
-import lunar_lander as ll
-
-# Linear policies found by a small search on env seed 52.
-LANDER_W = [-0.3024, 0.7899, 0.1059, 1.7391, -0.215, 0.0505, -0.2158, -1.7166,
-            0.2988, -0.67, -0.657, 1.8182, -0.8447, 0.5054, 0.1409, -1.0683,
-            -0.2659, -1.2483, 0.0842, -0.3101, 0.4834, -1.1872, -1.7291, -1.3206,
-            0.2836, -1.3753, -1.1726, 0.1392, 0.4555, 1.2182, -0.7852, -1.0979]  # 225.6, 775 steps
-HOVER_W = [0.2009, -0.5722, 1.6418, 1.0927, 0.3113, 0.3791, -0.1347, -1.1235,
-           -0.0686, 0.1895, 0.3739, 1.6421, 0.3101, -0.2985, -0.6611, -0.4438,
-           -0.1713, 0.0616, -0.701, -0.9206, 0.0249, -1.4127, 0.8403, -1.5734,
-           0.4111, 0.3603, -1.6134, 1.0472, 0.7142, 1.2502, -0.6327, 0.2311]  # hovers 1000 steps
-SEEDS = [52, 0, 1, 7, 2024]
+from qdsearch import fast_env, tasks
+from util import HOVER_W, LANDER_W, SEEDS
 
 
 def plain_rollout(solution, env_seed, env):
@@ -46,7 +35,7 @@ def plain_rollout(solution, env_seed, env):
 
 def fast_rollout(solution, env_seed, env):
     path = []
-    return (*ll.rollout(solution, env_seed, env, trajectory=path), len(path), path)
+    return (*tasks.rollout(solution, env_seed, env, trajectory=path), len(path), path)
 
 
 RANDOM_PER_SCALE = 32
@@ -100,7 +89,7 @@ def test_one_fast_env_reused_in_mixed_order(expected):
 
 
 def test_the_plain_env_path_matches_too(expected):
-    env = ll.make_env(fast=False)
+    env = tasks.make_env(fast=False)
     for i, s in CASES[::10]:
         assert fast_rollout(POLICIES[i], s, env) == expected[i, s], (i, s)
 

@@ -19,6 +19,7 @@ import psutil  # distributed's own dependency
 import pytest
 
 import lunar_lander as ll
+from qdsearch import run
 from util import (
     Result,
     assert_one_line_error,
@@ -26,6 +27,7 @@ from util import (
     checkpoint_iteration,
     folder_state,
     launch,
+    small_disk,
     start_scheduler,
     start_worker,
     stop_all,
@@ -167,7 +169,7 @@ def test_a_scheduler_without_workers_says_it_waits_and_ends_or_goes_on_when_one_
         assert "waiting for workers at" in err
         log = (tmp_path / "run" / "run.log").read_text()
         assert "1 worker(s); no dashboard" in log and ":8787" not in log  # it has none
-        ll.search(**tiny_flags(dask_cluster, iterations=2, log_every=2), outdir=str(tmp_path / "twin"))
+        run.search(**tiny_flags(dask_cluster, iterations=2, log_every=2), outdir=str(tmp_path / "twin"))
         assert_same_run(tmp_path / "run", tmp_path / "twin")
     finally:
         stop_all(processes)
@@ -207,7 +209,7 @@ def test_a_search_whose_scheduler_dies_says_so_in_one_line_and_resumes_to_its_tw
     finally:
         stop_all(processes)
     assert ll.main(["resume", str(run_dir), "--scheduler_address", dask_cluster.scheduler_address]) == 0
-    ll.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
+    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
     assert_same_run(run_dir, tmp_path / "twin")
 
 
@@ -262,7 +264,7 @@ def test_a_worker_killed_while_the_local_cluster_starts_is_started_again_and_the
     assert killed is not None
     assert search.returncode == 0 and "Traceback" not in err, err
     assert "a worker process failed while the local cluster started" in (run_dir / "run.log").read_text()
-    ll.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
+    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
     assert_same_run(run_dir, tmp_path / "twin")
 
 
@@ -328,7 +330,7 @@ def test_every_command_refuses_a_config_with_a_wrong_type(run_cli, tiny_run, tmp
 @pytest.fixture(scope="module")
 def walker_run(tmp_path_factory, dask_cluster):
     run_dir = tmp_path_factory.mktemp("walker") / "run"
-    ll.search(**tiny_flags(dask_cluster, env="BipedalWalker-v3", iterations=1, batch_size=3, log_every=1),
+    run.search(**tiny_flags(dask_cluster, env="BipedalWalker-v3", iterations=1, batch_size=3, log_every=1),
               outdir=str(run_dir))
     return run_dir
 
@@ -381,8 +383,6 @@ def test_a_flag_given_twice_is_refused(run_cli, tmp_path, args):
 
 @pytest.mark.slow
 def test_results_commands_refuse_a_read_only_run_alike_before_flying(tiny_run, tmp_path, run_cli):
-    from test_run_folder import small_disk
-
     with small_disk(tmp_path, "8m") as disk:
         run_dir = disk / "run"
         shutil.copytree(tiny_run, run_dir)

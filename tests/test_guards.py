@@ -15,12 +15,9 @@ import Box2D
 import numpy as np
 import pandas as pd
 import pytest
-from test_explorer import page_data
 
-import experiments
-import lunar_lander as ll
-import results
-from util import assert_one_line_error, folder_state, tiny_flags
+from qdsearch import experiments, results, run, tasks
+from util import assert_one_line_error, folder_state, page_data, tiny_flags
 
 HARDCORE, WALKER = "BipedalWalkerHardcore-v3", "BipedalWalker-v3"
 CONTINUOUS = "LunarLanderContinuous-v3"
@@ -39,14 +36,14 @@ def test_the_hardcore_walker_flies_a_course_with_obstacles_the_plain_one_lacks()
     """Each row's own env, after episodes of its own episode function: the hardcore course has
     obstacles, the plain one none; on the same env seed the same policies walk differently there,
     and the explorer draws another ground, with the obstacles."""
-    policies = np.random.default_rng(3).normal(size=(3, ll.ENVIRONMENTS[HARDCORE].solution_dim)) * 0.5
+    policies = np.random.default_rng(3).normal(size=(3, tasks.ENVIRONMENTS[HARDCORE].solution_dim)) * 0.5
     walks, counts = {}, {}
     for name in (HARDCORE, WALKER):
-        env = ll.make_env(env_name=name)
+        env = tasks.make_env(env_name=name)
         walks[name] = []
         for solution in policies:
             path: list = []
-            walk = ll.fly(solution, 52, env, path, env_name=name)
+            walk = tasks.fly(solution, 52, env, path, env_name=name)
             walks[name].append((walk.reward, walk.steps, path))
         counts[name] = obstacles(env)
     assert counts[WALKER] == 0 and counts[HARDCORE] >= 3, counts
@@ -63,7 +60,7 @@ def test_the_hardcore_walker_flies_a_course_with_obstacles_the_plain_one_lacks()
 def continuous_explored(tmp_path_factory, dask_cluster) -> Path:
     """A tiny run of the continuous lander and its explorer page."""
     run_dir = tmp_path_factory.mktemp("continuous") / "run"
-    ll.search(**tiny_flags(dask_cluster, env=CONTINUOUS), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster, env=CONTINUOUS), outdir=str(run_dir))
     results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     return run_dir
 
@@ -77,7 +74,7 @@ def body_x(lander, x: float, y: float) -> float:
 def exhaust_sides(solution: np.ndarray) -> list[tuple[float, float]]:
     """Per step of the episode (rendered, so Gymnasium makes its exhaust particles): the action's
     side throttle, and on which side of the lander that step's side exhaust is (0: none)."""
-    env = ll.make_env(False, "rgb_array", CONTINUOUS)
+    env = tasks.make_env(False, "rgb_array", CONTINUOUS)
     steps: list[tuple[float, float]] = []
 
     def on_step(action, obs):
@@ -87,7 +84,7 @@ def exhaust_sides(solution: np.ndarray) -> list[tuple[float, float]]:
             particle = env.unwrapped.particles[-1].position
             side = float(np.sign(body_x(lander, particle.x, particle.y)))
         steps.append((float(action[1]), side))
-    ll.fly(solution, 52, env, on_step=on_step, env_name=CONTINUOUS)
+    tasks.fly(solution, 52, env, on_step=on_step, env_name=CONTINUOUS)
     env.close()
     return steps
 
@@ -177,7 +174,7 @@ TERRAINS = [3, 52]  # a run on two terrains: results show the first unless told
 @pytest.fixture(scope="module")
 def two_terrain_run(tmp_path_factory, dask_cluster) -> Path:
     run_dir = tmp_path_factory.mktemp("terrains") / "run"
-    ll.search(**tiny_flags(dask_cluster, iterations=2, log_every=2, env_seed="3,52"), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster, iterations=2, log_every=2, env_seed="3,52"), outdir=str(run_dir))
     assert json.loads((run_dir / "config.json").read_text())["env_seed"] == TERRAINS
     return run_dir
 

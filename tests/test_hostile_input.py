@@ -8,9 +8,8 @@ import shutil
 import pandas as pd
 import pytest
 
-import experiments
 import lunar_lander as ll
-import results
+from qdsearch import experiments, results
 from util import Result, assert_one_line_error, checkpoint_iteration, folder_state
 
 INJECTION = "p</script><img src=x onerror=document.title=1337>"  # a folder p< holding script><img...

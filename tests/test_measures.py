@@ -9,9 +9,8 @@ import pandas as pd
 import pytest
 from matplotlib.image import imread
 
-import lunar_lander as ll
-import results
-from flags import UsageError
+from qdsearch import experiments, results, run, tasks
+from qdsearch.flags import UsageError
 from util import assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
@@ -27,7 +26,7 @@ def tiny(dask_cluster, **overrides):
 def fuel_run(tmp_path_factory, dask_cluster):
     """A search in fuel and flight time on five terrains, on a 20x20 grid."""
     run_dir = tmp_path_factory.mktemp("measures") / "fuel"
-    ll.search(**tiny(dask_cluster, measures="fuel,flight_time", env_seed="0-4", grid=20),
+    run.search(**tiny(dask_cluster, measures="fuel,flight_time", env_seed="0-4", grid=20),
               outdir=str(run_dir))
     return run_dir
 
@@ -38,7 +37,7 @@ def test_chosen_measures_and_terrains_write_a_complete_run_folder(fuel_run):
     assert config["measures"] == ["fuel", "flight_time"] and config["env_seed"] == [0, 1, 2, 3, 4]
     archive = load_pickle(fuel_run / "archive.pkl")
     assert tuple(archive.dims) == (20, 20)
-    ranges = [ll.MEASURES[name].range for name in ("fuel", "flight_time")]
+    ranges = [tasks.MEASURES[name].range for name in ("fuel", "flight_time")]
     assert archive.lower_bounds.tolist() == [lo for lo, _ in ranges]
     assert [row["evaluations"] for row in run_metrics(fuel_run)] == [12, 24]  # policies, not rollouts
     assert imread(fuel_run / "heatmap.png").std() > 0.05
@@ -46,9 +45,9 @@ def test_chosen_measures_and_terrains_write_a_complete_run_folder(fuel_run):
 
 def test_the_archive_holds_the_mean_over_the_terrains(fuel_run):
     data = load_pickle(fuel_run / "archive.pkl").data()
-    env = ll.make_env()
+    env = tasks.make_env()
     for solution, objective, measures in list(zip(data["solution"], data["objective"], data["measures"]))[:3]:
-        flights = np.array([ll.rollout(solution, seed, env, ["fuel", "flight_time"]) for seed in range(5)])
+        flights = np.array([tasks.rollout(solution, seed, env, ["fuel", "flight_time"]) for seed in range(5)])
         assert objective == pytest.approx(flights[:, 0].mean(), rel=1e-12)
         assert measures.tolist() == pytest.approx(flights[:, 1:].mean(axis=0).tolist(), rel=1e-12)
 
@@ -74,7 +73,7 @@ def test_results_commands_speak_the_runs_measures(fuel_run, capsys):
 @pytest.mark.parametrize("measures, grid", [("max_tilt", 30), ("impact_x,impact_angle,fuel", 8)])
 def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
     run_dir = tmp_path / "run"
-    ll.search(**tiny(dask_cluster, measures=measures, grid=grid), outdir=str(run_dir))
+    run.search(**tiny(dask_cluster, measures=measures, grid=grid), outdir=str(run_dir))
     archive = load_pickle(run_dir / "archive.pkl")
     assert tuple(archive.dims) == (grid,) * len(measures.split(","))
     assert imread(run_dir / "heatmap.png").std() > 0.05
@@ -85,9 +84,9 @@ def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
 def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_cluster):
     """Old config.json and checkpoint: no env, no measures, no grid, env_seed a plain number."""
     flags = tiny(dask_cluster, iterations=3, env_seed=52)
-    ll.search(**flags, outdir=str(tmp_path / "whole"))
+    run.search(**flags, outdir=str(tmp_path / "whole"))
     old = tmp_path / "old"
-    ll.search(**{**flags, "iterations": 1}, outdir=str(old))
+    run.search(**{**flags, "iterations": 1}, outdir=str(old))
     checkpoint = load_pickle(old / "checkpoint.pkl")
     for config in (checkpoint["config"], json.loads((old / "config.json").read_text())):
         for key in ("measures", "grid", "env"):
@@ -97,7 +96,7 @@ def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_clus
     (old / "checkpoint.pkl").write_bytes(pickle.dumps(checkpoint))
 
     results.elites(str(old))  # results commands read it as the tutorial's measures
-    ll.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address)
 
     assert run_archive(old).equals(run_archive(tmp_path / "whole"))
     assert run_metrics(old) == run_metrics(tmp_path / "whole")

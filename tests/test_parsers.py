@@ -13,11 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ribs.archives import GridArchive
 
-import experiments
-import flags
-import lunar_lander as ll
-import results
-from flags import (
+from qdsearch import algorithms, experiments, flags, results, run, tasks
+from qdsearch.flags import (
     MAX_SEED,
     MAX_SEEDS,
     UsageError,
@@ -31,7 +28,7 @@ from flags import (
     seed_list,
     seed_number,
 )
-from run_files import read_pickle, read_run_json
+from qdsearch.run_files import read_pickle, read_run_json
 
 QUICK = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -61,8 +58,8 @@ def refused_in_one_line_or(check, *args):
         return UsageError
 
 
-CHECKS = [positive_int, seed_number, positive_float, fraction, boolean, one_of(ll.ALGORITHMS),
-          seed_list, distinct_names(ll.MEASURES, "measures", 3)]
+CHECKS = [positive_int, seed_number, positive_float, fraction, boolean, one_of(algorithms.ALGORITHMS),
+          seed_list, distinct_names(tasks.MEASURES, "measures", 3)]
 
 
 @pytest.mark.parametrize("check", CHECKS, ids=lambda check: getattr(check, "__name__", "check"))
@@ -94,14 +91,14 @@ def test_a_seed_range_is_checked_before_it_is_built(first, count):
 
 
 @QUICK
-@given(names=st.lists(st.sampled_from([*ll.MEASURES, "", "speed", " fuel"]), max_size=5),
+@given(names=st.lists(st.sampled_from([*tasks.MEASURES, "", "speed", " fuel"]), max_size=5),
        trailing=st.sampled_from(["", ",", ", ", ",,"]))
 def test_measures_as_typed(names, trailing):
     text = ",".join(names) + trailing
-    checked = refused_in_one_line_or(distinct_names(ll.MEASURES, "measures", 3), "measures", text)
+    checked = refused_in_one_line_or(distinct_names(tasks.MEASURES, "measures", 3), "measures", text)
     stripped = [name.strip() for name in names]
     valid = (not trailing and 1 <= len(names) <= 3 and len(set(stripped)) == len(stripped)
-             and all(name in ll.MEASURES for name in stripped))
+             and all(name in tasks.MEASURES for name in stripped))
     assert (checked is not UsageError) == valid
     if valid:
         assert checked == stripped
@@ -122,7 +119,7 @@ def test_text_flags_reach_their_check_as_typed(args):
             assert ast.literal_eval(value) == original
 
 
-LANDER_DIM = ll.ENVIRONMENTS[ll.DEFAULT_ENV].solution_dim
+LANDER_DIM = tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim
 ARCHIVE = GridArchive(solution_dim=LANDER_DIM, dims=(10, 10), ranges=[(-1, 1), (-3, 0)])
 ARCHIVE.add(np.zeros((3, LANDER_DIM)), np.array([1.0, 2.0, 3.0]),
             np.array([[0.0, -1.0], [0.5, -2.0], [-0.5, -0.5]]))
@@ -131,11 +128,11 @@ ARCHIVE.add(np.zeros((3, LANDER_DIM)), np.array([1.0, 2.0, 3.0]),
 @QUICK
 @given(cells=VALUES | st.lists(st.tuples(SCALARS, SCALARS), max_size=3))
 def test_cell_points(cells):
-    points = refused_in_one_line_or(results.parse_cells, cells, list(ll.TUTORIAL_MEASURES))
+    points = refused_in_one_line_or(results.parse_cells, cells, list(tasks.TUTORIAL_MEASURES))
     if points is not UsageError:
         assert points and all(len(p) == 2 and all(math.isfinite(v) for v in p) for p in points)
         for point in points:  # each then is found in the archive, or refused in one line
-            refused_in_one_line_or(results.check_in_archive, ARCHIVE, point, list(ll.TUTORIAL_MEASURES))
+            refused_in_one_line_or(results.check_in_archive, ARCHIVE, point, list(tasks.TUTORIAL_MEASURES))
 
 
 @QUICK
@@ -151,19 +148,20 @@ def test_cell_indices(index):
     name: VALUES for name in ["seed", "env_seed", "measures", "grid", "algorithm", "iterations",
                               "learning_rate", "batch_size", "fast_env", "outdir"]}))
 def test_run_configs(config):
-    checked = refused_in_one_line_or(ll.check_run_config, config)
+    checked = refused_in_one_line_or(run.check_run_config, config)
     if checked is not UsageError:
-        assert checked["algorithm"] in ll.ALGORITHMS and set(checked["measures"]) <= set(ll.MEASURES)
+        assert checked["algorithm"] in algorithms.ALGORITHMS
+        assert set(checked["measures"]) <= set(tasks.MEASURES)
         assert isinstance(checked["seed"], int) and checked["grid"] >= 1
 
 
-ROW = st.fixed_dictionaries({}, optional={field: SCALARS for field in ll.METRIC_FIELDS})
+ROW = st.fixed_dictionaries({}, optional={field: SCALARS for field in run.METRIC_FIELDS})
 
 
 @QUICK
 @given(rows=JSON | st.lists(ROW, max_size=3))
 def test_metrics_files(rows):
-    checked = refused_in_one_line_or(ll.check_metrics, rows, Path("metrics.json"))
+    checked = refused_in_one_line_or(run.check_metrics, rows, Path("metrics.json"))
     if checked is not UsageError:
         for row in checked:
             assert isinstance(row["iteration"], int) and not isinstance(row["iteration"], bool)
@@ -178,10 +176,10 @@ def test_run_files_on_disk(content):
         folder = Path(folder)
         for name in ("config.json", "metrics.json", "experiment.json", "checkpoint.pkl", "archive.pkl"):
             (folder / name).write_bytes(content)
-        for load in (lambda: read_run_json(folder, "config.json"), lambda: ll.load_run_config(folder),
-                     lambda: ll.load_metrics(folder), lambda: experiments.read_experiment(folder),
+        for load in (lambda: read_run_json(folder, "config.json"), lambda: run.load_run_config(folder),
+                     lambda: run.load_metrics(folder), lambda: experiments.read_experiment(folder),
                      lambda: read_pickle(folder / "archive.pkl", "archive pickle"),
-                     lambda: ll.load_checkpoint(folder / "checkpoint.pkl")):
+                     lambda: run.load_checkpoint(folder / "checkpoint.pkl")):
             refused_in_one_line_or(load)
 
 

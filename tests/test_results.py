@@ -9,10 +9,9 @@ import pandas as pd
 import pytest
 from matplotlib.image import imread
 
-import fast_env
 import lunar_lander as ll
-import results
-from flags import UsageError, seed_list
+from qdsearch import fast_env, results, tasks
+from qdsearch.flags import UsageError, seed_list
 from util import assert_one_line_error, folder_state, load_pickle
 
 
@@ -54,7 +53,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
     lengths = []
     for solution in data["solution"]:  # the shortest episode makes the quickest video
         path = []
-        ll.rollout(solution, 52, ll.make_env(), trajectory=path)
+        tasks.rollout(solution, 52, tasks.make_env(), trajectory=path)
         lengths.append(len(path))
     shortest = int(np.argmin(lengths))
     point = tuple(data["measures"][shortest])
@@ -108,7 +107,7 @@ def test_selection_by_best_top_index_and_cells(archive):
     assert [elite["name"].split("_")[0] for elite in chosen[1:]] == [
         "best", "top01", "top02", "top03", f"index{ranked.iloc[-1]}"]
     # --cells as Fire hands it over: parsed, one tuple alone, or raw text
-    tutorial = list(ll.TUTORIAL_MEASURES)
+    tutorial = list(tasks.TUTORIAL_MEASURES)
     assert results.parse_cells("[(-0.4, -0.1), (0.6, -0.1)]", tutorial) == [(-0.4, -0.1), (0.6, -0.1)]
     assert results.parse_cells((0.0, -0.1), tutorial) == [(0.0, -0.1)]
     assert results.parse_cells([(0, -0.1)], tutorial) == [(0.0, -0.1)]
@@ -143,13 +142,13 @@ def test_trajectory_picture_of_the_top_elites(run_dir, archive):
     assert {name: after[name] for name in before if name in after} == before  # nothing else touched
 
     top = results.select_elites(archive, top=3)
-    paths = results.fly_paths(top, 52, ll.DEFAULT_ENV)
+    paths = results.fly_paths(top, 52, tasks.DEFAULT_ENV)
     for elite, (path, step) in zip(top, paths):  # the drawn paths are their flights
         assert path[step, 0] == elite["measures"][0]  # the dot is at touchdown, where impact x is
 
 
 def test_terrain_is_the_envs_ground():
-    env = ll.make_env(fast=False)
+    env = tasks.make_env(fast=False)
     env.reset(seed=52)
     lander = env.unwrapped
     edges = [fixture.shape.vertices for fixture in lander.moon.fixtures[1:]]
@@ -167,10 +166,10 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
     table = read_csv(run_dir / "robustness.csv")
     top = archive.data(return_type="pandas").nlargest(4, "objective")
     assert sorted(table["cell_index"]) == sorted(top["index"])
-    env, data = ll.make_env(fast=False), archive.data()
+    env, data = tasks.make_env(fast=False), archive.data()
     solutions = dict(zip(data["index"], data["solution"]))
     for row in table.to_dict("records"):
-        direct = np.array([ll.rollout(solutions[row["cell_index"]], seed, env)[0] for seed in (3, 4)])
+        direct = np.array([tasks.rollout(solutions[row["cell_index"]], seed, env)[0] for seed in (3, 4)])
         assert [row["objective_seed3"], row["objective_seed4"]] == direct.tolist()
         assert row["mean_objective"] == pytest.approx(direct.mean(), abs=1e-9)
         assert row["min_objective"] == direct.min()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from ribs.archives import GridArchive
 
-import lunar_lander as ll
+from qdsearch import algorithms, experiments, run, tasks
 from util import (
     REFERENCE_ITERATIONS,
     assert_same_run,
@@ -26,7 +26,7 @@ from util import (
 
 pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
 
-TUTORIAL_RANGES = [ll.MEASURES[name].range for name in ll.TUTORIAL_MEASURES]
+TUTORIAL_RANGES = [tasks.MEASURES[name].range for name in tasks.TUTORIAL_MEASURES]
 ITERATIONS = REFERENCE_ITERATIONS  # long enough for a process to be stopped part-way
 
 
@@ -38,8 +38,8 @@ def run_flags(dask_cluster, **overrides):
 @pytest.mark.parametrize("stop_at", [1, 4])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, reference, stop_at):
     run_dir = tmp_path / "run"
-    ll.search(**run_flags(dask_cluster, iterations=stop_at), outdir=str(run_dir))
-    ll.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
+    run.search(**run_flags(dask_cluster, iterations=stop_at), outdir=str(run_dir))
+    experiments.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
 
     assert_same_run(run_dir, reference)
     config = json.loads((run_dir / "config.json").read_text())
@@ -73,7 +73,7 @@ def test_interrupt_keeps_a_checkpoint_and_resume_completes(tmp_path, dask_cluste
     assert 3 <= checkpoint["iteration"] < ITERATIONS
     assert [r["iteration"] for r in checkpoint["metrics"]] == list(range(1, checkpoint["iteration"] + 1))
 
-    ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(run_dir, reference)
 
 
@@ -85,7 +85,7 @@ def test_kill_9_leaves_a_loadable_checkpoint(tmp_path, dask_cluster, reference):
     process.communicate(timeout=60)
 
     assert load_pickle(run_dir / "checkpoint.pkl")["iteration"] >= 6
-    ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(run_dir, reference)
 
 
@@ -109,7 +109,7 @@ def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, dask_cluster, r
         killer = threading.Thread(target=kill_a_busy_worker, args=(client, stop))
         killer.start()
         try:
-            ll.search(**run_flags(dask_cluster), outdir=str(tmp_path / "run"))
+            run.search(**run_flags(dask_cluster), outdir=str(tmp_path / "run"))
         finally:
             stop.set()
             killer.join()
@@ -121,12 +121,12 @@ def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, dask_cluster, r
 def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, reference):
     source = load_pickle(reference / "archive.pkl")
     run_dir = tmp_path / "warm"
-    ll.search(**run_flags(dask_cluster, iterations=2, env_seed=7, seed=11),
+    run.search(**run_flags(dask_cluster, iterations=2, env_seed=7, seed=11),
               outdir=str(run_dir), from_archive=str(reference / "archive.pkl"))
 
     elites = source.data(["solution"])["solution"]
     env = gym.make("LunarLander-v3")
-    flown = np.array([ll.rollout(solution, 7, env) for solution in elites])
+    flown = np.array([tasks.rollout(solution, 7, env) for solution in elites])
     expected = GridArchive(solution_dim=32, dims=(50, 50), ranges=TUTORIAL_RANGES)
     expected.add(elites, flown[:, 0], flown[:, 1:])
 
@@ -150,7 +150,7 @@ def bad_checkpoints(reference):
     """(name, writer of a checkpoint.pkl that must be refused, words the error must contain)."""
     good = load_pickle(reference / "checkpoint.pkl")
     small = GridArchive(solution_dim=32, dims=(10, 10), ranges=TUTORIAL_RANGES)
-    other_scheduler = ll.build_scheduler({**good["config"]})
+    other_scheduler = algorithms.build_scheduler({**good["config"]})
     other_scheduler._archive = small
     return [
         ("truncated", lambda p: p.write_bytes((reference / "checkpoint.pkl").read_bytes()[:5000]),

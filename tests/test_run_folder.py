@@ -9,11 +9,11 @@ import os
 import shutil
 import signal
 import subprocess
-import uuid
 
 import pytest
 
 import lunar_lander as ll
+from qdsearch import experiments
 from util import (
     REFERENCE_ITERATIONS,
     Result,
@@ -23,6 +23,7 @@ from util import (
     folder_state,
     launch,
     load_pickle,
+    small_disk,
     tiny_flags,
     wait_for,
 )
@@ -31,21 +32,6 @@ pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the q
 
 # The reference run's flags, saved after every iteration: a fault finds a write in progress.
 FLAGS = tiny_flags(iterations=REFERENCE_ITERATIONS, log_every=1)
-
-
-@contextlib.contextmanager
-def small_disk(tmp_path, size):
-    """A real tmpfs of `size` mounted at tmp_path/disk, for as long as the block runs."""
-    mount_point = tmp_path / f"disk-{uuid.uuid4().hex[:6]}"
-    mount_point.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mount_point)],
-                             capture_output=True, text=True)
-    if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (needs root): {mounted.stderr.strip()}")
-    try:
-        yield mount_point
-    finally:
-        subprocess.run(["umount", "-l", str(mount_point)], check=False)
 
 
 def fill(folder):
@@ -73,7 +59,7 @@ def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path,
         assert json.loads((run_dir / "config.json").read_text())["seed"] == FLAGS["seed"]
 
         subprocess.run(["mount", "-o", "remount,size=64m", str(disk)], check=True)  # room again
-        ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+        experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
         assert_same_run(run_dir, reference)
 
 
@@ -109,7 +95,7 @@ def test_killed_before_its_first_checkpoint_resume_starts_from_the_config(tmp_pa
     process.communicate(timeout=60)
     assert not (run_dir / "checkpoint.pkl").exists()  # killed while its cluster was starting
 
-    ll.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
 
     assert_same_run(run_dir, reference)
     config = json.loads((run_dir / "config.json").read_text())

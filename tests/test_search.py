@@ -8,7 +8,7 @@ from matplotlib.image import imread
 from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
-import lunar_lander as ll
+from qdsearch import run
 from util import archive_table, load_pickle, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
@@ -17,7 +17,7 @@ RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "met
 
 def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys):
     run_dir = tmp_path / "run"
-    ll.search(**tiny_flags(dask_cluster, log_every=2), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster, log_every=2), outdir=str(run_dir))
 
     for name in RUN_FILES:
         assert (run_dir / name).is_file(), name
@@ -78,11 +78,11 @@ def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_run, run_
 
 
 def test_another_seed_gives_another_archive(tmp_path, dask_cluster, tiny_run):
-    ll.search(**tiny_flags(dask_cluster, seed=8), outdir=str(tmp_path / "b"))
+    run.search(**tiny_flags(dask_cluster, seed=8), outdir=str(tmp_path / "b"))
     assert not run_archive(tiny_run).equals(run_archive(tmp_path / "b"))
 
 
 def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, dask_cluster):
-    ll.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
+    run.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
     config = json.loads((tmp_path / "r" / "config.json").read_text())
     assert isinstance(config["seed"], int) and config["seed"] >= 0

@@ -1,16 +1,20 @@
 """Helpers shared by the tests: the tiny run's flags, reading run folders, comparing runs, real
-processes, and the one-line error check."""
+processes, the one-line error check, policies that land and hover, a small real disk, and the
+explorer page's data."""
 
+import contextlib
 import dataclasses
 import json
 import pickle
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 # A seconds-long search: 3 iterations of 2 emitters x 6 policies, saved at its end.
 TINY = dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
@@ -151,3 +155,39 @@ def stop_all(processes: list[subprocess.Popen]) -> None:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(process.pid, signal.SIGKILL)
             process.wait()
+
+
+# Policies (4x8 weights) found by searches, and the terrains the fast-env tests fly them on.
+LANDER_W = [-0.3024, 0.7899, 0.1059, 1.7391, -0.215, 0.0505, -0.2158, -1.7166,
+            0.2988, -0.67, -0.657, 1.8182, -0.8447, 0.5054, 0.1409, -1.0683,
+            -0.2659, -1.2483, 0.0842, -0.3101, 0.4834, -1.1872, -1.7291, -1.3206,
+            0.2836, -1.3753, -1.1726, 0.1392, 0.4555, 1.2182, -0.7852, -1.0979]  # 225.6, 775 steps
+HOVER_W = [0.2009, -0.5722, 1.6418, 1.0927, 0.3113, 0.3791, -0.1347, -1.1235,
+           -0.0686, 0.1895, 0.3739, 1.6421, 0.3101, -0.2985, -0.6611, -0.4438,
+           -0.1713, 0.0616, -0.701, -0.9206, 0.0249, -1.4127, 0.8403, -1.5734,
+           0.4111, 0.3603, -1.6134, 1.0472, 0.7142, 1.2502, -0.6327, 0.2311]  # hovers 1000 steps
+SEEDS = [52, 0, 1, 7, 2024]
+
+
+@contextlib.contextmanager
+def small_disk(tmp_path, size):
+    """A real tmpfs of `size` mounted at tmp_path/disk, for as long as the block runs."""
+    mount_point = tmp_path / f"disk-{uuid.uuid4().hex[:6]}"
+    mount_point.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mount_point)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {mounted.stderr.strip()}")
+    try:
+        yield mount_point
+    finally:
+        subprocess.run(["umount", "-l", str(mount_point)], check=False)
+
+
+DATA_BLOCK = '<script id="data" type="application/json">'
+
+
+def page_data(run_dir) -> dict:
+    html = (run_dir / "explorer.html").read_text()
+    start = html.index(DATA_BLOCK) + len(DATA_BLOCK)
+    return json.loads(html[start:html.index("</script>", start)])

@@ -3,7 +3,7 @@ other terrains, and the explorer page. None of these commands changes the run's 
 
 Map:
 - `load_run`: a run folder's archive and config, checked against each other;
-- choosing elites (SELECTION_FLAGS of lunar_lander.py): `parse_cells`, `parse_indices`,
+- choosing elites (SELECTION_FLAGS of options.py): `parse_cells`, `parse_indices`,
   `select_elites`, `load_chosen_elites`, `shown_terrain`;
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
@@ -32,44 +32,27 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.box2d import lunar_lander as upstream
 
-from cluster import STOP, dask_client, scheduler_of
-from fast_env import FPS, HALF_H, HALF_W, HEIGHT, HELIPAD_Y, PAD_Y, SCALE, WIDTH, seeded_randoms
-from flags import UsageError, check_flags, positive_int, seed_list, shown, takes
-from lunar_lander import (
-    CLUSTER_FLAGS,
+from qdsearch.algorithms import task_of
+from qdsearch.cluster import STOP, dask_client, scheduler_of
+from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_flights, worker_env
+from qdsearch.fast_env import FPS, HALF_H, HALF_W, HEIGHT, HELIPAD_Y, PAD_Y, SCALE, WIDTH, seeded_randoms
+from qdsearch.flags import UsageError, check_flags, positive_int, seed_list, shown, takes
+from qdsearch.options import CLUSTER_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS, check_rollouts, checked
+from qdsearch.plots import HEATMAP_RANGE, save_heatmap
+from qdsearch.run import load_archive, load_checked_config, load_metrics
+from qdsearch.run_files import RunError, atomic_write, check_writable, console_log, fault_text, write_csv
+from qdsearch.tasks import (
     DEFAULT_ENV,
     ENVIRONMENTS,
     LEFT,
     MAIN,
     MEASURES,
     RIGHT,
-    SELECTION_FLAGS,
-    TERRAIN_FLAGS,
     TUTORIAL_MEASURES,
-    averaged,
     burn,
-    check_rollouts,
-    checked,
     fly,
-    gather_with_progress,
-    load_archive,
-    load_checked_config,
-    load_metrics,
     make_env,
-    per_terrain,
     rollout,
-    submit_flights,
-    task_of,
-    worker_env,
-)
-from plots import HEATMAP_RANGE, save_heatmap
-from run_files import (
-    RunError,
-    atomic_write,
-    check_writable,
-    console_log,
-    fault_text,
-    write_csv,
 )
 
 
@@ -510,7 +493,7 @@ ANGLES = {"lander": [2, 3, 4], "walker": [2, 5, 8, 11, 14]}  # the pose's column
 
 def engine_powers(action: Any) -> tuple[float, float]:
     """The lander's (main, side) engine powers of an action: a discrete one fires one engine at
-    full power; a continuous one as lunar_lander.burn weighs it (side < 0: the left engine)."""
+    full power; a continuous one as tasks.burn weighs it (side < 0: the left engine)."""
     if action is None:
         return 0.0, 0.0
     if np.ndim(action) == 0:

@@ -24,11 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import read_experiment, run_setting
-from flags import UsageError, boolean
-from lunar_lander import Environment, load_checked_config, load_metrics, task_of
-from plots import save_metric_panels
-from run_files import atomic_write, check_parent_folder, read_pickle, write_csv
+from qdsearch.algorithms import task_of
+from qdsearch.experiments import read_experiment, run_setting
+from qdsearch.flags import UsageError, boolean
+from qdsearch.plots import save_metric_panels
+from qdsearch.run import load_checked_config, load_metrics
+from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, write_csv
+from qdsearch.tasks import Environment
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task

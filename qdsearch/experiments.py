@@ -9,7 +9,8 @@ Map:
   shares; `experiment_runs` names each run by its setting (`run_setting`, shared with compare);
 - `run_experiment` and `Experiment`: the cluster, the log and the driving loop (as_completed);
   `LiveRun` is a run in flight;
-- `resume_experiment`: what `resume EXPERIMENT_DIR` does; `read_experiment` reads experiment.json.
+- `resume`: the command, for a run folder (run.resume_run) or an experiment folder
+  (`resume_experiment`); `read_experiment` reads experiment.json.
 """
 
 from __future__ import annotations
@@ -29,30 +30,24 @@ from typing import Any
 
 import numpy as np
 
-from cluster import STOP, SchedulerLost, dask_client, scheduler_of
-from flags import UsageError, check_flags, clipped, one_of, positive_int, seed_list, shown, takes
-from lunar_lander import (
-    ALGORITHMS,
+from qdsearch.algorithms import ALGORITHMS
+from qdsearch.cluster import STOP, SchedulerLost, dask_client, scheduler_of
+from qdsearch.engine import averaged, per_terrain, submit_flights
+from qdsearch.flags import UsageError, check_flags, clipped, one_of, positive_int, seed_list, shown, takes
+from qdsearch.options import (
     CLUSTER_FLAGS,
-    DEFAULT_ENV,
+    RESUME_FLAGS,
     SEARCH_FLAGS,
-    Run,
-    Saver,
-    averaged,
     before_the_flags,
     check_sizes,
-    check_spaces,
     checked,
-    describe_progress,
     ignores,
-    load_run_state,
     own_flags,
-    per_terrain,
     search_defaults,
-    submit_flights,
     with_task,
 )
-from run_files import (
+from qdsearch.run import Run, Saver, describe_progress, load_run_state, resume_run
+from qdsearch.run_files import (
     RunError,
     close_logger,
     fault_text,
@@ -63,6 +58,7 @@ from run_files import (
     read_run_json,
     write_json,
 )
+from qdsearch.tasks import DEFAULT_ENV, check_spaces
 
 EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
 # Which search flags an experiment sets itself (per_run) and which may take a list of values,
@@ -468,6 +464,20 @@ class Experiment:
                              f"QD score {np.mean([r['qd_score'] for r in rows]):.0f} (mean), coverage "
                              f"{np.mean([r['coverage'] for r in rows]):.3f} (mean), best {best:.1f}")
         return lines
+
+
+@takes(RESUME_FLAGS)
+def resume(run_dir: str, **flags: Any) -> None:
+    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped; or,
+    for an experiment folder, every unfinished run of the experiment.
+
+    Args:
+        run_dir: A run folder (or an experiment folder) written by this script.
+    """
+    path = Path(str(run_dir))
+    if (path / "experiment.json").is_file():
+        return resume_experiment(path, flags["iterations"], flags["workers"], flags)
+    return resume_run(run_dir, **flags)
 
 
 def resume_experiment(folder: Path, iterations: int | None, workers: int | None,

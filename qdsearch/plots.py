@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from run_files import atomic_write
+from qdsearch.run_files import atomic_write
 
 HEATMAP_RANGE = (-300, 300)
 

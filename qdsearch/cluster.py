@@ -18,7 +18,6 @@ Map:
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import importlib
 import json
 import logging
@@ -30,8 +29,8 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from flags import UsageError, clipped, positive_float, shown
-from run_files import RunError, fault_text
+from qdsearch.flags import UsageError, clipped, positive_float, shown
+from qdsearch.run_files import RunError, fault_text
 
 
 class StopRequests:
@@ -347,40 +346,52 @@ def dashboard_of(client) -> str:
     return "no dashboard"
 
 
-# The modules a worker imports to run tasks, in the order they import each other.
-SHIPPED = ("flags", "run_files", "cluster", "plots", "fast_env", "lunar_lander", "results")
+PACKAGE = Path(__file__).resolve().parent  # this package: what a worker needs of our code
 
 
 def ship_code(client) -> None:
-    """Make this exact code importable by the scheduler and every worker of a cluster.
+    """Make this exact package importable by the scheduler and every worker of a cluster.
 
-    Tasks refer to their functions by module and name (`lunar_lander.fly_chunk`,
-    `results.record_poses`), so the scheduler (which unpickles task graphs) and the workers must
-    import those modules. Machines elsewhere have the libraries but not this code, or an older
-    copy: then every module is uploaded, in import order (to workers that join later too). Where
-    all already import these very files (a local cluster), nothing is reloaded.
+    Tasks refer to their functions by module and name (`qdsearch.engine.fly_chunk`,
+    `qdsearch.results.record_poses`), so the scheduler (which unpickles task graphs) and the
+    workers must import the package. Machines elsewhere have the libraries but not this code, or
+    an older copy: then the package is uploaded as a zip (Dask puts it on their path, for workers
+    that join later too). Where all already import these very files (a local cluster), nothing is
+    sent.
     """
-    def digests_of_importable_modules(names: tuple[str, ...]) -> list[str | None]:  # runs remotely
+    def digest_of_importable_package(name: str) -> str | None:  # runs remotely
         import hashlib
         import importlib.util
+        from pathlib import Path
 
-        found = []
-        for name in names:
-            spec = importlib.util.find_spec(name)
-            if spec is None or not spec.origin or not spec.origin.endswith(".py"):
-                found.append(None)
-                continue
-            with open(spec.origin, "rb") as file:
-                found.append(hashlib.sha256(file.read()).hexdigest())
-        return found
+        spec = importlib.util.find_spec(name)
+        if spec is None or not spec.submodule_search_locations:
+            return None
+        folder = Path(list(spec.submodule_search_locations)[0])
+        digest = hashlib.sha256()
+        for path in sorted(folder.glob("*")):
+            if path.suffix in (".py", ".html"):
+                digest.update(path.name.encode() + path.read_bytes())
+        return digest.hexdigest()
 
-    paths = [Path(importlib.import_module(name).__file__).resolve() for name in SHIPPED]
-    ours = [hashlib.sha256(path.read_bytes()).hexdigest() for path in paths]
-    theirs = [client.run_on_scheduler(digests_of_importable_modules, SHIPPED),
-              *client.run(digests_of_importable_modules, SHIPPED).values()]
-    if any(digests != ours for digests in theirs):
-        for path in paths:
-            client.upload_file(str(path))
+    ours = digest_of_importable_package(PACKAGE.name)
+    theirs = [client.run_on_scheduler(digest_of_importable_package, PACKAGE.name),
+              *client.run(digest_of_importable_package, PACKAGE.name).values()]
+    if any(digest != ours for digest in theirs):
+        client.upload_file(str(package_zip()))
+
+
+def package_zip() -> Path:
+    """The package's files zipped (made once per process, in a temporary folder)."""
+    import tempfile
+    import zipfile
+
+    path = Path(tempfile.mkdtemp(prefix="qdsearch-")) / f"{PACKAGE.name}.zip"
+    with zipfile.ZipFile(path, "w") as archive:
+        for file in sorted(PACKAGE.glob("*")):
+            if file.suffix in (".py", ".html"):
+                archive.write(file, f"{PACKAGE.name}/{file.name}")
+    return path
 
 
 # What a run imports while its cluster starts (ribs alone brings scikit-learn, scipy, numba and

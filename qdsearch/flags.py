@@ -1,6 +1,6 @@
 """Flags: how a command's flags are declared once, and how every value a user gives is checked.
 
-A command's flags live in a table of `Flag` entries (lunar_lander.py's SEARCH_FLAGS,
+A command's flags live in a table of `Flag` entries (options.py's SEARCH_FLAGS,
 CLUSTER_FLAGS and SELECTION_FLAGS): each entry holds the default, the --help line, the check,
 and the flag's part in experiments. `takes` gives a command those flags as keyword arguments:
 its signature and its docstring's Args come from the tables, so Fire's --help, Fire's parsing

@@ -27,7 +27,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from flags import UsageError
+from qdsearch.flags import UsageError
 
 
 class RunError(Exception):

@@ -1,0 +1,30 @@
+"""qdsearch: quality-diversity search of Gymnasium tasks with pyribs, on Dask; the package under
+`python lunar_lander.py`, which is its command line (the package never imports it).
+
+Map, a module per role, imports going down the list only:
+- flags: the `Flag` entry, the checkers, UsageError;
+- run_files: locks, atomic writes, JSON and pickles, logs; RunError;
+- plots: heatmaps and progress curves;
+- cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
+  STOP (Ctrl-C and SIGTERM); the package shipped to workers that lack it;
+- fast_env: the streamlined Lunar Lander (bitwise gym.make's);
+- tasks: ENVIRONMENTS and MEASURES, the episodes (`fly`, `rollout`);
+- algorithms: ALGORITHMS and `build_scheduler`;
+- engine: chunks of rollouts on the workers, back in order (`evaluate_batch`);
+- options: every command's flags, declared once, and the bounds on sizes;
+- run: ask -> evaluate -> tell, checkpoints, run folders; `search` and `resume`;
+- experiments: `experiment`, many runs interleaved on one cluster;
+- results: `video`, `elites`, `trajectories`, `evaluate`, `explore` (its page: explorer_page.html);
+- comparison: `compare` and its statistics.
+"""
+
+import os
+
+# Plots are written to files, never shown: no display is needed (set before matplotlib loads).
+os.environ.setdefault("MPLBACKEND", "Agg")
+# ribs' CMA-ES code is written for numba, which compiles it on the first ask/tell of a process
+# (2.6-4.5 s). The compiled code's last bits differ (from the 26th iteration on, for 32 weights),
+# and it is not much faster: 1.31 vs 1.39 ms per ask+tell for 32 weights (the lander), 1.79 vs
+# 2.01 for 96 (the walker), 3.39 vs 4.02 for 216 (benchmarks/bench_ask_tell.py, 2026-11-24). So
+# compilation is off unless asked for, and every search computes the same bits.
+os.environ.setdefault("NUMBA_DISABLE_JIT", "1")

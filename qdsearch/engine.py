@@ -1,0 +1,111 @@
+"""The evaluation engine: batches of rollouts on a Dask cluster.
+
+Map:
+- on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a chunk of
+  (solution, terrain) rollouts);
+- in the driver: `submit_flights` (the chunks, sized by CHUNKS_PER_WORKER, MIN_CHUNK and
+  MAX_CHUNK), `per_terrain` and `averaged` (results back in solution order, averaged over
+  terrains), `gather_with_progress`, and `evaluate_batch` (a run's batch, end to end).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from qdsearch.cluster import STOP
+from qdsearch.tasks import DEFAULT_ENV, make_env, rollout
+
+_WORKER_ENVS: dict[tuple[str, bool], gym.Env] = {}  # per worker process, reused across tasks
+
+
+def worker_env(env_name: str, fast: bool = True) -> gym.Env:
+    """This process's environment of the task: reset(seed) gives the same episode bit for bit as
+    a fresh environment, without paying for gym.make each time."""
+    key = (env_name, fast)
+    if key not in _WORKER_ENVS:
+        _WORKER_ENVS[key] = make_env(fast, env_name=env_name)
+    return _WORKER_ENVS[key]
+
+
+def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str, ...],
+              fast_env: bool = True, env_name: str = DEFAULT_ENV) -> np.ndarray:
+    """Runs on a worker: fly solutions[i] on terrain env_seeds[i]; rows of (objective, *measures).
+
+    A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
+    small next to the rollouts, and the environment is kept between tasks (worker_env).
+    """
+    env = worker_env(env_name, fast_env)
+    rows = [rollout(solution, int(seed), env, measures, env_name=env_name)
+            for solution, seed in zip(solutions, env_seeds)]
+    return np.array(rows).reshape(-1, 1 + len(measures))
+
+
+# Two chunks per worker even out lander episodes (60 to 1,000 steps) across workers as well as
+# more do (measured: 1, 2, 3, 4, 8), while each task costs the main process ~0.6 ms of
+# scheduling. Walker episodes (60 to 1,600 steps) too: 1, 4 and 8 chunks per worker took 0.96,
+# 0.95 and 1.01 of the time of 2, within this machine's noise (benchmarks/bench_chunking.py,
+# 6 rounds of 150 policies on 2 workers, 2026-11-24).
+CHUNKS_PER_WORKER = 2
+MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
+# Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
+# few seconds of lander episodes (<= 1,000 steps of ~27 us), up to minutes of walker ones.
+MAX_CHUNK = 1000
+
+
+def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
+                   fast_env: bool = True, sharing: int = 1, threads: int | None = None,
+                   env_name: str = DEFAULT_ENV) -> list:
+    """Send every solution to be flown on every terrain; the futures of the chunks, in order.
+
+    The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
+    the number of terrains, so the workers stay evenly loaded. A batch alone on the cluster is
+    split in CHUNKS_PER_WORKER chunks per worker; when `sharing` runs keep the workers busy
+    together, each batch needs only its share of that, and fewer tasks cost the scheduler less.
+    The chunks go in one message (client.map); tasks of a dead worker are retried. `threads`, the
+    cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
+    """
+    workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
+    pairs = len(solutions) * len(env_seeds)
+    wanted = max(-(-CHUNKS_PER_WORKER * workers // max(1, sharing)), -(-pairs // MAX_CHUNK))
+    chunks = np.array_split(np.arange(pairs), min(wanted, max(1, pairs // MIN_CHUNK)))
+    seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
+    return client.map(fly_chunk, [solutions[chunk // len(env_seeds)] for chunk in chunks],
+                      [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
+                      [fast_env] * len(chunks), [env_name] * len(chunks), pure=False, retries=3)
+
+
+def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int]) -> np.ndarray:
+    """The chunks' rows, put together: (solutions, terrains, 1 + measures)."""
+    rows = np.concatenate(chunk_results)
+    return rows.reshape(-1, len(env_seeds), rows.shape[1])
+
+
+def averaged(flights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Objectives and measures: each solution's mean over its terrains (one terrain: itself)."""
+    means = flights.mean(axis=1)
+    return means[:, 0], means[:, 1:]
+
+
+def gather_with_progress(client, futures: list) -> list:
+    """The futures' results in their order, with a progress bar while they come back (for the
+    long batches of the results commands); Ctrl-C stops the wait."""
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    with STOP.interruptible():
+        for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
+                      dynamic_ncols=True):
+            pass
+        return client.gather(futures)
+
+
+def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Objectives and measures of `solutions` in the run's setting, flown on the Dask cluster.
+
+    Results come back in the order of the solutions whatever the number of workers, so a fixed
+    seed gives the same archive on 1 or 100 workers.
+    """
+    futures = submit_flights(client, solutions, config["env_seed"], config["measures"],
+                             config["fast_env"], env_name=config["env"])
+    return averaged(per_terrain(client.gather(futures), config["env_seed"]))

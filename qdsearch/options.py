@@ -1,0 +1,202 @@
+"""The flag tables: every flag of every command, declared once (its default, its --help line, its
+check, and its part in experiments; see flags.Flag), and the bounds on the sizes they make.
+
+Map:
+- sizes: MAX_CELLS, MAX_ITERATIONS, MAX_EMITTERS, MAX_SOLUTIONS, MAX_ROLLOUTS, MAX_WORKERS;
+  `check_sizes` and `check_rollouts` (what flags make together);
+- the tables: CLUSTER_FLAGS, SEARCH_FLAGS, RESUME_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS;
+- `own_flags` and `ignores` (the flags an algorithm alone uses), `checked` (a value through its
+  flag's check), `with_task` (a config's measures, checked against its task), `search_defaults`
+  and `before_the_flags` (what runs recorded before a flag existed ran with).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from qdsearch.algorithms import ALGORITHMS
+from qdsearch.flags import (
+    Flag,
+    UsageError,
+    boolean,
+    distinct_names,
+    fraction,
+    one_of,
+    positive_float,
+    positive_int,
+    seed_list,
+    seed_number,
+    whole_number_up_to,
+)
+from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, MEASURES, family_measures
+
+# Every size a user gives is bounded before anything is allocated or written (check_sizes and the
+# flags' checks): each bound is far past what QD papers run (1,000s of solutions per iteration,
+# 10,000s of iterations), and what it lets a run hold at once stays within a laptop's memory.
+MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps one solution
+MAX_ITERATIONS = 1_000_000  # the checkpoint keeps a row of metrics (~1 KB in memory) per iteration
+MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights covariance)
+MAX_SOLUTIONS = 100_000  # asked per iteration (n_emitters * batch_size): 173 MB of 216 weights
+MAX_ROLLOUTS = 10_000_000  # solutions x terrains flown in one batch: ~32 bytes of results each
+MAX_WORKERS = 1_024  # worker processes of a local cluster (and what memory holds: check_local_memory)
+
+
+def own_flags(algorithm: str) -> tuple[str, ...]:
+    """The flags only some algorithms use that this one does (cma_mae: learning_rate)."""
+    return tuple(name for name, flag in SEARCH_FLAGS.items() if algorithm in flag.only_for)
+
+
+def ignores(algorithm: str, flag: str) -> bool:
+    """Whether the algorithm ignores the flag (another algorithm's own, like cma_mae's rate)."""
+    only_for = SEARCH_FLAGS[flag].only_for if flag in SEARCH_FLAGS else ()
+    return bool(only_for) and algorithm not in only_for
+
+
+def check_sizes(config: dict) -> None:
+    """The sizes that flags make together are bounded too: the archive's cells, the solutions
+    asked per iteration and the rollouts they are flown in."""
+    cells, solutions = config["grid"] ** len(config["measures"]), config["n_emitters"] * config["batch_size"]
+    if cells > MAX_CELLS:
+        raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
+                         f"{cells:,} cells; at most {MAX_CELLS:,}")
+    if solutions > MAX_SOLUTIONS:
+        raise UsageError(f"--n_emitters {config['n_emitters']} x --batch_size {config['batch_size']} "
+                         f"asks {solutions:,} solutions per iteration; at most {MAX_SOLUTIONS:,}")
+    check_rollouts(solutions, len(config["env_seed"]), "per iteration")
+
+
+def check_rollouts(solutions: int, terrains: int, when: str) -> None:
+    """At most MAX_ROLLOUTS rollouts in one batch: their results are held at once."""
+    if solutions * terrains > MAX_ROLLOUTS:
+        raise UsageError(f"{solutions:,} solutions on {terrains:,} terrain(s) make "
+                         f"{solutions * terrains:,} rollouts {when}; at most {MAX_ROLLOUTS:,}")
+
+
+# Each flag is declared once, here: its default, its --help line, its check, and its part in
+# experiments (see flags.Flag). `takes` turns a table into a command's keyword arguments, so the
+# signature, the docstring's Args and --help come from these entries.
+
+CLUSTER_FLAGS: dict[str, Flag] = {  # every command that flies policies on a cluster
+    "workers": Flag(2, "Number of Dask worker processes (one thread each) of the local cluster "
+                       f"flying the rollouts (at most {MAX_WORKERS:,}, and what memory holds).",
+                    whole_number_up_to(MAX_WORKERS), per_run=True),
+    "scheduler_address": Flag(None, "Address of a running Dask scheduler (tcp://HOST:PORT) to "
+                                    "evaluate on instead of starting a local cluster; --workers "
+                                    "is then ignored.", per_run=True),
+    "scheduler_file": Flag(None, "A Dask scheduler file (written by dask scheduler "
+                                 "--scheduler-file, dask-mpi or dask-jobqueue's SLURMRunner): "
+                                 "wait for it to appear, then join the scheduler it names; "
+                                 "instead of --scheduler_address.", per_run=True),
+    "scheduler_timeout": Flag(120, "Seconds to wait for --scheduler_file to appear; the "
+                                   "scheduler must answer within this too (at most 20 s).",
+                              positive_float, per_run=True),
+    "worker_timeout": Flag(600, "Seconds to wait for the first worker of the cluster named by "
+                                "--scheduler_address or --scheduler_file to join (it says it waits).",
+                           positive_float, per_run=True),
+}
+
+SEARCH_FLAGS: dict[str, Flag] = {
+    "iterations": Flag(300, f"Number of ask-evaluate-tell iterations (at most {MAX_ITERATIONS:,}).",
+                       whole_number_up_to(MAX_ITERATIONS)),
+    "workers": CLUSTER_FLAGS["workers"],
+    "seed": Flag(None, "Seed of the archive and emitters; drawn and recorded in config.json if "
+                       "omitted. The same seed gives the same archive whatever the number of "
+                       "workers.", seed_number, per_run=True),
+    "env": Flag(DEFAULT_ENV, "The Gymnasium task, a row of ENVIRONMENTS: " + ", ".join(ENVIRONMENTS)
+                + " (docs/environments.md).", one_of(ENVIRONMENTS)),
+    "env_seed": Flag(52, "The terrain(s) every policy is flown on: one seed (52), a range (0-4), a "
+                         "list (3,5,8) or both (0-4,10). With several terrains the objective is "
+                         "the mean return over them, and each measure is its per-terrain values "
+                         "averaged.", seed_list, label=1, text=True),
+    "measures": Flag(None, "1 to 3 rows of the MEASURES table of the task's family, "
+                           "comma-separated, as the archive's axes; default: the task's own. Lunar "
+                           "Lander: " + ", ".join(family_measures("lander")) + " (the tutorial's "
+                           "impact_x,impact_y_velocity by default); BipedalWalker: "
+                           + ", ".join(family_measures("walker")) + " (foot1_contact,"
+                           "foot2_contact by default).",
+                     distinct_names(MEASURES, "measures", 3), label=2, text=True),
+    "grid": Flag(50, "Archive cells along each measure.", positive_int, sweep=True, label=3),
+    "algorithm": Flag("cma_me", "Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae "
+                                "(CMA-MAE) or map_elites (MAP-Elites with Gaussian mutation); "
+                                "each asks n_emitters * batch_size solutions per iteration.",
+                      one_of(ALGORITHMS), per_run=True),
+    "n_emitters": Flag(5, f"Number of emitters (at most {MAX_EMITTERS:,}).",
+                       whole_number_up_to(MAX_EMITTERS), sweep=True, label=4),
+    "sigma0": Flag(1.0, "Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed "
+                        "sigma of its Gaussian mutation.", positive_float, sweep=True, label=6),
+    "batch_size": Flag(30, f"Solutions each emitter proposes per iteration (n_emitters * "
+                           f"batch_size: at most {MAX_SOLUTIONS:,}).", whole_number_up_to(MAX_SOLUTIONS),
+                       sweep=True, label=5),
+    "learning_rate": Flag(0.5, "cma_mae only: how fast a cell's threshold follows its "
+                               "improvements, in (0, 1]. 0.5 did best of 0.01, 0.1 and 0.5 over "
+                               "6 seeds of 300 iterations (docs/algorithms.md); pyribs' 0.01 is "
+                               "for far longer runs; 1 makes the archive CMA-ME's.", fraction,
+                          sweep=True, label=7, only_for=("cma_mae",), before=0.01),
+    "log_every": Flag(25, "Log a line and refresh the run folder every this many iterations.",
+                      positive_int),
+    "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "
+                         "empty.", per_run=True),
+    "scheduler_address": CLUSTER_FLAGS["scheduler_address"],
+    "scheduler_file": CLUSTER_FLAGS["scheduler_file"],
+    "scheduler_timeout": CLUSTER_FLAGS["scheduler_timeout"],
+    "worker_timeout": CLUSTER_FLAGS["worker_timeout"],
+    "from_archive": Flag(None, "Warm start: an archive.pkl of an earlier run whose elites are "
+                               "re-evaluated in this run's setting to fill the archive first; the "
+                               "emitters start from the best.", per_run=True),
+    "fast_env": Flag(True, "Fly rollouts in the task's streamlined copy where it has one "
+                           "(LunarLander-v3: bitwise identical results, about a third less time "
+                           "per step); false uses gym.make's plain environment.", boolean),
+}
+
+# resume: a run goes on as it was started unless told otherwise.
+RESUME_FLAGS: dict[str, Flag] = {
+    "iterations": dataclasses.replace(
+        SEARCH_FLAGS["iterations"], default=None, help="Total iterations to reach; default: those "
+        "the run was started with. A larger number extends a finished run."),
+    "workers": dataclasses.replace(CLUSTER_FLAGS["workers"], default=None, help=(
+        CLUSTER_FLAGS["workers"].help + " Default: as the run was started.")),
+    **{name: flag for name, flag in CLUSTER_FLAGS.items() if name != "workers"},
+}
+
+# Which elites a results command shows (video, trajectories), and on which terrain (explore too).
+SELECTION_FLAGS: dict[str, Flag] = {
+    "cells": Flag(None, 'Points in the run\'s measures "[(m1, m2), ...]": the elite of each '
+                        "point's cell (archive.retrieve_single); for the tutorial's impact x and "
+                        'impact y-velocity, e.g. "[(-0.4, -0.1), (0.6, -0.1), (0.0, -0.1)]".'),
+    "best": Flag(False, "The elite with the highest objective.", boolean),
+    "top": Flag(None, "The K elites with the highest objectives.", positive_int),
+    "index": Flag(None, "Archive cell indices (the cell_index column of the elites command)."),
+    "nearest": Flag(False, "For an empty cell, use the nearest occupied cell instead of "
+                           "stopping.", boolean),
+}
+TERRAIN_FLAGS: dict[str, Flag] = {
+    "env_seed": Flag(None, "The terrain to fly on, one of the run's; default: the run's first.",
+                     seed_number),
+}
+
+
+def checked(name: str, value: Any) -> Any:
+    """A value checked as the flag `name` of SEARCH_FLAGS checks it (None included: refused)."""
+    return SEARCH_FLAGS[name].check(name, value)
+
+
+def with_task(config: dict[str, Any]) -> dict[str, Any]:
+    """The config with its task's default measures if it names none, and its measures checked
+    against its task (a walker has no impact x)."""
+    env = config.get("env", DEFAULT_ENV)
+    task = ENVIRONMENTS[env]
+    measures = list(task.measures if config.get("measures") is None else config["measures"])
+    if wrong := [name for name in measures if MEASURES[name].family != task.family]:
+        raise UsageError(f"--measures {wrong[0]} is not a measure of --env {env}; its measures: "
+                         + ", ".join(family_measures(task.family)))
+    return {**config, "env": env, "measures": measures}
+
+
+def search_defaults() -> dict[str, Any]:
+    return {name: flag.default for name, flag in SEARCH_FLAGS.items()}
+
+
+def before_the_flags() -> dict[str, Any]:
+    """What runs recorded before a flag existed ran with, where that is not today's default."""
+    return {name: flag.before for name, flag in SEARCH_FLAGS.items() if flag.before is not None}

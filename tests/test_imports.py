@@ -1,0 +1,65 @@
+"""Imports go one way: the script sits on top of the package `qdsearch`, which never imports it, and
+no two of the package's modules import each other, directly or through others, at load time or
+inside a function."""
+
+import ast
+from pathlib import Path
+
+from conftest import ROOT
+
+PACKAGE = ROOT / "qdsearch"
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module an `import` or `from ... import` anywhere in the file names (functions too)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            found.add(node.module)
+            if node.module == "qdsearch":  # from qdsearch import tasks
+                found |= {f"qdsearch.{alias.name}" for alias in node.names}
+    return found
+
+
+def package_graph() -> dict[str, set[str]]:
+    """Each module of the package, and the modules of the package it imports."""
+    modules = {f"qdsearch.{path.stem}": path for path in PACKAGE.glob("*.py") if path.stem != "__init__"}
+    return {name: {m for m in imported_modules(path) if m in modules and m != name}
+            for name, path in modules.items()}
+
+
+OLD_TOP_LEVEL = {"flags", "run_files", "plots", "cluster", "fast_env", "experiments", "results", "comparison"}
+
+
+def test_the_package_never_imports_the_script():
+    for path in PACKAGE.glob("*.py"):
+        assert not imported_modules(path) & OLD_TOP_LEVEL, path  # a sibling by its old, top-level name
+        imported = imported_modules(path)
+        assert not any(m == "lunar_lander" or m.startswith("lunar_lander.") for m in imported), path
+        assert "import_module(\"lunar_lander" not in path.read_text(), path
+
+
+def test_no_two_modules_import_each_other_even_through_others():
+    graph = package_graph()
+    assert len(graph) >= 10 and graph["qdsearch.run"] >= {"qdsearch.engine", "qdsearch.options"}
+
+    def reaches(start: str) -> set[str]:
+        seen, todo = set(), list(graph[start])
+        while todo:
+            module = todo.pop()
+            if module not in seen:
+                seen.add(module)
+                todo += graph[module]
+        return seen
+
+    cycles = [module for module in graph if module in reaches(module)]
+    assert not cycles, {module: sorted(graph[module]) for module in cycles}
+
+
+def test_the_import_check_sees_a_lazy_import_inside_a_function(tmp_path):
+    """The check itself: an import inside a function counts."""
+    path = tmp_path / "lazy.py"
+    path.write_text("def f():\n    from qdsearch import run\n    import lunar_lander\n")
+    assert imported_modules(path) >= {"qdsearch.run", "lunar_lander"}
