@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """pyribs' ask + tell with numba's JIT on and off, for the policy sizes of the tasks: what the
-comment on NUMBA_DISABLE_JIT in lunar_lander.py rests on.
+comment on NUMBA_DISABLE_JIT in qdsearch/__init__.py rests on.
 
 Each setting runs in a process of its own (numba reads NUMBA_DISABLE_JIT when it is imported):
 the default CMA-ME scheduler (5 emitters x 30) with `dim` weights, fed random objectives and

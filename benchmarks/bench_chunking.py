@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""How many chunks per worker a batch is split into (CHUNKS_PER_WORKER in lunar_lander.py), for a
+"""How many chunks per worker a batch is split into (CHUNKS_PER_WORKER in qdsearch/engine.py), for a
 task's episodes: the seconds of one batch of the default search (5 emitters x 30 policies) on a
 local cluster of --workers processes, for each chunk count, in interleaved rounds (the same
 batches for every count), with the median and its ratio to today's count.

@@ -5,7 +5,7 @@
 
 For each row of ENVIRONMENTS, the same seeded CMA-ME search (the default 5 emitters x 30, the
 task's default measures, terrain 52) runs for --iterations iterations twice:
-- serially, in this process, in the env the workers use (`lunar_lander.worker_env`): the cost
+- serially, in this process, in the env the workers use (`qdsearch.engine.worker_env`): the cost
   of a step, the mean episode length and rollouts per second on one core;
 - through the engine (`evaluate_batch`) on a local cluster of --workers worker processes:
   seconds per iteration and the parallel efficiency, serial rollout time / (workers x search

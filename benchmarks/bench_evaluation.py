@@ -38,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from qdsearch import algorithms, engine, fast_env, run_files, tasks  # noqa: E402
 
 CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
-              measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True)
+              measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True,
+              env=tasks.DEFAULT_ENV)
 
 
 def tutorial_simulate(model: np.ndarray, seed: int) -> tuple[float, float, float]:
@@ -142,7 +143,7 @@ def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]
     }
     for n in workers:
         for name, evaluate in [("baseline: task per solution (tutorial)", tutorial_evaluate),
-                               ("engine: lunar_lander.evaluate_batch", engine_evaluate)]:
+                               ("engine: qdsearch.engine.evaluate_batch", engine_evaluate)]:
             cluster, client = local_client(n)
             try:
                 runs[name, n] = run_search(evaluate, client, iterations)

@@ -70,7 +70,7 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
 
 
 def simulated_chunk(lengths: list[int], step_s: float):
-    """The stand-in for lunar_lander.fly_chunk on the simulated workers."""
+    """The stand-in for qdsearch.engine.fly_chunk on the simulated workers."""
     def fly_chunk(solutions, env_seeds, measures, fast_env=True, env_name=tasks.DEFAULT_ENV):
         from distributed.worker import thread_state
 
@@ -121,7 +121,7 @@ def start_cluster(folder: Path, workers: int, processes: int):
     """A `dask scheduler` process and `processes` worker processes of workers/processes threads."""
     scheduler_file = folder / "scheduler.json"
     # The code is importable everywhere, as on a cluster's shared filesystem: nothing is uploaded
-    # (an upload would re-import lunar_lander on the workers and undo the simulation).
+    # (an upload would re-import the package on the workers and undo the simulation).
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}"}
     started = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1",
                                  "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
