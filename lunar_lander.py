@@ -33,8 +33,8 @@ a fault of the machine one line and exit code 1). The tutorial's story, module b
   folder's files, the `search` command and `resume` of a run folder;
 - the flags, `qdsearch/options.py`: every flag declared once;
 - the other commands: `qdsearch/experiments.py` (experiment; resume, which hands a run folder to
-  run.py), `qdsearch/results.py` (video, elites, trajectories, evaluate, explore),
-  `qdsearch/comparison.py` (compare).
+  run.py), `qdsearch/results.py` (video, elites, trajectories, evaluate), `qdsearch/explorer.py`
+  (explore), `qdsearch/comparison.py` (compare).
 The package never imports this script.
 """
 
@@ -65,7 +65,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "search": ("qdsearch.run", "search"), "resume": ("qdsearch.experiments", "resume"),
     "experiment": ("qdsearch.experiments", "experiment"), "video": ("qdsearch.results", "video"),
     "elites": ("qdsearch.results", "elites"), "trajectories": ("qdsearch.results", "trajectories"),
-    "evaluate": ("qdsearch.results", "evaluate_robustness"), "explore": ("qdsearch.results", "explore"),
+    "evaluate": ("qdsearch.results", "evaluate_robustness"), "explore": ("qdsearch.explorer", "explore"),
     "compare": ("qdsearch.comparison", "compare"),
 }
 

@@ -14,7 +14,8 @@ Map, a module per role, imports going down the list only:
 - options: every command's flags, declared once, and the bounds on sizes;
 - run: ask -> evaluate -> tell, checkpoints, run folders; `search` and `resume`;
 - experiments: `experiment`, many runs interleaved on one cluster;
-- results: `video`, `elites`, `trajectories`, `evaluate`, `explore` (its page: explorer_page.html);
+- results: `video`, `elites`, `trajectories`, `evaluate`, and choosing elites;
+- explorer: `explore`, the page (explorer_page.html) and the poses and worlds it plays;
 - comparison: `compare` and its statistics.
 """
 

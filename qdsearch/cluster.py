@@ -308,9 +308,12 @@ def start_local_cluster(workers: int, log: logging.Logger):
     for attempt in range(1, LOCAL_START_TRIES + 1):
         STOP.check()
         try:
+            # The worker processes write to this terminal: a worker outliving its scheduler by a
+            # heartbeat (seen after a start was tried again) logs an ERROR with a traceback.
+            # Every fault a user must know of reaches them through this process, in one line.
             return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                 host="127.0.0.1", dashboard_address="127.0.0.1:8787",
-                                silence_logs=logging.ERROR)
+                                silence_logs=logging.CRITICAL)
         except Exception as error:
             if attempt == LOCAL_START_TRIES:
                 raise RunError(f"could not start a local Dask cluster of {workers} worker "

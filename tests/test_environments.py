@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import engine, experiments, results, run, tasks
+from qdsearch import engine, experiments, explorer, results, run, tasks
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -205,7 +205,7 @@ def action_trace(solution: np.ndarray, env: gym.Env, env_name: str) -> list:
 def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, browser):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
-    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     data, task = page_data(run_dir), tasks.ENVIRONMENTS[env_name]
     scale = np.array(data["pose_scale"])
     poses = np.frombuffer(base64.b64decode(data["poses"]), "<i2").reshape(-1, len(scale)) / scale

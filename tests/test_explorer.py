@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import fast_env, results, run_files, tasks
+from qdsearch import explorer, fast_env, results, run_files, tasks
 from util import DATA_BLOCK, folder_state, load_pickle, page_data, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
@@ -21,7 +21,7 @@ def explored(tmp_path_factory, dask_cluster, tiny_run):
     """A copy of the tiny run (a few dozen elites) and its explorer page."""
     run_dir = tmp_path_factory.mktemp("explorer") / "run"
     shutil.copytree(tiny_run, run_dir)
-    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     return run_dir
 
 
@@ -36,7 +36,7 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     data = page_data(explored)
     archive = load_pickle(explored / "archive.pkl")
     assert len(data["elites"]) == len(archive)
-    scale = np.array(results.POSE_SCALE["lander"])
+    scale = np.array(explorer.POSE_SCALE["lander"])
     poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, len(scale))
     assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(archive.data("index"), archive.data("solution")))
@@ -157,7 +157,7 @@ def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
     shutil.copytree(explored, run_dir)
     results.evaluate_robustness(str(run_dir), env_seeds="3,4",
                                 scheduler_address=dask_cluster.scheduler_address)
-    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     robust = {int(r["cell_index"]): r for r in pd.read_csv(run_dir / "robustness.csv").to_dict("records")}
 
     page = browser.new_page(viewport={"width": 1300, "height": 1000})

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import experiments, results, run, tasks
+from qdsearch import experiments, explorer, results, run, tasks
 from util import assert_one_line_error, folder_state, page_data, tiny_flags
 
 HARDCORE, WALKER = "BipedalWalkerHardcore-v3", "BipedalWalker-v3"
@@ -48,7 +48,7 @@ def test_the_hardcore_walker_flies_a_course_with_obstacles_the_plain_one_lacks()
         counts[name] = obstacles(env)
     assert counts[WALKER] == 0 and counts[HARDCORE] >= 3, counts
     assert all(hard != plain for hard, plain in zip(walks[HARDCORE], walks[WALKER]))
-    worlds = {name: results.walker_world(52, name) for name in (HARDCORE, WALKER)}
+    worlds = {name: explorer.walker_world(52, name) for name in (HARDCORE, WALKER)}
     assert worlds[HARDCORE]["terrain"] != worlds[WALKER]["terrain"]
     # the explorer draws the obstacles the walker meets, where they stand
     assert len(worlds[HARDCORE]["obstacles"]) == counts[HARDCORE] and worlds[WALKER]["obstacles"] == []
@@ -61,7 +61,7 @@ def continuous_explored(tmp_path_factory, dask_cluster) -> Path:
     """A tiny run of the continuous lander and its explorer page."""
     run_dir = tmp_path_factory.mktemp("continuous") / "run"
     run.search(**tiny_flags(dask_cluster, env=CONTINUOUS), outdir=str(run_dir))
-    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     return run_dir
 
 

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 import lunar_lander as ll
-from qdsearch import experiments, results
+from qdsearch import experiments, explorer
 from util import Result, assert_one_line_error, checkpoint_iteration, folder_state
 
 INJECTION = "p</script><img src=x onerror=document.title=1337>"  # a folder p< holding script><img...
@@ -35,7 +35,7 @@ def copy_of(run_dir, where):
 def test_a_hostile_run_name_runs_nothing_and_the_page_works(browser, tiny_run, tmp_path, dask_cluster,
                                                            name):
     run_dir = copy_of(tiny_run, tmp_path / name)
-    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     html = (run_dir / "explorer.html").read_text()
     assert "<img src=x" not in html and "<!--<script>" not in html  # written as JSON escapes
 
@@ -55,7 +55,7 @@ def test_a_hostile_run_name_runs_nothing_and_the_page_works(browser, tiny_run, t
 def test_the_page_lets_only_its_own_script_run(browser, tiny_run, tmp_path, dask_cluster):
     """Even markup that got into the page could run nothing: the policy allows one script, by hash."""
     run_dir = copy_of(tiny_run, tmp_path / "run")
-    results.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     html = (run_dir / "explorer.html").read_text()
     planted = html.replace("</body>", "<img src=x onerror=\"document.title='1337'\">"
                                       "<script>document.title='1338'</script></body>")

@@ -73,10 +73,10 @@ def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_run, ru
     assert can_import_the_code(external_cluster) == [True, True]
 
 
-def test_explore_on_an_existing_cluster_ships_the_results_module(tmp_path, tiny_run, run_process,
-                                                                 external_cluster):
-    """The explorer's poses are recorded by results.record_poses, on workers that have never seen
-    results.py (nor the modules it imports)."""
+def test_explore_on_an_existing_cluster_ships_the_package(tmp_path, tiny_run, run_process,
+                                                          external_cluster):
+    """The explorer's poses are recorded by explorer.record_poses, on workers that have never seen
+    the package."""
     import shutil
 
     run_dir = tmp_path / "run"
