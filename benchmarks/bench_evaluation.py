@@ -79,7 +79,7 @@ def serial_evaluate(rollout: Callable) -> Callable:
 
 
 def streamlined_rollout(solution: np.ndarray, seed: int, env) -> tuple[float, ...]:
-    return tasks.rollout(solution, seed, env)
+    return tasks.rollout(solution, seed, env, env_name=CONFIG["env"])
 
 
 def engine_evaluate(client, solutions: np.ndarray, env_seed: int):
@@ -108,7 +108,7 @@ def count_steps(iterations: int) -> int:
         solutions, results = scheduler.ask(), []
         for solution in solutions:
             path: list = []
-            results.append(tasks.rollout(solution, 52, env, trajectory=path))
+            results.append(tasks.rollout(solution, 52, env, trajectory=path, env_name=CONFIG["env"]))
             steps += len(path)
         results = np.array(results)
         scheduler.tell(results[:, 0], results[:, 1:])
@@ -123,8 +123,9 @@ def local_client(workers: int):
     client = Client(cluster)
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
-    client.gather(client.map(engine.fly_chunk, [np.zeros((1, 32))] * workers,
-                             env_seeds=[52], measures=tasks.TUTORIAL_MEASURES, pure=False))
+    client.gather(client.map(engine.fly_chunk, [np.zeros((1, 32))] * workers, env_seeds=[52],
+                             measures=tasks.TUTORIAL_MEASURES, fast_env=True, env_name=CONFIG["env"],
+                             pure=False))
     return cluster, client
 
 

@@ -48,14 +48,15 @@ def timed(*args: str) -> float:
 
 def serial_rollout_seconds(configs: list[dict]) -> float:
     """The runs again, in this process: only their rollouts are timed, one after another."""
-    env, total = tasks.make_env(), 0.0
+    total = 0.0
     for config in configs:
+        env = tasks.make_env(env_name=config["env"])
         scheduler = algorithms.build_scheduler(config)
         for _ in range(config["iterations"]):
             solutions = scheduler.ask()
             tic = time.perf_counter()
-            rows = np.array([tasks.rollout(s, config["env_seed"][0], env, config["measures"])
-                             for s in solutions])
+            rows = np.array([tasks.rollout(s, config["env_seed"][0], env, config["measures"],
+                                           env_name=config["env"]) for s in solutions])
             total += time.perf_counter() - tic
             scheduler.tell(rows[:, 0], rows[:, 1:])
     return total

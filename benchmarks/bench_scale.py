@@ -71,7 +71,7 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
 
 def simulated_chunk(lengths: list[int], step_s: float):
     """The stand-in for qdsearch.engine.fly_chunk on the simulated workers."""
-    def fly_chunk(solutions, env_seeds, measures, fast_env=True, env_name=tasks.DEFAULT_ENV):
+    def fly_chunk(solutions, env_seeds, measures, fast_env, env_name):
         from distributed.worker import thread_state
 
         start = time.time()

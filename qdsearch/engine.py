@@ -14,7 +14,7 @@ import gymnasium as gym
 import numpy as np
 
 from qdsearch.cluster import STOP
-from qdsearch.tasks import DEFAULT_ENV, make_env, rollout
+from qdsearch.tasks import make_env, rollout
 
 _WORKER_ENVS: dict[tuple[str, bool], gym.Env] = {}  # per worker process, reused across tasks
 
@@ -29,7 +29,7 @@ def worker_env(env_name: str, fast: bool = True) -> gym.Env:
 
 
 def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str, ...],
-              fast_env: bool = True, env_name: str = DEFAULT_ENV) -> np.ndarray:
+              fast_env: bool, env_name: str) -> np.ndarray:
     """Runs on a worker: fly solutions[i] on terrain env_seeds[i]; rows of (objective, *measures).
 
     A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
@@ -54,8 +54,8 @@ MAX_CHUNK = 1000
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
-                   fast_env: bool = True, sharing: int = 1, threads: int | None = None,
-                   env_name: str = DEFAULT_ENV) -> list:
+                   fast_env: bool, sharing: int = 1, threads: int | None = None, *,
+                   env_name: str) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
 
     The work is the (solution, terrain) pairs, split into chunks of about equal count whatever

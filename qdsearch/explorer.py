@@ -32,7 +32,6 @@ from qdsearch.results import elite_rows, load_run, shown_terrain
 from qdsearch.run import load_metrics
 from qdsearch.run_files import atomic_write, check_writable, console_log
 from qdsearch.tasks import (
-    DEFAULT_ENV,
     ENVIRONMENTS,
     LEFT,
     MAIN,
@@ -108,7 +107,7 @@ def walker_pose(env: gym.Env, action: Any) -> list[float]:
 POSES = {"lander": lander_pose, "walker": walker_pose}
 
 
-def record_poses(solutions: np.ndarray, env_seed: int, env_name: str = DEFAULT_ENV) -> list[np.ndarray]:
+def record_poses(solutions: np.ndarray, env_seed: int, env_name: str) -> list[np.ndarray]:
     """Runs on a worker: each solution's episode as quantised poses (steps + 1, pose size), the
     reset's pose first, flown in the env `rollout` flies it in."""
     env = worker_env(env_name, True)

@@ -38,7 +38,6 @@ from qdsearch.plots import save_heatmap
 from qdsearch.run import load_archive, load_checked_config
 from qdsearch.run_files import RunError, atomic_write, check_writable, console_log, fault_text, write_csv
 from qdsearch.tasks import (
-    DEFAULT_ENV,
     ENVIRONMENTS,
     MEASURES,
     TUTORIAL_MEASURES,
@@ -264,7 +263,7 @@ def record_video(solution: np.ndarray, env_seed: int, path: Path, env_name: str)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
-            env = Mp4Recorder(make_env(False, "rgb_array", env_name), Path(tmp) / "flight.mp4")
+            env = Mp4Recorder(make_env(False, "rgb_array", env_name=env_name), Path(tmp) / "flight.mp4")
             try:
                 fly(solution, env_seed, env, env_name=env_name)
             finally:
@@ -416,7 +415,7 @@ PATH_PICTURES = {"lander": draw_landings, "walker": draw_walks}
 
 
 def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]], env_seed: int,
-                         path: Path, env_name: str = DEFAULT_ENV) -> None:
+                         path: Path, env_name: str) -> None:
     """The chosen elites' paths on one page, drawn as their task's family draws them."""
     import matplotlib.pyplot as plt
 

@@ -201,7 +201,7 @@ ENVIRONMENTS: dict[str, Environment] = {
 DEFAULT_ENV = "LunarLander-v3"  # the tutorial's, and what run folders from before --env flew
 
 
-def make_env(fast: bool = True, render_mode: str | None = None, env_name: str = DEFAULT_ENV) -> gym.Env:
+def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str) -> gym.Env:
     """The environment rollouts fly in: the task's streamlined copy if it has one (fast_env.py),
     or gym.make's plain one (needed to render, and the reference the copy is tested against)."""
     task = ENVIRONMENTS[env_name]
@@ -288,7 +288,7 @@ def family_measures(family: str) -> list[str]:
 
 
 def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
-        on_step: Callable[[Any, np.ndarray], None] | None = None, env_name: str = DEFAULT_ENV) -> Any:
+        on_step: Callable[[Any, np.ndarray], None] | None = None, *, env_name: str) -> Any:
     """Fly the task's linear policy for one episode on the terrain of `env_seed`; its summary.
 
     With a `trajectory` list, each step's position is appended to it (the lander's normalised
@@ -308,7 +308,7 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
 
 
 def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
-            trajectory: list | None = None, env_name: str = DEFAULT_ENV) -> tuple[float, ...]:
+            trajectory: list | None = None, *, env_name: str) -> tuple[float, ...]:
     """(objective, *measures) of one episode (default: the task's measures): the objective is the
     episode's total reward."""
     flight = fly(solution, env_seed, env, trajectory, env_name=env_name)

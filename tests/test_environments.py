@@ -40,7 +40,7 @@ def test_an_episode_is_the_same_wherever_it_is_flown(env_name, dask_client):
     fresh = [tasks.rollout(s, 3, tasks.make_env(env_name=env_name), env_name=env_name) for s in solutions]
     env = tasks.make_env(env_name=env_name)
     reused = [tasks.rollout(s, 3, env, env_name=env_name) for s in solutions[::-1]][::-1]
-    rendering = tasks.make_env(False, "rgb_array", env_name)
+    rendering = tasks.make_env(False, "rgb_array", env_name=env_name)
     rendering.reset(seed=0)
     rendering.render()  # a frame drawn before the episode changes nothing
     remote = dask_client.submit(engine.fly_chunk, solutions, np.full(len(solutions), 3), task.measures,

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from qdsearch import explorer, fast_env, results, run_files, tasks
-from util import DATA_BLOCK, folder_state, load_pickle, page_data, small_disk
+from util import DATA_BLOCK, LANDER, folder_state, load_pickle, page_data, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
 
@@ -40,10 +40,11 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, len(scale))
     assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(archive.data("index"), archive.data("solution")))
-    env = tasks.make_env(fast=False)
+    env = tasks.make_env(fast=False, env_name=LANDER)
     for elite in data["elites"][:5]:
         trajectory = []
-        objective, *measures = tasks.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory)
+        objective, *measures = tasks.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory,
+                                               env_name=LANDER)
         assert elite["objective"] == objective and elite["measures"] == measures
         assert elite["steps"] == len(trajectory)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / scale

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from qdsearch import fast_env, tasks
-from util import HOVER_W, LANDER_W, SEEDS
+from util import HOVER_W, LANDER, LANDER_W, SEEDS
 
 
 def plain_rollout(solution, env_seed, env):
@@ -35,7 +35,7 @@ def plain_rollout(solution, env_seed, env):
 
 def fast_rollout(solution, env_seed, env):
     path = []
-    return (*tasks.rollout(solution, env_seed, env, trajectory=path), len(path), path)
+    return (*tasks.rollout(solution, env_seed, env, trajectory=path, env_name=LANDER), len(path), path)
 
 
 RANDOM_PER_SCALE = 32
@@ -89,7 +89,7 @@ def test_one_fast_env_reused_in_mixed_order(expected):
 
 
 def test_the_plain_env_path_matches_too(expected):
-    env = tasks.make_env(fast=False)
+    env = tasks.make_env(fast=False, env_name=LANDER)
     for i, s in CASES[::10]:
         assert fast_rollout(POLICIES[i], s, env) == expected[i, s], (i, s)
 

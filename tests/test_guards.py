@@ -74,7 +74,7 @@ def body_x(lander, x: float, y: float) -> float:
 def exhaust_sides(solution: np.ndarray) -> list[tuple[float, float]]:
     """Per step of the episode (rendered, so Gymnasium makes its exhaust particles): the action's
     side throttle, and on which side of the lander that step's side exhaust is (0: none)."""
-    env = tasks.make_env(False, "rgb_array", CONTINUOUS)
+    env = tasks.make_env(False, "rgb_array", env_name=CONTINUOUS)
     steps: list[tuple[float, float]] = []
 
     def on_step(action, obs):

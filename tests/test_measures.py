@@ -11,7 +11,7 @@ from matplotlib.image import imread
 
 from qdsearch import experiments, results, run, tasks
 from qdsearch.flags import UsageError
-from util import assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
+from util import LANDER, assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
@@ -45,9 +45,10 @@ def test_chosen_measures_and_terrains_write_a_complete_run_folder(fuel_run):
 
 def test_the_archive_holds_the_mean_over_the_terrains(fuel_run):
     data = load_pickle(fuel_run / "archive.pkl").data()
-    env = tasks.make_env()
+    env = tasks.make_env(env_name=LANDER)
     for solution, objective, measures in list(zip(data["solution"], data["objective"], data["measures"]))[:3]:
-        flights = np.array([tasks.rollout(solution, seed, env, ["fuel", "flight_time"]) for seed in range(5)])
+        flights = np.array([tasks.rollout(solution, seed, env, ["fuel", "flight_time"], env_name=LANDER)
+                            for seed in range(5)])
         assert objective == pytest.approx(flights[:, 0].mean(), rel=1e-12)
         assert measures.tolist() == pytest.approx(flights[:, 1:].mean(axis=0).tolist(), rel=1e-12)
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from qdsearch import engine, tasks
-from util import LANDER_W
+from util import LANDER, LANDER_W
 
 
 def step_trace(weights: np.ndarray, env_seed: int) -> list[tuple[int, np.ndarray, float]]:
@@ -55,11 +55,12 @@ def test_every_measure_matches_a_hand_made_trace(weights):
     expected = expected_measures(trace)
     names = tuple(tasks.family_measures("lander"))
 
-    result = tasks.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names)
+    result = tasks.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names, env_name=LANDER)
 
     assert result[0] == sum(reward for _, _, reward in trace)
     assert dict(zip(names, result[1:])) == pytest.approx(expected, rel=1e-12, abs=0)
-    assert tasks.rollout(weights.ravel(), 52, tasks.make_env(), names) == result  # the streamlined env too
+    streamlined = tasks.make_env(env_name=LANDER)
+    assert tasks.rollout(weights.ravel(), 52, streamlined, names, env_name=LANDER) == result
 
 
 def test_the_traces_cover_what_the_measures_tell_apart():
@@ -76,22 +77,25 @@ def test_measures_at_first_leg_contact():
     trace = step_trace(DO_NOTHING, 52)
     first_contact = next(i for i, (_, obs, _) in enumerate(trace) if obs[6] or obs[7])
     assert 0 < first_contact < len(trace) - 1  # the contact is not simply the last step
-    result = tasks.rollout(DO_NOTHING.ravel(), 52, gym.make("LunarLander-v3"))
+    result = tasks.rollout(DO_NOTHING.ravel(), 52, gym.make("LunarLander-v3"), env_name=LANDER)
     assert result[1:] == (float(trace[first_contact][1][0]), float(trace[first_contact][1][3]))
     assert result[2] != float(trace[-1][1][3])  # measured at contact, not at the end
 
 
 def test_terrain_seed_changes_the_episode():
     env = gym.make("LunarLander-v3")
-    assert tasks.rollout(DO_NOTHING.ravel(), 52, env) != tasks.rollout(DO_NOTHING.ravel(), 7, env)
+    assert tasks.rollout(DO_NOTHING.ravel(), 52, env, env_name=LANDER) != (
+        tasks.rollout(DO_NOTHING.ravel(), 7, env, env_name=LANDER))
 
 
 def test_worker_chunk_matches_single_rollouts():
     solutions = RNG.normal(size=(5, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
     seeds = np.array([52, 52, 7, 7, 3])
     env = gym.make("LunarLander-v3")
-    expected = [tasks.rollout(s, int(seed), env, ("fuel",)) for s, seed in zip(solutions, seeds)]
-    assert engine.fly_chunk(solutions, seeds, ("fuel",)).tolist() == [list(row) for row in expected]
+    expected = [tasks.rollout(s, int(seed), env, ("fuel",), env_name=LANDER)
+                for s, seed in zip(solutions, seeds)]
+    flown = engine.fly_chunk(solutions, seeds, ("fuel",), True, LANDER)
+    assert flown.tolist() == [list(row) for row in expected]
 
 
 @pytest.mark.parametrize("terrains", [[52], [52, 7, 3]])
@@ -99,7 +103,8 @@ def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains
     solutions = np.random.default_rng(1).normal(size=(11, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
     measures = ["impact_x", "flight_time", "max_tilt"]
     env = gym.make("LunarLander-v3")
-    direct = np.array([[tasks.rollout(s, seed, env, measures) for seed in terrains] for s in solutions])
+    direct = np.array([[tasks.rollout(s, seed, env, measures, env_name=LANDER) for seed in terrains]
+                       for s in solutions])
     config = {"env": "LunarLander-v3", "env_seed": terrains, "measures": measures, "fast_env": True}
 
     objectives, values = engine.evaluate_batch(dask_client, solutions, config)
@@ -113,7 +118,7 @@ def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains
 
 def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
     solutions = np.zeros((6, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
-    futures = engine.submit_flights(dask_client, solutions, list(range(40)), ())
+    futures = engine.submit_flights(dask_client, solutions, list(range(40)), (), True, env_name=LANDER)
     sizes = [len(chunk) for chunk in dask_client.gather(futures)]
     assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 4  # 2 per worker
     assert math.isclose(sum(sizes) / len(sizes), 60)

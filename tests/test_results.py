@@ -12,7 +12,7 @@ from matplotlib.image import imread
 import lunar_lander as ll
 from qdsearch import fast_env, results, tasks
 from qdsearch.flags import UsageError, seed_list
-from util import assert_one_line_error, folder_state, load_pickle
+from util import LANDER, assert_one_line_error, folder_state, load_pickle
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
     lengths = []
     for solution in data["solution"]:  # the shortest episode makes the quickest video
         path = []
-        tasks.rollout(solution, 52, tasks.make_env(), trajectory=path)
+        tasks.rollout(solution, 52, tasks.make_env(env_name=LANDER), trajectory=path, env_name=LANDER)
         lengths.append(len(path))
     shortest = int(np.argmin(lengths))
     point = tuple(data["measures"][shortest])
@@ -148,7 +148,7 @@ def test_trajectory_picture_of_the_top_elites(run_dir, archive):
 
 
 def test_terrain_is_the_envs_ground():
-    env = tasks.make_env(fast=False)
+    env = tasks.make_env(fast=False, env_name=LANDER)
     env.reset(seed=52)
     lander = env.unwrapped
     edges = [fixture.shape.vertices for fixture in lander.moon.fixtures[1:]]
@@ -166,10 +166,11 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
     table = read_csv(run_dir / "robustness.csv")
     top = archive.data(return_type="pandas").nlargest(4, "objective")
     assert sorted(table["cell_index"]) == sorted(top["index"])
-    env, data = tasks.make_env(fast=False), archive.data()
+    env, data = tasks.make_env(fast=False, env_name=LANDER), archive.data()
     solutions = dict(zip(data["index"], data["solution"]))
     for row in table.to_dict("records"):
-        direct = np.array([tasks.rollout(solutions[row["cell_index"]], seed, env)[0] for seed in (3, 4)])
+        direct = np.array([tasks.rollout(solutions[row["cell_index"]], seed, env, env_name=LANDER)[0]
+                           for seed in (3, 4)])
         assert [row["objective_seed3"], row["objective_seed4"]] == direct.tolist()
         assert row["mean_objective"] == pytest.approx(direct.mean(), abs=1e-9)
         assert row["min_objective"] == direct.min()

@@ -14,6 +14,7 @@ from ribs.archives import GridArchive
 
 from qdsearch import algorithms, experiments, run, tasks
 from util import (
+    LANDER,
     REFERENCE_ITERATIONS,
     assert_same_run,
     checkpoint_iteration,
@@ -126,7 +127,7 @@ def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, r
 
     elites = source.data(["solution"])["solution"]
     env = gym.make("LunarLander-v3")
-    flown = np.array([tasks.rollout(solution, 7, env) for solution in elites])
+    flown = np.array([tasks.rollout(solution, 7, env, env_name=LANDER) for solution in elites])
     expected = GridArchive(solution_dim=32, dims=(50, 50), ranges=TUTORIAL_RANGES)
     expected.add(elites, flown[:, 0], flown[:, 1:])
 

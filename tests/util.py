@@ -16,6 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+LANDER = "LunarLander-v3"  # the tutorial's task: what the lander-only tests fly
+
 # A seconds-long search: 3 iterations of 2 emitters x 6 policies, saved at its end.
 TINY = dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
             sigma0=1.0, batch_size=6, log_every=3)
