@@ -3,8 +3,8 @@
 
 numba would compile ribs' CMA-ES code in every process that runs a search (3-5 s each), and its
 compiled code's last bits differ from the uncompiled code the script runs by default
-(docs/performance.md): the tests (and the processes they start) run with NUMBA_DISABLE_JIT, as
-the script does.
+(docs/performance.md): importing qdsearch sets NUMBA_DISABLE_JIT, here as in the script, and the
+processes the tests start inherit it.
 """
 
 import contextlib
@@ -15,11 +15,9 @@ import signal
 import sys
 from pathlib import Path
 
-from qdsearch import run
-
-os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
-
 import pytest
+
+from qdsearch import run
 
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"

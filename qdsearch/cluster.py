@@ -18,6 +18,7 @@ Map:
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
 import json
 import logging
@@ -356,7 +357,7 @@ def ship_code(client) -> None:
     """Make this exact package importable by the scheduler and every worker of a cluster.
 
     Tasks refer to their functions by module and name (`qdsearch.engine.fly_chunk`,
-    `qdsearch.results.record_poses`), so the scheduler (which unpickles task graphs) and the
+    `qdsearch.explorer.record_poses`), so the scheduler (which unpickles task graphs) and the
     workers must import the package. Machines elsewhere have the libraries but not this code, or
     an older copy: then the package is uploaded as a zip (Dask puts it on their path, for workers
     that join later too). Where all already import these very files (a local cluster), nothing is
@@ -384,6 +385,7 @@ def ship_code(client) -> None:
         client.upload_file(str(package_zip()))
 
 
+@functools.cache
 def package_zip() -> Path:
     """The package's files zipped (made once per process, in a temporary folder)."""
     import tempfile
