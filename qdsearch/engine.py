@@ -49,7 +49,7 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
 CHUNKS_PER_WORKER = 2
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
-# few seconds of lander episodes (<= 1,000 steps of ~27 us), up to minutes of walker ones.
+# few seconds of lander episodes (<= 1,000 steps of ~18-27 us), up to minutes of walker ones.
 MAX_CHUNK = 1000
 
 
