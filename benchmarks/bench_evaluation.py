@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from qdsearch import algorithms, engine, fast_env, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, engine, fast_lander, run_files, tasks  # noqa: E402
 
 CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
               measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True,
@@ -103,7 +103,7 @@ def run_search(evaluate: Callable, client, iterations: int) -> dict:
 
 def count_steps(iterations: int) -> int:
     """Environment steps the benchmark's search takes (counted once, untimed)."""
-    scheduler, env, steps = algorithms.build_scheduler(CONFIG), fast_env.FastLunarLander(), 0
+    scheduler, env, steps = algorithms.build_scheduler(CONFIG), fast_lander.FastLunarLander(), 0
     for _ in range(iterations):
         solutions, results = scheduler.ask(), []
         for solution in solutions:
@@ -139,7 +139,7 @@ def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]
         ("serial tutorial rollout, gym.make env", 0):
             run_search(serial_evaluate(tutorial_simulate), None, iterations),
         ("serial project rollout, streamlined env", 0): run_search(
-            serial_evaluate(functools.partial(streamlined_rollout, env=fast_env.FastLunarLander())),
+            serial_evaluate(functools.partial(streamlined_rollout, env=fast_lander.FastLunarLander())),
             None, iterations),
     }
     for n in workers:

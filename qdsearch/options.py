@@ -29,7 +29,8 @@ from qdsearch.flags import (
     seed_number,
     whole_number_up_to,
 )
-from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, MEASURES, family_measures
+from qdsearch.family import Family
+from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, FAMILIES, MEASURES, family_measures
 
 # Every size a user gives is bounded before anything is allocated or written (check_sizes and the
 # flags' checks): each bound is far past what QD papers run (1,000s of solutions per iteration,
@@ -40,6 +41,11 @@ MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights co
 MAX_SOLUTIONS = 100_000  # asked per iteration (n_emitters * batch_size): 173 MB of 216 weights
 MAX_ROLLOUTS = 10_000_000  # solutions x terrains flown in one batch: ~32 bytes of results each
 MAX_WORKERS = 1_024  # worker processes of a local cluster (and what memory holds: check_local_memory)
+
+
+def default_measures(family: Family) -> tuple[str, ...]:
+    """The default measures of the family's first task (the tutorial's, for the lander)."""
+    return next(task.measures for task in ENVIRONMENTS.values() if task.family is family)
 
 
 def own_flags(algorithm: str) -> tuple[str, ...]:
@@ -110,11 +116,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
                          "the mean return over them, and each measure is its per-terrain values "
                          "averaged.", seed_list, label=1, text=True),
     "measures": Flag(None, "1 to 3 rows of the MEASURES table of the task's family, "
-                           "comma-separated, as the archive's axes; default: the task's own. Lunar "
-                           "Lander: " + ", ".join(family_measures("lander")) + " (the tutorial's "
-                           "impact_x,impact_y_velocity by default); BipedalWalker: "
-                           + ", ".join(family_measures("walker")) + " (foot1_contact,"
-                           "foot2_contact by default).",
+                           "comma-separated, as the archive's axes; default: the task's own. "
+                           + "; ".join(f"{family.title}: {', '.join(family_measures(family))} ("
+                                       f"{','.join(default_measures(family))} by default)"
+                                       for family in FAMILIES) + ".",
                      distinct_names(MEASURES, "measures", 3), label=2, text=True),
     "grid": Flag(50, "Archive cells along each measure.", positive_int, sweep=True, label=3),
     "algorithm": Flag("cma_me", "Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae "
@@ -187,7 +192,7 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
     env = config.get("env", DEFAULT_ENV)
     task = ENVIRONMENTS[env]
     measures = list(task.measures if config.get("measures") is None else config["measures"])
-    if wrong := [name for name in measures if MEASURES[name].family != task.family]:
+    if wrong := [name for name in measures if MEASURES[name].family is not task.family]:
         raise UsageError(f"--measures {wrong[0]} is not a measure of --env {env}; its measures: "
                          + ", ".join(family_measures(task.family)))
     return {**config, "env": env, "measures": measures}

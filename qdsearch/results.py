@@ -8,8 +8,7 @@ Map:
   `select_elites`, `load_chosen_elites`, `shown_terrain`;
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
-  `save_trajectory_plot`, drawn per family by `PATH_PICTURES`: landings over the terrain, walks
-  as hull height against distance);
+  `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family);
 - `evaluate_robustness` (the `evaluate` command): the elites on other terrains, `robustness_table`.
 """
 
@@ -31,7 +30,6 @@ import numpy as np
 from qdsearch.algorithms import task_of
 from qdsearch.cluster import STOP, dask_client, scheduler_of
 from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_flights
-from qdsearch.fast_env import HALF_H, HALF_W, PAD_Y, seeded_randoms
 from qdsearch.flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from qdsearch.options import CLUSTER_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS, check_rollouts, checked
 from qdsearch.plots import save_heatmap
@@ -344,22 +342,15 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
     print(f"{len(table)} of {len(archive)} elites; written to {path}")
 
 
-def terrain(env_seed: int) -> np.ndarray:
-    """The ground line of a terrain, (x, y) in the observation's units (as trajectories)."""
-    edges, _, _ = seeded_randoms(env_seed)
-    points = np.array([edges[0][0], *(end for _, end in edges)])
-    return np.column_stack([(points[:, 0] - HALF_W) / HALF_W, (points[:, 1] - PAD_Y) / HALF_H])
-
-
 def fly_paths(chosen: list[dict], env_seed: int, env_name: str) -> list[tuple[np.ndarray, int]]:
-    """Each elite's path, and the step marked on it: the lander's (x, y) per step and its
-    touchdown (its last step if none); the walker's hull (x, y) and its last step."""
-    env, paths = make_env(env_name=env_name), []
+    """Each elite's path and the step marked on it, as its task's family draws them (the lander's
+    (x, y) per step and its touchdown; the walker's hull and its last step)."""
+    env, paths, family = make_env(env_name=env_name), [], ENVIRONMENTS[env_name].family
     for elite in chosen:
         STOP.check()
         path: list = []
         summary = fly(elite["solution"], env_seed, env, path, env_name=env_name)
-        paths.append((np.array(path), (getattr(summary, "touchdown_step", None) or summary.steps) - 1))
+        paths.append((np.array(path), family.marked_step(summary) - 1))
     return paths
 
 
@@ -381,46 +372,14 @@ def path_figure(chosen: list[dict], paths: list[tuple[np.ndarray, int]]):
     return fig, ax
 
 
-def draw_landings(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, env_name: str) -> str:
-    """The tutorial's "many ways to land": flight paths over the terrain, impacts marked. Equal
-    metres on both axes (x and y are scaled differently)."""
-    ground = terrain(env_seed)
-    ax.fill_between(ground[:, 0], ground[:, 1], ground[:, 1].min() - 0.2, color="0.75", zorder=0)
-    ax.plot([-0.2, 0.2], [ground[5, 1]] * 2, color="gold", lw=4, label="helipad", zorder=1)
-    ax.set_aspect(HALF_H / HALF_W)
-    ax.set_xlim(-1.05, 1.05)
-    ax.set_ylim(ground[:, 1].min() - 0.2, max(1.5, max(float(f[:, 1].max()) for f, _ in paths) + 0.05))
-    ax.set_xlabel("x (observation units: -1 and 1 are the screen edges)")
-    ax.set_ylabel("y of the lander's centre (0: resting on the helipad)")
-    return "Flight paths of {} elites on terrain {} (dots: touchdown)"
-
-
-def draw_walks(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, env_name: str) -> str:
-    """The walkers' hull height against distance over the course's ground, where each ends."""
-    env = make_env(False, env_name=env_name)
-    env.reset(seed=env_seed)
-    for poly, _ in env.unwrapped.terrain_poly:
-        ax.fill(*zip(*poly), color="0.75", lw=0, zorder=0)
-    end = max(float(path[:, 0].max()) for path, _ in paths)
-    ax.set_xlim(0, min(env.unwrapped.terrain_x[-1], end + 5))
-    env.close()
-    low = min(float(path[:, 1].min()) for path, _ in paths)
-    ax.set_ylim(max(0.0, low - 2), max(float(path[:, 1].max()) for path, _ in paths) + 1)
-    ax.set_xlabel("x of the hull (m)")
-    ax.set_ylabel("height of the hull (m; heights are stretched)")
-    return "Hull paths of {} elites on terrain {} (dots: the episode's end)"
-
-
-PATH_PICTURES = {"lander": draw_landings, "walker": draw_walks}
-
-
 def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]], env_seed: int,
                          path: Path, env_name: str) -> None:
     """The chosen elites' paths on one page, drawn as their task's family draws them."""
     import matplotlib.pyplot as plt
 
     fig, ax = path_figure(chosen, paths)
-    title = PATH_PICTURES[ENVIRONMENTS[env_name].family](ax, paths, env_seed, env_name)
+    task = ENVIRONMENTS[env_name]
+    title = task.family.draw_paths(ax, paths, env_seed, task)
     ax.set_title(title.format(len(chosen), env_seed))
     ax.legend(fontsize=7, loc="upper left")
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))

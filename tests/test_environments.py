@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import engine, experiments, explorer, results, run, tasks
+from qdsearch import engine, experiments, explorer, family, results, run, tasks, walker
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -53,14 +53,14 @@ def test_an_episode_is_the_same_wherever_it_is_flown(env_name, dask_client):
 
 def test_walker_measures_match_a_hand_made_trace():
     for solution in policies(WALKER, 3):
-        env = gym.make(WALKER)  # a fresh one: a reused walker env drifts (lunar_lander.renew_world)
+        env = gym.make(WALKER)  # a fresh one: a reused walker env drifts (walker.renew_world)
         obs, _ = env.reset(seed=5)
         start, done, trace = env.unwrapped.hull.position.x, False, []
         while not done:
             obs, reward, terminated, truncated, _ = env.step(np.tanh(solution.reshape(4, 24) @ obs))
             trace.append((obs, reward))
             done = terminated or truncated
-        names = tasks.family_measures("walker")
+        names = tasks.family_measures(walker.WALKER)
         result = tasks.rollout(solution, 5, tasks.make_env(env_name=WALKER), names, env_name=WALKER)
         steps = len(trace)
         expected = {
@@ -209,7 +209,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     data, task = page_data(run_dir), tasks.ENVIRONMENTS[env_name]
     scale = np.array(data["pose_scale"])
     poses = np.frombuffer(base64.b64decode(data["poses"]), "<i2").reshape(-1, len(scale)) / scale
-    assert data["kind"] == task.family and len(poses) == sum(e["steps"] + 1 for e in data["elites"])
+    assert data["pose_scale"] == list(task.family.pose_scale) and len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(*results.load_run(run_dir)[0].data(["index", "solution"]).values()))
     env = tasks.make_env(env_name=env_name)
     for elite in data["elites"][:3]:
@@ -217,7 +217,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
         tasks.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
         actions = action_trace(solutions[elite["index"]], env, env_name)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]]
-        if task.family == "walker":  # the hull, to the centimetre
+        if task.family is walker.WALKER:  # the hull, to the centimetre
             assert np.abs(flown[:, :2] - np.array(path)).max() < 0.006
         else:  # the throttles: the main engine's power is drawn whenever it fires
             assert ((flown[:, 5] > 0) == np.array([a[0] > 0 for a in actions])).all()
@@ -229,7 +229,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     page.locator("#elites tbody tr").first.click()
     page.wait_for_timeout(300)
     assert errors == [] and page.title() == f"{env_name} archive explorer"
-    assert page.locator("#episode").text_content() == ("Walk" if task.family == "walker" else "Landing")
+    assert page.locator("#episode").text_content() == ("Walk" if task.family is walker.WALKER else "Landing")
     page.close()
 
 
@@ -263,8 +263,7 @@ def test_unknown_tasks_and_other_tasks_measures_are_refused(run_cli, tmp_path, a
 
 def test_a_row_the_linear_policy_cannot_serve_is_refused(run_cli, tmp_path, monkeypatch):
     """Pendulum's torque is a box of [-2, 2]: tanh(W @ obs) can't reach it."""
-    row = tasks.Environment("Pendulum-v1", {}, 3, 1, True, "walker", tasks.fly_walker,
-                         ("foot1_contact",), -2000.0, "nothing", 0.0)
+    row = family.Environment("Pendulum-v1", {}, 3, 1, True, walker.WALKER, ("foot1_contact",), -2000.0, "nothing", 0.0)
     monkeypatch.setitem(tasks.ENVIRONMENTS, "Pendulum-v1", row)
     for command in ([], ["experiment", "--seeds", "1"]):
         result = run_cli(*command, "--env", "Pendulum-v1", "--iterations", "1",

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import explorer, fast_env, results, run_files, tasks
+from qdsearch import explorer, fast_lander, lander, results, run_files, tasks
 from util import DATA_BLOCK, LANDER, folder_state, load_pickle, page_data, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
@@ -36,7 +36,7 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     data = page_data(explored)
     archive = load_pickle(explored / "archive.pkl")
     assert len(data["elites"]) == len(archive)
-    scale = np.array(explorer.POSE_SCALE["lander"])
+    scale = np.array(lander.LANDER.pose_scale)
     poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, len(scale))
     assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(archive.data("index"), archive.data("solution")))
@@ -49,8 +49,8 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
         assert elite["steps"] == len(trajectory)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]] / scale
         # the observation's x and y, from the body's pose
-        x = (flown[:, 0] - fast_env.HALF_W) / fast_env.HALF_W
-        y = (flown[:, 1] - fast_env.PAD_Y) / fast_env.HALF_H
+        x = (flown[:, 0] - fast_lander.HALF_W) / fast_lander.HALF_W
+        y = (flown[:, 1] - fast_lander.PAD_Y) / fast_lander.HALF_H
         assert np.abs(x - np.array(trajectory)[:, 0]).max() < 1e-4  # 1 mm of quantisation
         assert np.abs(y - np.array(trajectory)[:, 1]).max() < 1e-4
 

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import experiments, explorer, results, run, tasks
+from qdsearch import experiments, explorer, results, run, tasks, walker
 from util import assert_one_line_error, folder_state, page_data, tiny_flags
 
 HARDCORE, WALKER = "BipedalWalkerHardcore-v3", "BipedalWalker-v3"
@@ -48,10 +48,12 @@ def test_the_hardcore_walker_flies_a_course_with_obstacles_the_plain_one_lacks()
         counts[name] = obstacles(env)
     assert counts[WALKER] == 0 and counts[HARDCORE] >= 3, counts
     assert all(hard != plain for hard, plain in zip(walks[HARDCORE], walks[WALKER]))
-    worlds = {name: explorer.walker_world(52, name) for name in (HARDCORE, WALKER)}
-    assert worlds[HARDCORE]["terrain"] != worlds[WALKER]["terrain"]
+    courses = {name: walker.course(52, tasks.ENVIRONMENTS[name]) for name in (HARDCORE, WALKER)}
+    assert courses[HARDCORE][0] != courses[WALKER][0]  # the ground
+    assert len(courses[HARDCORE][1]) == counts[HARDCORE] and courses[WALKER][1] == []  # obstacles
     # the explorer draws the obstacles the walker meets, where they stand
-    assert len(worlds[HARDCORE]["obstacles"]) == counts[HARDCORE] and worlds[WALKER]["obstacles"] == []
+    drawn = [static["points"] for static in walker.scene(52, tasks.ENVIRONMENTS[HARDCORE])["statics"]]
+    assert drawn == courses[HARDCORE][0] + courses[HARDCORE][1]
 
 
 # ---- the continuous lander's side engines, in the episode and on the page --------------------

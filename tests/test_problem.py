@@ -7,7 +7,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from qdsearch import engine, tasks
+from qdsearch import engine, lander, tasks
 from util import LANDER, LANDER_W
 
 
@@ -53,7 +53,7 @@ def expected_measures(trace) -> dict[str, float]:
 def test_every_measure_matches_a_hand_made_trace(weights):
     trace = step_trace(weights, 52)
     expected = expected_measures(trace)
-    names = tuple(tasks.family_measures("lander"))
+    names = tuple(tasks.family_measures(lander.LANDER))
 
     result = tasks.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names, env_name=LANDER)
 

@@ -10,7 +10,7 @@ import pytest
 from matplotlib.image import imread
 
 import lunar_lander as ll
-from qdsearch import fast_env, results, tasks
+from qdsearch import fast_lander, lander, results, tasks
 from qdsearch.flags import UsageError, seed_list
 from util import LANDER, assert_one_line_error, folder_state, load_pickle
 
@@ -150,12 +150,11 @@ def test_trajectory_picture_of_the_top_elites(run_dir, archive):
 def test_terrain_is_the_envs_ground():
     env = tasks.make_env(fast=False, env_name=LANDER)
     env.reset(seed=52)
-    lander = env.unwrapped
-    edges = [fixture.shape.vertices for fixture in lander.moon.fixtures[1:]]
-    ground = results.terrain(52)
+    edges = [fixture.shape.vertices for fixture in env.unwrapped.moon.fixtures[1:]]
+    ground = lander.terrain(52)
     expected = np.array([edges[0][0], *(end for _, end in edges)])
-    assert np.allclose(ground[:, 0], (expected[:, 0] - fast_env.HALF_W) / fast_env.HALF_W)
-    assert np.allclose(ground[:, 1], (expected[:, 1] - fast_env.PAD_Y) / fast_env.HALF_H)
+    assert np.allclose(ground[:, 0], (expected[:, 0] - fast_lander.HALF_W) / fast_lander.HALF_W)
+    assert np.allclose(ground[:, 1], (expected[:, 1] - fast_lander.PAD_Y) / fast_lander.HALF_H)
     env.close()
 
 

@@ -3,7 +3,7 @@
 gym.make's env spends much of each step outside Box2D: wrappers, an action-space check, numpy
 calls on 8 floats, two RNG draws, rebuilding body definitions on reset. This copy mirrors
 gymnasium 1.4.0's lunar_lander.py operation for operation without those costs; the tests
-(tests/test_fast_env.py) compare it with gym.make over many policies on every run: re-run them
+(tests/test_fast_lander.py) compare it with gym.make over many policies on every run: re-run them
 after upgrading gymnasium.
 
 Map:

@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from qdsearch import fast_env, tasks
+from qdsearch import fast_lander, tasks
 from util import HOVER_W, LANDER, LANDER_W, SEEDS
 
 
@@ -66,9 +66,9 @@ def expected():
 def test_the_cases_cover_crashes_landings_and_hovers(expected):
     results = list(expected.values())
     lander, hover = expected[RANDOM, 52], expected[RANDOM + 13, 52]
-    assert lander[0] >= 200 and lander[3] < fast_env.MAX_STEPS
-    assert hover[3] == fast_env.MAX_STEPS and not any(r[3] > fast_env.MAX_STEPS for r in results)
-    assert sum(r[3] == fast_env.MAX_STEPS for r in results) >= 3
+    assert lander[0] >= 200 and lander[3] < fast_lander.MAX_STEPS
+    assert hover[3] == fast_lander.MAX_STEPS and not any(r[3] > fast_lander.MAX_STEPS for r in results)
+    assert sum(r[3] == fast_lander.MAX_STEPS for r in results) >= 3
     assert sum(r[0] >= 100 for r in results) >= 5
     assert sum(r[3] <= 70 for r in results) >= 250
     assert sum(abs(r[1]) >= 1.0 for r in results) >= 50
@@ -78,11 +78,11 @@ def test_a_fresh_fast_env_per_rollout(expected):
     # Every episode's start state comes from its reset alone: a quarter of the cases, with the
     # lander and the hover, show it (the reused env below flies them all).
     for i, s in dict.fromkeys(CASES[::4] + [(RANDOM, 52), (RANDOM + 13, 52)]):
-        assert fast_rollout(POLICIES[i], s, fast_env.FastLunarLander()) == expected[i, s], (i, s)
+        assert fast_rollout(POLICIES[i], s, fast_lander.FastLunarLander()) == expected[i, s], (i, s)
 
 
 def test_one_fast_env_reused_in_mixed_order(expected):
-    env, cases = fast_env.FastLunarLander(), list(CASES)
+    env, cases = fast_lander.FastLunarLander(), list(CASES)
     random.Random(0).shuffle(cases)
     for i, s in cases:
         assert fast_rollout(POLICIES[i], s, env) == expected[i, s], (i, s)
@@ -95,10 +95,10 @@ def test_the_plain_env_path_matches_too(expected):
 
 
 def test_gym_style_step_matches_gym_make_step_by_step():
-    env, fast = gym.make("LunarLander-v3"), fast_env.FastLunarLander()
+    env, fast = gym.make("LunarLander-v3"), fast_lander.FastLunarLander()
     W = np.asarray(HOVER_W).reshape(4, 8)
     (obs, _), (fast_obs, _) = env.reset(seed=52), fast.reset(seed=52)
-    for _ in range(fast_env.MAX_STEPS + 1):
+    for _ in range(fast_lander.MAX_STEPS + 1):
         assert obs.dtype == fast_obs.dtype and np.array_equal(obs, fast_obs)
         action = int(np.argmax(W @ obs))
         obs, reward, terminated, truncated, _ = env.step(action)
@@ -122,4 +122,4 @@ def test_a_strided_solution_keeps_matmul(expected):
     for i, s in CASES[::50]:
         strided = np.repeat(POLICIES[i], 2)[::2]
         assert not strided.reshape(4, 8).flags.c_contiguous
-        assert fast_rollout(strided, s, fast_env.FastLunarLander()) == expected[i, s]
+        assert fast_rollout(strided, s, fast_lander.FastLunarLander()) == expected[i, s]
