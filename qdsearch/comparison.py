@@ -26,11 +26,11 @@ import numpy as np
 
 from qdsearch.algorithms import task_of
 from qdsearch.experiments import read_experiment, run_setting
+from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean
 from qdsearch.plots import save_metric_panels
 from qdsearch.run import load_checked_config, load_metrics
 from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, write_csv
-from qdsearch.family import Environment
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task

@@ -16,6 +16,7 @@ import dataclasses
 from typing import Any
 
 from qdsearch.algorithms import ALGORITHMS
+from qdsearch.family import Family
 from qdsearch.flags import (
     Flag,
     UsageError,
@@ -29,7 +30,6 @@ from qdsearch.flags import (
     seed_number,
     whole_number_up_to,
 )
-from qdsearch.family import Family
 from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, FAMILIES, MEASURES, family_measures
 
 # Every size a user gives is bounded before anything is allocated or written (check_sizes and the

@@ -209,7 +209,8 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     data, task = page_data(run_dir), tasks.ENVIRONMENTS[env_name]
     scale = np.array(data["pose_scale"])
     poses = np.frombuffer(base64.b64decode(data["poses"]), "<i2").reshape(-1, len(scale)) / scale
-    assert data["pose_scale"] == list(task.family.pose_scale) and len(poses) == sum(e["steps"] + 1 for e in data["elites"])
+    assert data["pose_scale"] == list(task.family.pose_scale)
+    assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(*results.load_run(run_dir)[0].data(["index", "solution"]).values()))
     env = tasks.make_env(env_name=env_name)
     for elite in data["elites"][:3]:
@@ -263,7 +264,8 @@ def test_unknown_tasks_and_other_tasks_measures_are_refused(run_cli, tmp_path, a
 
 def test_a_row_the_linear_policy_cannot_serve_is_refused(run_cli, tmp_path, monkeypatch):
     """Pendulum's torque is a box of [-2, 2]: tanh(W @ obs) can't reach it."""
-    row = family.Environment("Pendulum-v1", {}, 3, 1, True, walker.WALKER, ("foot1_contact",), -2000.0, "nothing", 0.0)
+    row = family.Environment("Pendulum-v1", {}, 3, 1, True, walker.WALKER, ("foot1_contact",),
+                             -2000.0, "nothing", 0.0)
     monkeypatch.setitem(tasks.ENVIRONMENTS, "Pendulum-v1", row)
     for command in ([], ["experiment", "--seeds", "1"]):
         result = run_cli(*command, "--env", "Pendulum-v1", "--iterations", "1",
