@@ -29,11 +29,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from qdsearch import algorithms, engine, run, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, engine, run_config, run_files, tasks  # noqa: E402
 
 
 def config_of(env_name: str) -> dict:
-    return run.check_run_config({"seed": 1, "env": env_name})
+    return run_config.check_run_config({"seed": 1, "env": env_name})
 
 
 def serial_search(env_name: str, iterations: int) -> dict:

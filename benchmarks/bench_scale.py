@@ -45,7 +45,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import algorithms, engine, experiments, run, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, engine, experiments, run_config, run_files, tasks  # noqa: E402
 
 TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start, end), time.time()
 
@@ -53,7 +53,7 @@ TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start
 def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
     """Episode lengths of a real CMA-ME search's rollouts (the default setting of the task,
     serial, in this process), and the seconds a step costs, from the same rollouts."""
-    config = run.check_run_config({"seed": 1, "env": env_name})
+    config = run_config.check_run_config({"seed": 1, "env": env_name})
     scheduler, env = algorithms.build_scheduler(config), engine.worker_env(env_name)
     lengths, steps_time = [], 0.0
     for _ in range(iterations):

@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, MEASURES, Environment
+from qdsearch.family import Environment
+from qdsearch.tasks import ENVIRONMENTS, MEASURES
 
 # One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
 # whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
@@ -35,28 +36,28 @@ ALGORITHMS: dict[str, dict[str, Any]] = {
         "archive": lambda config: {},
         "result_archive": False,
         "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "2imp"},
+        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "2imp"},
     },
     "cma_mae": {
-        "archive": lambda config: {"learning_rate": config["learning_rate"],
+        "archive": lambda config: {"learning_rate": config.learning_rate,
                                    "threshold_min": task_of(config).qd_offset},
         "result_archive": True,
         "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config["sigma0"], "ranker": "imp",
+        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "imp",
                                           "selection_rule": "mu", "restart_rule": "basic"},
     },
     "map_elites": {
         "archive": lambda config: {},
         "result_archive": False,
         "emitter": "GaussianEmitter",
-        "emitter_kwargs": lambda config: {"sigma": config["sigma0"]},
+        "emitter_kwargs": lambda config: {"sigma": config.sigma0},
     },
 }
 
 
-def task_of(config: dict[str, Any]) -> Environment:
-    """The run's row of ENVIRONMENTS (run folders from before --env flew Lunar Lander)."""
-    return ENVIRONMENTS[config.get("env", DEFAULT_ENV)]
+def task_of(config: Any) -> Environment:
+    """The run's row of ENVIRONMENTS (config: a RunConfig, run_config.py)."""
+    return ENVIRONMENTS[config.env]
 
 
 def derive_seeds(seed: int, count: int) -> list[int]:
@@ -64,16 +65,16 @@ def derive_seeds(seed: int, count: int) -> list[int]:
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
 
 
-def archive_grid(config: dict[str, Any]) -> dict[str, Any]:
+def archive_grid(config: Any) -> dict[str, Any]:
     """The archive's cells: --grid of them along each of the run's --measures, over its range."""
-    measures = config["measures"]
+    measures = config.measures
     task = task_of(config)
-    return dict(solution_dim=task.solution_dim, dims=(config["grid"],) * len(measures),
+    return dict(solution_dim=task.solution_dim, dims=(config.grid,) * len(measures),
                 ranges=[MEASURES[name].range for name in measures], qd_score_offset=task.qd_offset)
 
 
-def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
-    """The archive, emitters and scheduler of `config["algorithm"]`, seeded from `config["seed"]`.
+def build_scheduler(config: Any, x0: np.ndarray | None = None):
+    """The archive, emitters and scheduler of `config.algorithm`, seeded from `config.seed`.
 
     The emitters start from `x0` (default: zeros, as in the tutorial).
     """
@@ -81,9 +82,9 @@ def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
     from ribs.archives import GridArchive
     from ribs.schedulers import Scheduler
 
-    spec = ALGORITHMS[config["algorithm"]]
+    spec = ALGORITHMS[config.algorithm]
     # A result archive's seed comes last, so the other seeds are those of a run without one.
-    archive_seed, *emitter_seeds, result_seed = derive_seeds(config["seed"], config["n_emitters"] + 2)
+    archive_seed, *emitter_seeds, result_seed = derive_seeds(config.seed, config.n_emitters + 2)
     grid = archive_grid(config)
     archive = GridArchive(**grid, seed=archive_seed, **spec["archive"](config))
     result_archive = GridArchive(**grid, seed=result_seed) if spec["result_archive"] else None
@@ -92,7 +93,7 @@ def build_scheduler(config: dict[str, Any], x0: np.ndarray | None = None):
         emitter_class(
             archive,
             x0=np.zeros(task_of(config).solution_dim) if x0 is None else x0,
-            batch_size=config["batch_size"],
+            batch_size=config.batch_size,
             seed=emitter_seed,
             **spec["emitter_kwargs"](config),
         )

@@ -28,9 +28,11 @@ from qdsearch.algorithms import task_of
 from qdsearch.experiments import read_experiment, run_setting
 from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean
+from qdsearch.metrics import load_metrics
 from qdsearch.plots import save_metric_panels
-from qdsearch.run import load_checked_config, load_metrics
+from qdsearch.run_config import RunConfig, load_checked_config
 from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, write_csv
+from qdsearch.tasks import ENVIRONMENTS
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task
@@ -49,16 +51,16 @@ def solved_cells(run_dir: Path, task: Environment) -> int | None:
         return None
 
 
-def load_run_metrics(run_dir: Path) -> tuple[dict, list[dict]]:
+def load_run_metrics(run_dir: Path) -> tuple[RunConfig, list[dict]]:
     """A run's config and its metrics rows (at least one, each field of its type), both checked
     as every command checks them."""
     metrics = load_metrics(run_dir)
     return load_checked_config(run_dir), metrics
 
 
-def run_labels(run_dirs: list[Path], configs: list[dict]) -> list[str]:
+def run_labels(run_dirs: list[Path], configs: list[RunConfig]) -> list[str]:
     """'setting seed N' for each run, or the folders as given when that would be ambiguous."""
-    labels = [f"{run_setting(config)} seed {config.get('seed', '?')}" for config in configs]
+    labels = [f"{run_setting(config.to_json())} seed {config.seed}" for config in configs]
     return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
 
 
@@ -119,14 +121,14 @@ def qd_auc(metrics: list[dict]) -> float:
     return float(np.trapezoid([0, *(row["qd_score"] for row in metrics)], evaluations) / evaluations[-1])
 
 
-def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[dict],
+def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunConfig],
                      runs: list[list[dict]]):
     """One row per run: its final metrics, with the algorithm and seed that produced them."""
     import pandas as pd
 
     table = pd.DataFrame([
-        {"run": label, "folder": str(run_dir), "setting": run_setting(config),
-         "seed": config.get("seed"), "iterations": metrics[-1]["iteration"],
+        {"run": label, "folder": str(run_dir), "setting": run_setting(config.to_json()),
+         "seed": config.seed, "iterations": metrics[-1]["iteration"],
          **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir, task_of(config)),
          QD_AUC: qd_auc(metrics), CQD_SCORE: cqd(run_dir, task_of(config))}
         for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
@@ -224,7 +226,7 @@ def markdown_report(stats, tests, env: str) -> str:
         cells = {row["metric"]: cell(row) for row in group.to_dict("records")}
         lines.append(f"| {setting} | {group['runs'].max()} | "
                      + " | ".join(cells[m] for m in SUMMARISED) + " |")
-    task = task_of({"env": env})
+    task = ENVIRONMENTS[env]
     lines += ["", f"{env}. Mean [95% bootstrap confidence interval of the mean, BCa] over each "
                   f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
               f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
@@ -272,10 +274,10 @@ def expand_folders(paths: list[Path]) -> list[Path]:
     return list(expanded.values())
 
 
-def one_task(paths: list[Path], configs: list[dict]) -> str:
+def one_task(paths: list[Path], configs: list[RunConfig]) -> str:
     """The task every run flew: returns of different tasks share no scale, so they are not
     pooled in one table."""
-    tasks = {config["env"]: path for path, config in zip(paths, configs)}
+    tasks = {config.env: path for path, config in zip(paths, configs)}
     if len(tasks) > 1:
         raise UsageError("these runs flew different tasks (" + ", ".join(
             f"{path}: {env}" for env, path in tasks.items()) + "); compare each task's runs apart")

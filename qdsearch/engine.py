@@ -10,6 +10,8 @@ Map:
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 
@@ -100,12 +102,12 @@ def gather_with_progress(client, futures: list) -> list:
         return client.gather(futures)
 
 
-def evaluate_batch(client, solutions: np.ndarray, config: dict) -> tuple[np.ndarray, np.ndarray]:
+def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarray, np.ndarray]:
     """Objectives and measures of `solutions` in the run's setting, flown on the Dask cluster.
 
     Results come back in the order of the solutions whatever the number of workers, so a fixed
     seed gives the same archive on 1 or 100 workers.
     """
-    futures = submit_flights(client, solutions, config["env_seed"], config["measures"],
-                             config["fast_env"], env_name=config["env"])
-    return averaged(per_terrain(client.gather(futures), config["env_seed"]))
+    futures = submit_flights(client, solutions, config.env_seed, config.measures,
+                             config.fast_env, env_name=config.env)
+    return averaged(per_terrain(client.gather(futures), config.env_seed))

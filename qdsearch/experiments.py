@@ -7,21 +7,18 @@ alone would end it, whatever the interleaving, the worker count or a stop and re
 Map:
 - `experiment`: the command; `experiment_grid` checks the grid's axes and the flags every run
   shares; `experiment_runs` names each run by its setting (`run_setting`, shared with compare);
-- `run_experiment` and `Experiment`: the cluster, the log and the driving loop (as_completed);
-  `LiveRun` is a run in flight;
+- `run_experiment` and `Experiment`: the cluster, the log, and the runs driven through the one
+  run loop (loop.py's Driver), their states recorded in experiment.json;
 - `resume`: the command, for a run folder (run.resume_run) or an experiment folder
   (`resume_experiment`); `read_experiment` reads experiment.json.
 """
 
 from __future__ import annotations
 
-import collections
 import contextlib
-import dataclasses
 import datetime
 import itertools
 import logging
-import math
 import re
 import sys
 import time
@@ -31,14 +28,13 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import ALGORITHMS
-from qdsearch.cluster import STOP, SchedulerLost, dask_client, scheduler_of
-from qdsearch.engine import averaged, per_terrain, submit_flights
-from qdsearch.flags import UsageError, check_flags, clipped, one_of, positive_int, seed_list, shown, takes
+from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
+from qdsearch.flags import UsageError, check_flags, one_of, positive_int, seed_list, shown, takes
+from qdsearch.loop import Driver, Run
 from qdsearch.options import (
     CLUSTER_FLAGS,
     RESUME_FLAGS,
     SEARCH_FLAGS,
-    before_the_flags,
     check_sizes,
     checked,
     ignores,
@@ -46,7 +42,8 @@ from qdsearch.options import (
     search_defaults,
     with_task,
 )
-from qdsearch.run import Run, Saver, describe_progress, load_run_state, resume_run
+from qdsearch.run import resume_run
+from qdsearch.run_config import check_run_config, load_run_state, upgrade, write_config
 from qdsearch.run_files import (
     RunError,
     close_logger,
@@ -58,7 +55,7 @@ from qdsearch.run_files import (
     read_run_json,
     write_json,
 )
-from qdsearch.tasks import DEFAULT_ENV, check_spaces
+from qdsearch.tasks import check_spaces
 
 EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
 # Which search flags an experiment sets itself (per_run) and which may take a list of values,
@@ -153,9 +150,9 @@ def run_setting(config: dict) -> str:
     algorithm's own flags are always named (cma_mae at 0.01 and at 0.5 are different algorithms
     in effect), so a label means the same whatever the defaults become."""
     defaults, changed = check_flags(SEARCH_FLAGS, search_defaults()), []
-    config = {**before_the_flags(), **config}  # a config.json from before a flag: what it ran with
+    config = upgrade(config)  # a config.json from before a flag: what it ran with
     with contextlib.suppress(KeyError, TypeError, UsageError):  # measures: the task's default
-        defaults = with_task({**defaults, "env": config.get("env", DEFAULT_ENV)})
+        defaults = with_task({**defaults, "env": config["env"]})
         config = with_task(config)
     algorithm = config.get("algorithm")
     own = own_flags(algorithm) if algorithm in ALGORITHMS else ()
@@ -214,92 +211,27 @@ class RunsFailed(RunError):
     """Some runs of an experiment failed (each recorded with its cause); the others finished."""
 
 
-@dataclasses.dataclass
-class LiveRun:
-    """A run of the experiment in flight: its state, log, folder lock and batch on the cluster."""
+class Experiment(Driver):
+    """The runs of an experiment folder, driven on one client through the one run loop (loop.py):
+    each opened from its checkpoint or its config, its state recorded in experiment.json at each
+    change, a run's fault its own (recorded; the others go on), a line per setting every
+    log_every iterations of every run."""
 
-    entry: dict
-    run: Run
-    log: logging.Logger
-    lock: contextlib.ExitStack
-    results: list = dataclasses.field(default_factory=list)  # the current batch's chunks, in order
-    waiting: int = 0  # chunks of the current batch not back yet
-
-    @property
-    def target(self) -> int:
-        return self.run.config["iterations"]
-
-
-def count_as_done_before(bar, iterations: int) -> None:
-    """Put a resumed run's earlier iterations on the tqdm bar as its starting point, not as work
-    done now, so its rate and time left reflect only this drive."""
-    bar.n, bar.last_print_n, bar.initial = (
-        count + iterations for count in (bar.n, bar.last_print_n, bar.initial))
-    bar.refresh()
-
-
-THREADS_EVERY = 2.0  # seconds between two counts of the cluster's worker threads
-
-
-class Experiment:
-    """Drives many runs on one client: Dask's as_completed hands back chunks in whatever order
-    they finish, and each run goes on as soon as its own batch is whole. A run's results depend on
-    its own asks and tells only, so it ends as it would alone, whatever the interleaving."""
+    desc, isolated = "experiment", True
 
     def __init__(self, folder: Path, plan: dict, client, log: logging.Logger) -> None:
-        from dask.distributed import as_completed
-
-        self.folder, self.plan, self.client, self.log = folder, plan, client, log
-        self.todo = collections.deque(e for e in plan["runs"] if e["state"] != "done")
-        self.live: dict[str, LiveRun] = {}
-        self.owner: dict[str, tuple[str, int]] = {}  # future key -> run name, chunk position
-        self.latest: dict[str, dict] = {}  # run name -> its last metrics row
-        self.told = 0  # iterations done in this drive
-        self.closing: list[LiveRun] = []  # finished runs whose last save is being written
-        self.saver = Saver()  # each run's faults are its own: see reap()
-        # Results come with their futures (no second round trip to fetch them); a chunk that
-        # failed comes as its exception, and fails its run alone.
-        self.finished = as_completed(with_results=True, raise_errors=False)
-        self.limit = plan.get("max_in_flight") or len(plan["runs"])
-        self.threads_asked = (-math.inf, 1)  # when the worker threads were last counted, and how many
+        runs = plan["runs"]
+        super().__init__(
+            client, log, [entry for entry in runs if entry["state"] != "done"],
+            total=sum(entry["config"]["iterations"] for entry in runs),
+            done=sum(entry["config"]["iterations"] for entry in runs if entry["state"] == "done"),
+            limit=plan.get("max_in_flight"), every=plan["common"]["log_every"] * len(runs))
+        self.folder, self.plan = folder, plan
 
     def drive(self) -> None:
-        from tqdm import tqdm
-
         runs = self.plan["runs"]
-        total = sum(e["config"]["iterations"] for e in runs)
-        done = sum(e["config"]["iterations"] for e in runs if e["state"] == "done")
-        self.bar = tqdm(total=total, initial=done, unit="it", desc="experiment", dynamic_ncols=True)
-        every, logged = self.plan["common"]["log_every"] * len(runs), done
         wall, cpu = time.perf_counter(), time.process_time()
-        try:
-            self.start_more()
-            while self.live:
-                with STOP.interruptible():
-                    future, result = next(self.finished)
-                name, position = self.owner.pop(future.key, ("", 0))
-                live = self.live.get(name)
-                if live is not None:  # else a chunk of a run that has failed meanwhile
-                    live.results[position] = result
-                    live.waiting -= 1
-                    if live.waiting == 0:
-                        self.advance(live)
-                self.reap(wait=False)
-                if self.bar.n - logged >= every or not self.live:
-                    logged = self.bar.n
-                    for line in self.describe_settings():
-                        self.log.info(line)
-            self.reap(wait=True)
-        except BaseException:
-            for live in list(self.live.values()):
-                with contextlib.suppress(Exception):
-                    live.run.save_checkpoint()
-                self.close(live, "stopped")
-            self.reap(wait=True)
-            raise
-        finally:
-            self.saver.shutdown()
-            self.bar.close()
+        super().drive()
         # The driving loop's own cost: how much of a core the main process took while it ran.
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         self.plan["timing"] = {"drive_s": round(wall, 3), "main_cpu_s": round(cpu, 3),
@@ -317,128 +249,31 @@ class Experiment:
                              f"Mend the cause and retry them with: python lunar_lander.py resume "
                              f"{self.folder}")
 
-    def threads(self) -> int:
-        """The cluster's worker threads, asked of the scheduler at most every THREADS_EVERY seconds
-        rather than for every batch (workers come and go; a stale count only sizes the chunks,
-        never changes a result)."""
-        if time.monotonic() - self.threads_asked[0] > THREADS_EVERY:
-            self.threads_asked = (time.monotonic(), sum(self.client.nthreads().values()))
-        return self.threads_asked[1]
-
-    def start_more(self) -> None:
-        """Open waiting runs until `limit` are in flight."""
-        while self.todo and len(self.live) < self.limit:
-            entry = self.todo.popleft()
-            try:
-                live = self.open(entry)
-            except (UsageError, RunError, OSError) as error:
-                self.record(entry, "failed", error)
-                continue
-            self.live[entry["name"]] = live
-            self.latest[entry["name"]] = live.run.metrics[-1] if live.run.metrics else {}
-            count_as_done_before(self.bar, live.run.iteration)
-            self.record(entry, "running")
-            if live.run.iteration >= live.target:
-                self.finish(live)
-            else:
-                self.launch(live)
-
-    def open(self, entry: dict) -> LiveRun:
+    def open(self, entry: dict) -> Run:
         """A run's folder (made on first use), locked, and its run from checkpoint or config."""
         run_dir = self.folder / entry["name"]
         run_dir.mkdir(exist_ok=True)
-        lock = contextlib.ExitStack()
-        lock.enter_context(folder_lock(run_dir))
+        leaving = contextlib.ExitStack()
+        leaving.enter_context(folder_lock(run_dir))
         try:
             if not (run_dir / "config.json").is_file():
-                write_json(run_dir / "config.json", {
+                write_config(run_dir, check_run_config({
                     **entry["config"], "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
                     "command": self.plan["command"], "experiment": str(self.folder),
-                    "versions": library_versions()})
+                    "versions": library_versions()}))
             config, checkpoint = load_run_state(run_dir)
-            if config["iterations"] < entry["config"]["iterations"]:  # the experiment was extended
-                config = {**config, "iterations": entry["config"]["iterations"]}
-                write_json(run_dir / "config.json", {**read_run_json(run_dir, "config.json"),
-                                                     "iterations": config["iterations"]})
+            if config.iterations < entry["config"]["iterations"]:  # the experiment was extended
+                config = config.replace(iterations=entry["config"]["iterations"])
+                write_config(run_dir, config)
             log = make_logger(run_dir / "run.log", f"lunar_lander.run.{entry['name']}", console=False)
+            leaving.callback(close_logger, log)
             run = (Run.start(run_dir, config, self.client, log) if checkpoint is None
-                   else Run.from_checkpoint(run_dir, {**checkpoint, "config": config}))
+                   else Run.from_checkpoint(run_dir, {**checkpoint, "config": config}, log))
         except BaseException:
-            lock.close()
+            leaving.close()
             raise
-        return LiveRun(entry, run, log, lock)
-
-    def launch(self, live: LiveRun) -> None:
-        """Ask the run's next batch and send it to the cluster."""
-        config = live.run.config
-        futures = submit_flights(self.client, live.run.ask(), config["env_seed"], config["measures"],
-                                 config["fast_env"], sharing=len(self.live), threads=self.threads(),
-                                 env_name=config["env"])
-        live.results, live.waiting = [None] * len(futures), len(futures)
-        for position, future in enumerate(futures):
-            self.owner[future.key] = (live.entry["name"], position)
-            self.finished.add(future)
-
-    def advance(self, live: LiveRun) -> None:
-        """The run's batch is whole: tell it, save it at its log interval, ask again or finish."""
-        try:
-            if failed := next((r for r in live.results if isinstance(r, BaseException)), None):
-                raise failed
-            row = live.run.tell(*averaged(per_terrain(live.results, live.run.config["env_seed"])))
-            live.run.settle(wait=False)
-            self.latest[live.entry["name"]] = row
-            self.told += 1
-            self.bar.update(1)
-            if row["iteration"] >= live.target:
-                self.finish(live)
-            else:
-                self.launch(live)
-                if row["iteration"] % live.run.config["log_every"] == 0:
-                    live.log.info(describe_progress(row, live.target))
-                    live.run.save(self.saver)
-        except Exception as error:  # this run's fault (a task that failed, a write): it alone stops
-            self.check_scheduler(error)
-            self.fail(live, error)
-            self.start_more()
-
-    def check_scheduler(self, error: BaseException) -> None:
-        """A task lost with the scheduler is no run's fault: the whole experiment stops (every run
-        keeps its checkpoint) rather than failing its runs one by one."""
-        if self.client.status != "running":
-            raise SchedulerLost(f"lost the Dask scheduler at {self.client.scheduler.address} "
-                                f"({clipped(fault_text(error))})") from None
-
-    def fail(self, live: LiveRun, error: BaseException) -> None:
-        with contextlib.suppress(Exception):
-            live.run.save_checkpoint()
-        self.close(live, "failed", error)
-        self.log.info(f"run {live.entry['name']} failed: {fault_text(error)}")
-
-    def finish(self, live: LiveRun) -> None:
-        """The run is complete: its folder is written in the saver thread (reap() closes it)
-        while another run takes its place."""
-        live.run.save(self.saver)
-        self.live.pop(live.entry["name"], None)
-        self.closing.append(live)
-        self.start_more()
-
-    def reap(self, wait: bool) -> None:
-        """Close the finished runs whose last save is written (with `wait`, all of them)."""
-        for live in [live for live in self.closing if wait or live.run.pending.done()]:
-            self.closing.remove(live)
-            try:
-                live.run.settle()
-            except Exception as error:
-                self.fail(live, error)
-                continue
-            live.log.info("Done. " + describe_progress(live.run.metrics[-1], live.target))
-            self.close(live, "done")
-
-    def close(self, live: LiveRun, state: str, error: BaseException | None = None) -> None:
-        self.live.pop(live.entry["name"], None)
-        close_logger(live.log)
-        live.lock.close()
-        self.record(live.entry, state, error)
+        run.leaving = leaving
+        return run
 
     def record(self, entry: dict, state: str, error: BaseException | None = None) -> None:
         """A run's new state, in experiment.json at once."""
@@ -450,7 +285,7 @@ class Experiment:
             entry.pop("error", None)
         write_json(self.folder / "experiment.json", self.plan)
 
-    def describe_settings(self) -> list[str]:
+    def lines(self) -> list[str]:
         """A line per setting: its runs' progress, mean QD score and coverage, best objective."""
         lines = []
         for setting in dict.fromkeys(e["setting"] for e in self.plan["runs"]):

@@ -23,10 +23,11 @@ from qdsearch.algorithms import task_of
 from qdsearch.cluster import dask_client, scheduler_of
 from qdsearch.engine import gather_with_progress, worker_env
 from qdsearch.flags import takes
+from qdsearch.metrics import load_metrics
 from qdsearch.options import CLUSTER_FLAGS, TERRAIN_FLAGS, checked
 from qdsearch.plots import HEATMAP_RANGE
 from qdsearch.results import elite_rows, load_run, shown_terrain
-from qdsearch.run import load_metrics
+from qdsearch.run_config import RunConfig
 from qdsearch.run_files import atomic_write, check_writable, console_log
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly
 
@@ -79,7 +80,7 @@ def record_flight(solution: np.ndarray, env_seed: int, env: gym.Env, env_name: s
     return np.clip(np.round(values * family.pose_scale), -32767, 32767).astype("<i2")
 
 
-def explorer_data(archive, config: dict, rows: dict, flights: list[np.ndarray], env_seed: int,
+def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarray], env_seed: int,
                   run_dir: Path, metrics: list[dict]) -> dict:
     """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
     import base64
@@ -104,11 +105,11 @@ def explorer_data(archive, config: dict, rows: dict, flights: list[np.ndarray], 
               in zip(rows["index"], grid, rows["objective"], rows["measures"], offsets, flights)]
     magma, task = matplotlib.colormaps["magma"], task_of(config)
     return {
-        "run": str(run_dir), "algorithm": config["algorithm"], "env_seed": env_seed,
-        "env": config["env"],
+        "run": str(run_dir), "algorithm": config.algorithm, "env_seed": env_seed,
+        "env": config.env,
         "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
                       "range": [float(lo), float(hi)]}
-                     for name, lo, hi in zip(config["measures"], archive.lower_bounds, archive.upper_bounds)],
+                     for name, lo, hi in zip(config.measures, archive.lower_bounds, archive.upper_bounds)],
         "dims": [int(d) for d in archive.dims], "heat_range": list(HEATMAP_RANGE),
         "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
         "elites": elites, "pose_scale": list(task.family.pose_scale),
@@ -141,7 +142,7 @@ def explore(run_dir: str, **flags: Any) -> None:
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
-        futures = [client.submit(record_poses, chunk, shown, config["env"], pure=False, retries=3)
+        futures = [client.submit(record_poses, chunk, shown, config.env, pure=False, retries=3)
                    for chunk in chunks]
         flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
     data = explorer_data(archive, config, rows, flights, shown, run, metrics)

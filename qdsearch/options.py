@@ -110,7 +110,7 @@ SEARCH_FLAGS: dict[str, Flag] = {
                        "omitted. The same seed gives the same archive whatever the number of "
                        "workers.", seed_number, per_run=True),
     "env": Flag(DEFAULT_ENV, "The Gymnasium task, a row of ENVIRONMENTS: " + ", ".join(ENVIRONMENTS)
-                + " (docs/environments.md).", one_of(ENVIRONMENTS)),
+                + " (docs/environments.md).", one_of(ENVIRONMENTS), before=DEFAULT_ENV),
     "env_seed": Flag(52, "The terrain(s) every policy is flown on: one seed (52), a range (0-4), a "
                          "list (3,5,8) or both (0-4,10). With several terrains the objective is "
                          "the mean return over them, and each measure is its per-terrain values "
@@ -189,7 +189,7 @@ def checked(name: str, value: Any) -> Any:
 def with_task(config: dict[str, Any]) -> dict[str, Any]:
     """The config with its task's default measures if it names none, and its measures checked
     against its task (a walker has no impact x)."""
-    env = config.get("env", DEFAULT_ENV)
+    env = config["env"]
     task = ENVIRONMENTS[env]
     measures = list(task.measures if config.get("measures") is None else config["measures"])
     if wrong := [name for name in measures if MEASURES[name].family is not task.family]:

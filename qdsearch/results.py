@@ -33,19 +33,18 @@ from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_
 from qdsearch.flags import UsageError, check_flags, positive_int, seed_list, shown, takes
 from qdsearch.options import CLUSTER_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS, check_rollouts, checked
 from qdsearch.plots import save_heatmap
-from qdsearch.run import load_archive, load_checked_config
+from qdsearch.run_config import RunConfig, load_archive, load_checked_config
 from qdsearch.run_files import RunError, atomic_write, check_writable, console_log, fault_text, write_csv
 from qdsearch.tasks import (
     ENVIRONMENTS,
     MEASURES,
-    TUTORIAL_MEASURES,
     fly,
     make_env,
     rollout,
 )
 
 
-def load_run(run_dir: Any) -> tuple[Any, dict]:
+def load_run(run_dir: Any) -> tuple[Any, RunConfig]:
     """A run folder's archive and config (checked against each other). Folders written before
     --measures and --grid existed load with the tutorial's measures on a 50x50 grid."""
     path = Path(str(run_dir))
@@ -151,8 +150,7 @@ def elite_of_cell(archive, point: tuple[float, ...], measures: list[str], neares
 
 
 def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None,
-                  index: Any = None, nearest: Any = False,
-                  measures: list[str] = TUTORIAL_MEASURES) -> list[dict]:
+                  index: Any = None, nearest: Any = False, *, measures: list[str]) -> list[dict]:
     """The elites a results command shows, each named for its file: the --cells points' cells,
     the --best, the --top K by objective, the --index cells, in that order."""
     checked = check_flags(SELECTION_FLAGS, {"best": best, "top": top, "nearest": nearest})
@@ -221,35 +219,35 @@ class Mp4Recorder(gym.Wrapper):
         super().close()
 
 
-def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[dict, list[dict], int]:
+def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[RunConfig, list[dict], int]:
     """The run's config, the elites the SELECTION_FLAGS among `flags` pick from its archive, and
     the terrain to show them on: --env_seed, by default the run's first."""
     archive, config = load_run(run_dir)
     shown = shown_terrain(config, flags["env_seed"])
     selection = {name: flags[name] for name in SELECTION_FLAGS}
     check_writable(Path(str(run_dir)))  # before any elite is flown
-    return config, select_elites(archive, **selection, measures=config["measures"]), shown
+    return config, select_elites(archive, **selection, measures=config.measures), shown
 
 
-def shown_terrain(config: dict, env_seed: Any) -> int:
+def shown_terrain(config: RunConfig, env_seed: Any) -> int:
     """The terrain a results command shows a run on: --env_seed, one of the run's terrains (its
     elites' objectives and measures were flown there), by default the run's first."""
     if env_seed is None:
-        return config["env_seed"][0]
+        return config.env_seed[0]
     terrain = check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
-    if terrain not in config["env_seed"]:
-        terrains = ",".join(map(str, config["env_seed"]))
+    if terrain not in config.env_seed:
+        terrains = ",".join(map(str, config.env_seed))
         raise UsageError(f"--env_seed {terrain} is not a terrain of this run (it was flown on "
                          f"{terrains}); to fly its elites on other terrains, use: "
                          f"python lunar_lander.py evaluate RUN --env_seeds {terrain}")
     return terrain
 
 
-def reflown(elite: dict, config: dict) -> tuple[float, list[float]]:
+def reflown(elite: dict, config: RunConfig) -> tuple[float, list[float]]:
     """The elite flown again in its run's setting (every terrain, averaged as the engine does):
     rollouts are deterministic, so this is exactly its stored objective and measures."""
-    env, seeds = make_env(config["fast_env"], env_name=config["env"]), config["env_seed"]
-    rows = [np.array([rollout(elite["solution"], seed, env, config["measures"], env_name=config["env"])
+    env, seeds = make_env(config.fast_env, env_name=config.env), config.env_seed
+    rows = [np.array([rollout(elite["solution"], seed, env, config.measures, env_name=config.env)
                       for seed in seeds])]
     objectives, measures = averaged(per_terrain(rows, seeds))
     return float(objectives[0]), measures[0].tolist()
@@ -288,11 +286,11 @@ def video(run_dir: str, **flags: Any) -> None:
     import pandas as pd
 
     config, chosen, shown = load_chosen_elites(run_dir, flags)
-    folder, rows, measures = Path(str(run_dir)) / "videos", [], config["measures"]
+    folder, rows, measures = Path(str(run_dir)) / "videos", [], config.measures
     for elite in chosen:
         STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
         path = folder / f"{elite['name']}.mp4"
-        record_video(elite["solution"], shown, path, config["env"])
+        record_video(elite["solution"], shown, path, config.env)
         print(f"{path}: {describe_elite(elite, measures)}")
         objective, values = reflown(elite, config)
         reproduced = objective == elite["objective"] and values == list(elite["measures"])
@@ -333,7 +331,7 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
     archive, config = load_run(run_dir)
     if min_objective is not None and not is_number(min_objective):
         raise UsageError(f"--min_objective must be a number, got {shown(min_objective)}")
-    table = elite_table(archive, config["measures"], min_objective,
+    table = elite_table(archive, config.measures, min_objective,
                         None if top is None else positive_int("top", top))
     path = Path(str(run_dir)) / "elites.csv"
     write_csv(path, table)
@@ -397,9 +395,9 @@ def trajectories(run_dir: str, **flags: Any) -> None:
     """
     config, chosen, shown = load_chosen_elites(run_dir, flags)
     path = Path(str(run_dir)) / "trajectories.png"
-    save_trajectory_plot(chosen, fly_paths(chosen, shown, config["env"]), shown, path, config["env"])
+    save_trajectory_plot(chosen, fly_paths(chosen, shown, config.env), shown, path, config.env)
     for elite in chosen:
-        print(f"{elite['name']}: {describe_elite(elite, config['measures'])}")
+        print(f"{elite['name']}: {describe_elite(elite, config.measures)}")
     print(f"written to {path}")
 
 
@@ -445,20 +443,20 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
     check_rollouts(len(rows["solution"]), len(seeds), "to fly")
     run = Path(str(run_dir))
     check_writable(run)  # before any elite is flown
-    if seen := sorted(set(seeds) & set(config["env_seed"])):
+    if seen := sorted(set(seeds) & set(config.env_seed)):
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
     scheduler_address = scheduler_of(flags)
     with dask_client(workers, scheduler_address, console_log()) as client:
-        futures = submit_flights(client, rows["solution"], seeds, (), config["fast_env"],
-                                 env_name=config["env"])
+        futures = submit_flights(client, rows["solution"], seeds, (), config.fast_env,
+                                 env_name=config.env)
         objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
     solved = task_of(config).solved
-    table = robustness_table(rows, config["measures"], seeds, objectives, solved)
+    table = robustness_table(rows, config.measures, seeds, objectives, solved)
     write_csv(run / "robustness.csv", table)
     means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
                         ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
     means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
-    save_heatmap(means, [MEASURES[m] for m in config["measures"]], run / "robustness_heatmap.png",
+    save_heatmap(means, [MEASURES[m] for m in config.measures], run / "robustness_heatmap.png",
                  f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
     solves = table["solved_share"]
     print(f"{len(table)} elites on {len(seeds)} terrains: "

@@ -11,7 +11,7 @@ from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter
 from ribs.emitters.rankers import ImprovementRanker, TwoStageImprovementRanker
 from ribs.schedulers import Scheduler
 
-from qdsearch import algorithms, experiments, options, results, run, run_files, tasks
+from qdsearch import algorithms, experiments, options, results, run, run_config, run_files, tasks
 from util import (
     archive_table,
     assert_one_line_error,
@@ -26,8 +26,9 @@ RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "met
              "heatmap.png", "progress.png", "run.log"}
 
 
-CONFIG = dict(algorithm="cma_me", seed=3, n_emitters=5, sigma0=1.0, batch_size=30,
-              measures=list(tasks.TUTORIAL_MEASURES), grid=50)
+CONFIG = run_config.check_run_config(dict(
+    options.search_defaults(), algorithm="cma_me", seed=3, n_emitters=5, sigma0=1.0, batch_size=30,
+    measures=list(tasks.TUTORIAL_MEASURES), grid=50))
 
 
 def test_cma_me_is_the_tutorial_setup():
@@ -53,7 +54,7 @@ def test_cma_me_is_the_tutorial_setup():
 def test_seed_fixes_the_proposals_and_emitters_differ():
     first = algorithms.build_scheduler(CONFIG).ask()
     again = algorithms.build_scheduler(CONFIG).ask()
-    other = algorithms.build_scheduler({**CONFIG, "seed": 4}).ask()
+    other = algorithms.build_scheduler(CONFIG.replace(seed=4)).ask()
 
     assert np.array_equal(first, again)
     assert not np.array_equal(first, other)
@@ -76,9 +77,8 @@ def tiny_runs(tmp_path_factory, dask_cluster):
 
 
 def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
-    config = dict(seed=3, n_emitters=5, sigma0=1.0, batch_size=30, learning_rate=0.01,
-                  measures=list(tasks.TUTORIAL_MEASURES), grid=50)
-    schedulers = {name: algorithms.build_scheduler({**config, "algorithm": name}) for name in ALGORITHMS}
+    config = CONFIG.replace(learning_rate=0.01)
+    schedulers = {name: algorithms.build_scheduler(config.replace(algorithm=name)) for name in ALGORITHMS}
 
     mae = schedulers["cma_mae"]
     assert mae.archive.learning_rate == 0.01 and mae.archive.threshold_min == -600
@@ -182,7 +182,7 @@ def test_checkpoint_from_before_learning_rate_still_resumes(tmp_path, tiny_runs)
     del checkpoint["config"]["learning_rate"]
     run_files.write_pickle(tmp_path / "checkpoint.pkl", checkpoint)
 
-    assert run.load_checkpoint(tmp_path / "checkpoint.pkl")["config"]["learning_rate"] == 0.01
+    assert run_config.load_checkpoint(tmp_path / "checkpoint.pkl")["config"].learning_rate == 0.01
 
 
 def test_unknown_algorithm_and_bad_learning_rate_are_one_line_errors(run_cli, tmp_path):

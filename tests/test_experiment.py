@@ -12,7 +12,7 @@ import pytest
 from scipy.stats import mannwhitneyu
 
 import lunar_lander as ll
-from qdsearch import comparison, experiments, options, run
+from qdsearch import comparison, experiments, loop, options, run
 from util import (
     Result,
     assert_one_line_error,
@@ -205,7 +205,7 @@ def test_a_resumed_runs_earlier_iterations_do_not_count_in_the_bar_rate():
     from tqdm import tqdm
 
     bar = tqdm(total=1000, initial=10, file=io.StringIO(), mininterval=0)
-    experiments.count_as_done_before(bar, 500)
+    loop.count_as_done_before(bar, 500)
     time.sleep(0.05)
     bar.update(1)
     assert bar.n == 511 and bar.format_dict["initial"] == 510

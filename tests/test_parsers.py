@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ribs.archives import GridArchive
 
-from qdsearch import algorithms, experiments, flags, results, run, tasks
+from qdsearch import algorithms, experiments, flags, metrics, results, run_config, tasks
 from qdsearch.flags import (
     MAX_SEED,
     MAX_SEEDS,
@@ -148,20 +148,20 @@ def test_cell_indices(index):
     name: VALUES for name in ["seed", "env_seed", "measures", "grid", "algorithm", "iterations",
                               "learning_rate", "batch_size", "fast_env", "outdir"]}))
 def test_run_configs(config):
-    checked = refused_in_one_line_or(run.check_run_config, config)
+    checked = refused_in_one_line_or(run_config.check_run_config, config)
     if checked is not UsageError:
         assert checked["algorithm"] in algorithms.ALGORITHMS
         assert set(checked["measures"]) <= set(tasks.MEASURES)
         assert isinstance(checked["seed"], int) and checked["grid"] >= 1
 
 
-ROW = st.fixed_dictionaries({}, optional={field: SCALARS for field in run.METRIC_FIELDS})
+ROW = st.fixed_dictionaries({}, optional={field: SCALARS for field in metrics.METRIC_FIELDS})
 
 
 @QUICK
 @given(rows=JSON | st.lists(ROW, max_size=3))
 def test_metrics_files(rows):
-    checked = refused_in_one_line_or(run.check_metrics, rows, Path("metrics.json"))
+    checked = refused_in_one_line_or(metrics.check_metrics, rows, Path("metrics.json"))
     if checked is not UsageError:
         for row in checked:
             assert isinstance(row["iteration"], int) and not isinstance(row["iteration"], bool)
@@ -176,10 +176,10 @@ def test_run_files_on_disk(content):
         folder = Path(folder)
         for name in ("config.json", "metrics.json", "experiment.json", "checkpoint.pkl", "archive.pkl"):
             (folder / name).write_bytes(content)
-        for load in (lambda: read_run_json(folder, "config.json"), lambda: run.load_run_config(folder),
-                     lambda: run.load_metrics(folder), lambda: experiments.read_experiment(folder),
+        for load in (lambda: read_run_json(folder, "config.json"), lambda: run_config.load_run_config(folder),
+                     lambda: metrics.load_metrics(folder), lambda: experiments.read_experiment(folder),
                      lambda: read_pickle(folder / "archive.pkl", "archive pickle"),
-                     lambda: run.load_checkpoint(folder / "checkpoint.pkl")):
+                     lambda: run_config.load_checkpoint(folder / "checkpoint.pkl")):
             refused_in_one_line_or(load)
 
 

@@ -7,7 +7,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from qdsearch import engine, lander, tasks
+from qdsearch import engine, lander, options, run_config, tasks
 from util import LANDER, LANDER_W
 
 
@@ -105,7 +105,8 @@ def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains
     env = gym.make("LunarLander-v3")
     direct = np.array([[tasks.rollout(s, seed, env, measures, env_name=LANDER) for seed in terrains]
                        for s in solutions])
-    config = {"env": "LunarLander-v3", "env_seed": terrains, "measures": measures, "fast_env": True}
+    config = run_config.check_run_config(
+        {**options.search_defaults(), "seed": 1, "env_seed": terrains, "measures": measures})
 
     objectives, values = engine.evaluate_batch(dask_client, solutions, config)
 

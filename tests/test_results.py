@@ -14,6 +14,8 @@ from qdsearch import fast_lander, lander, results, tasks
 from qdsearch.flags import UsageError, seed_list
 from util import LANDER, assert_one_line_error, folder_state, load_pickle
 
+TUTORIAL = list(tasks.TUTORIAL_MEASURES)  # the measures of the run the tests look at
+
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory, tiny_run):
@@ -92,8 +94,8 @@ def test_empty_cell_names_the_nearest_and_nearest_uses_it(archive):
 
     with pytest.raises(UsageError, match=f"is empty; the nearest occupied cell .*cell {nearest}"
                                             r"\); add --nearest"):
-        results.select_elites(archive, cells=[point])
-    [elite] = results.select_elites(archive, cells=[point], nearest=True)
+        results.select_elites(archive, cells=[point], measures=TUTORIAL)
+    [elite] = results.select_elites(archive, cells=[point], nearest=True, measures=TUTORIAL)
     assert elite["index"] == nearest
     assert elite["name"].startswith(f"cell_x{point[0]:.2f}_v{point[1]:.2f}_nearest{nearest}_obj")
 
@@ -101,7 +103,7 @@ def test_empty_cell_names_the_nearest_and_nearest_uses_it(archive):
 def test_selection_by_best_top_index_and_cells(archive):
     ranked = archive.data(return_type="pandas").sort_values("objective", ascending=False)["index"]
     chosen = results.select_elites(archive, cells="[(0.0, -0.1)]", best=True, top=3,
-                              index=int(ranked.iloc[-1]), nearest=True)
+                                   index=int(ranked.iloc[-1]), nearest=True, measures=TUTORIAL)
     assert chosen[0]["name"].startswith("cell_x0.00_v-0.10_")
     assert [elite["index"] for elite in chosen[1:]] == ranked.iloc[[0, 0, 1, 2, -1]].tolist()
     assert [elite["name"].split("_")[0] for elite in chosen[1:]] == [
@@ -141,7 +143,7 @@ def test_trajectory_picture_of_the_top_elites(run_dir, archive):
     after = folder_state(run_dir)
     assert {name: after[name] for name in before if name in after} == before  # nothing else touched
 
-    top = results.select_elites(archive, top=3)
+    top = results.select_elites(archive, top=3, measures=TUTORIAL)
     paths = results.fly_paths(top, 52, tasks.DEFAULT_ENV)
     for elite, (path, step) in zip(top, paths):  # the drawn paths are their flights
         assert path[step, 0] == elite["measures"][0]  # the dot is at touchdown, where impact x is

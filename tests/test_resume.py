@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from ribs.archives import GridArchive
 
-from qdsearch import algorithms, experiments, run, tasks
+from qdsearch import algorithms, experiments, run, run_config, tasks
 from util import (
     LANDER,
     REFERENCE_ITERATIONS,
@@ -151,7 +151,7 @@ def bad_checkpoints(reference):
     """(name, writer of a checkpoint.pkl that must be refused, words the error must contain)."""
     good = load_pickle(reference / "checkpoint.pkl")
     small = GridArchive(solution_dim=32, dims=(10, 10), ranges=TUTORIAL_RANGES)
-    other_scheduler = algorithms.build_scheduler({**good["config"]})
+    other_scheduler = algorithms.build_scheduler(run_config.check_run_config(good["config"]))
     other_scheduler._archive = small
     return [
         ("truncated", lambda p: p.write_bytes((reference / "checkpoint.pkl").read_bytes()[:5000]),

@@ -1,0 +1,412 @@
+"""The one run loop: runs ask, have their batches flown on the cluster, and tell, any number of
+them at once on one Dask client. `search` and `resume` drive one run through it, `experiment`
+many.
+
+A run's results depend on its own asks and tells only, so a run ends bit for bit the same
+whether it is driven alone or among others, whatever the order its chunks come back in.
+
+Map:
+- `Saver`: the thread run folders are written in while the runs go on;
+- `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
+  chunk back), `tell`, the checkpoint (built and written here only) and `save` (its folder's
+  files: `save_outputs`);
+- `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
+  goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
+  next batch or finishes. Its subclasses say how runs are opened and recorded (experiments.py's
+  `Experiment`; `OneRun` for search and resume), and whether a run's fault stops it alone;
+- `count_as_done_before`: a resumed run's earlier iterations on the progress bar.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import math
+import pickle
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from qdsearch.algorithms import build_scheduler
+from qdsearch.cluster import STOP, SchedulerLost
+from qdsearch.engine import averaged, evaluate_batch, per_terrain, submit_flights
+from qdsearch.flags import UsageError, clipped
+from qdsearch.metrics import describe_progress, iteration_metrics
+from qdsearch.plots import save_heatmap, save_progress_plot
+from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
+from qdsearch.run_files import RunError, atomic_write, fault_text, write_csv, write_json, write_pickle
+from qdsearch.tasks import MEASURES
+
+
+class Saver(ThreadPoolExecutor):
+    """The thread run folders are written in while the runs go on (one thread: the plots'
+    matplotlib is not thread-safe)."""
+
+    def __init__(self) -> None:
+        super().__init__(1, thread_name_prefix="save")
+
+
+class Run:
+    """One run between two iterations, and the folder it is saved to.
+
+    The checkpoint is built and written here only. It always holds the last completed iteration:
+    ask() moves the emitters on, so the scheduler is snapshotted (pickled, ~1 ms) after every tell,
+    and a stop or a fault while the cluster evaluates writes that snapshot. The iteration in flight
+    is abandoned, never half-recorded. The scheduler is pickled as one object (its emitters share
+    its archive; CMA-ES state and RNGs come along), so a resumed run asks exactly the same.
+
+    The folder's files may be written in a thread while the run goes on (`save(saver)`): they are
+    built from that snapshot, so nothing the run does next can change them.
+    """
+
+    def __init__(self, run_dir: Path, config: RunConfig, scheduler, metrics: list[dict],
+                 log: logging.Logger) -> None:
+        self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
+        self.name, self.log = run_dir.name, log
+        self.snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+        self.saved = self.iteration
+        self.pending: Future | None = None  # a save being written by the saver thread
+        self.chunks: list = []  # the batch on the cluster: its chunks' results, in order
+        self.waiting = 0  # chunks of that batch not back yet
+        self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
+        self.target = config.iterations  # where this drive stops (resume may stop it sooner)
+        self._asked_at = 0.0
+
+    @classmethod
+    def start(cls, run_dir: Path, config: RunConfig, client, log: logging.Logger,
+              seed_archive=None) -> Run:
+        """Iteration 0 of a new run, checkpointed at once so the folder always holds one.
+
+        With `seed_archive` (a warm start), its elites are first flown again in this run's setting
+        (another terrain, say) and inserted, and the emitters start from the best of them.
+        """
+        if seed_archive is None:
+            run = cls(run_dir, config, build_scheduler(config), [], log)
+        else:
+            elites = seed_archive.data(["solution"])["solution"]
+            objectives, measures = evaluate_batch(client, elites, config)
+            scheduler = build_scheduler(config, x0=elites[int(np.argmax(objectives))])
+            for archive in {id(a): a for a in (scheduler.archive, scheduler.result_archive)}.values():
+                archive.add(elites, objectives, measures)
+            run = cls(run_dir, config, scheduler,
+                      [iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0)], log)
+            log.info(f"Warm start: {len(elites)} elites re-evaluated, {len(scheduler.result_archive)} "
+                     f"kept; emitters start from the best (objective {objectives.max():.1f})")
+        run.save_checkpoint(force=True)
+        return run
+
+    @classmethod
+    def from_checkpoint(cls, run_dir: Path, checkpoint: dict, log: logging.Logger) -> Run:
+        return cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"], log)
+
+    @property
+    def iteration(self) -> int:
+        return self.metrics[-1]["iteration"] if self.metrics else 0  # a warm start has iteration 0
+
+    def ask(self) -> np.ndarray:
+        self._asked_at = time.perf_counter()
+        return self.scheduler.ask()
+
+    def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
+        """Ask the next batch and send it to the cluster; the futures of its chunks, in order."""
+        config = self.config
+        futures = submit_flights(client, self.ask(), config.env_seed, config.measures,
+                                 config.fast_env, sharing=sharing, threads=threads,
+                                 env_name=config.env)
+        self.chunks, self.waiting = [None] * len(futures), len(futures)
+        return futures
+
+    def take(self, position: int, result: Any) -> bool:
+        """A chunk of the batch is back (or its exception); whether the batch is whole."""
+        self.chunks[position] = result
+        self.waiting -= 1
+        return self.waiting == 0
+
+    def tell_batch(self) -> dict:
+        """Tell the whole batch, each solution averaged over its terrains (a chunk that failed
+        raises its fault); the new row of metrics."""
+        chunks, self.chunks = self.chunks, []
+        if failed := next((chunk for chunk in chunks if isinstance(chunk, BaseException)), None):
+            raise failed
+        return self.tell(*averaged(per_terrain(chunks, self.config.env_seed)))
+
+    def tell(self, objectives: np.ndarray, measures: np.ndarray) -> dict:
+        """Record the evaluated batch; returns the new row of metrics."""
+        self.scheduler.tell(objectives, measures)
+        self.snapshot = pickle.dumps(self.scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+        last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
+        self.metrics.append(iteration_metrics(
+            self.scheduler.result_archive, self.iteration + 1, last["evaluations"] + len(objectives),
+            last["elapsed_s"] + time.perf_counter() - self._asked_at))
+        return self.metrics[-1]
+
+    def due(self, row: dict) -> bool:
+        """Whether the folder is refreshed after this row (every log_every iterations; the last
+        iteration's save is the run's end)."""
+        return row["iteration"] % self.config.log_every == 0 and row["iteration"] < self.target
+
+    def checkpoint(self) -> dict:
+        """Everything needed to continue the run, as of the last completed iteration."""
+        return {"format": CHECKPOINT_FORMAT, "scheduler": pickle.loads(self.snapshot),
+                "metrics": list(self.metrics), "iteration": self.iteration,
+                "config": self.config.to_json()}
+
+    def save_checkpoint(self, force: bool = False) -> None:
+        """Write the checkpoint if iterations were completed since the last save (after the save
+        in the saver thread, whose fault, if any, is raised once the checkpoint is written)."""
+        try:
+            self.settle()
+        finally:
+            if force or self.iteration > self.saved:
+                write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
+                self.saved = self.iteration
+
+    def save(self, saver: Saver | None = None) -> None:
+        """Refresh every file of the run folder, the checkpoint first; with a `saver`, in its
+        thread, so the workers are fed meanwhile."""
+        self.settle()
+        checkpoint = self.checkpoint()
+        if saver is None:
+            self.write(checkpoint)
+        else:
+            self.pending = saver.submit(self.write, checkpoint)
+
+    def write(self, checkpoint: dict) -> None:
+        write_pickle(self.dir / "checkpoint.pkl", checkpoint)
+        self.saved = checkpoint["iteration"]
+        save_outputs(self.dir, checkpoint)
+
+    def settle(self, wait: bool = True) -> None:
+        """Wait for the save in the saver thread (without `wait`: only if it is over); raise its
+        fault, so a full disk stops the run at once."""
+        if self.pending is not None and (wait or self.pending.done()):
+            pending, self.pending = self.pending, None
+            pending.result()
+
+
+def save_outputs(run_dir: Path, checkpoint: dict) -> None:
+    """The run folder's files besides the checkpoint: metrics, archive, heatmaps, progress."""
+    write_json(run_dir / "metrics.json", checkpoint["metrics"])
+    archive = checkpoint["scheduler"].result_archive
+    iteration = checkpoint["iteration"]
+    write_pickle(run_dir / "archive.pkl", archive)
+    table = archive.data(return_type="pandas")
+    write_csv(run_dir / "archive.csv", table)
+    title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
+    snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
+    save_heatmap(archive, [MEASURES[m] for m in checkpoint["config"]["measures"]], snapshot, title)
+    atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
+    save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
+
+
+def count_as_done_before(bar, iterations: int) -> None:
+    """Put a resumed run's earlier iterations on the tqdm bar as its starting point, not as work
+    done now, so its rate and time left reflect only this drive."""
+    bar.n, bar.last_print_n, bar.initial = (
+        count + iterations for count in (bar.n, bar.last_print_n, bar.initial))
+    bar.refresh()
+
+
+THREADS_EVERY = 2.0  # seconds between two counts of the cluster's worker threads
+
+
+class Driver:
+    """Drives runs on one client until each reaches its target: the one loop of search, resume
+    and experiment.
+
+    `entries` are the runs to drive, each a dict with at least its "name"; `open` (a subclass's)
+    makes an entry's Run, `record` notes each change of its state ("running", "done", "stopped",
+    "failed"). With `isolated` runs a run's fault stops it alone; otherwise it ends the drive.
+    Every `every` iterations told, `lines()` are logged.
+    """
+
+    desc = "runs"  # the progress bar's label
+    isolated = False
+
+    def __init__(self, client, log: logging.Logger, entries: list[dict], total: int, done: int = 0,
+                 limit: int | None = None, every: int | None = None) -> None:
+        from dask.distributed import as_completed
+
+        self.client, self.log, self.total, self.done, self.every = client, log, total, done, every
+        self.todo = collections.deque(entries)
+        self.entries = {entry["name"]: entry for entry in entries}
+        self.limit = limit or len(entries)
+        self.live: dict[str, Run] = {}
+        self.owner: dict[str, tuple[Run, int]] = {}  # future key -> its run, chunk position
+        self.latest: dict[str, dict] = {}  # run name -> its last metrics row
+        self.told = 0  # iterations told in this drive
+        self.closing: list[Run] = []  # finished runs whose last save is being written
+        self.saver = Saver()
+        # Results come with their futures (no second round trip to fetch them); a chunk that
+        # failed comes as its exception, and is its run's fault alone.
+        self.finished = as_completed(with_results=True, raise_errors=False)
+        self.threads_asked = (-math.inf, 1)  # when the worker threads were last counted, and how many
+
+    # ---- what subclasses say ----
+    def open(self, entry: dict) -> Run:
+        raise NotImplementedError
+
+    def record(self, entry: dict, state: str, error: BaseException | None = None) -> None:
+        """A run's new state (an experiment writes it to experiment.json)."""
+
+    def lines(self) -> list[str]:
+        """Lines logged every `every` iterations told."""
+        return []
+
+    # ---- the loop ----
+    def drive(self) -> None:
+        """Drive every entry's run to its target; a stop or a fault keeps each run's last
+        completed iteration in its checkpoint."""
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=self.total, initial=self.done, unit="it", desc=self.desc,
+                        dynamic_ncols=True)
+        logged = self.done
+        try:
+            self.start_more()
+            while self.live:
+                with STOP.interruptible():
+                    future, result = next(self.finished)
+                run, position = self.owner.pop(future.key, (None, 0))
+                if run is not None and run.name in self.live and run.take(position, result):
+                    self.advance(run)  # else a chunk of a run that has failed meanwhile
+                self.reap(wait=False)
+                if self.every and (self.bar.n - logged >= self.every or not self.live):
+                    logged = self.bar.n
+                    for line in self.lines():
+                        self.log.info(line)
+            self.reap(wait=True)
+        except BaseException:
+            self.todo.clear()  # nothing more is opened
+            for run in list(self.live.values()):
+                with contextlib.suppress(Exception):
+                    run.save_checkpoint()
+                self.close(run, "stopped")
+            with contextlib.suppress(Exception):
+                self.reap(wait=True)
+            raise
+        finally:
+            self.saver.shutdown()
+            self.bar.close()
+
+    def start_more(self) -> None:
+        """Open waiting runs until `limit` are in flight."""
+        while self.todo and len(self.live) < self.limit:
+            entry = self.todo.popleft()
+            try:
+                run = self.open(entry)
+            except (UsageError, RunError, OSError) as error:  # a bad folder, a full disk
+                self.fail(entry, None, error)
+                continue
+            self.live[run.name] = run
+            self.latest[run.name] = run.metrics[-1] if run.metrics else {}
+            count_as_done_before(self.bar, run.iteration)
+            self.record(entry, "running")
+            if run.iteration >= run.target:
+                self.finish(run)
+            else:
+                self.send(run)
+
+    def threads(self) -> int:
+        """The cluster's worker threads, asked of the scheduler at most every THREADS_EVERY seconds
+        rather than for every batch (workers come and go; a stale count only sizes the chunks,
+        never changes a result)."""
+        if time.monotonic() - self.threads_asked[0] > THREADS_EVERY:
+            self.threads_asked = (time.monotonic(), sum(self.client.nthreads().values()))
+        return self.threads_asked[1]
+
+    def send(self, run: Run) -> None:
+        """The run's next batch, to the cluster."""
+        for position, future in enumerate(run.send(self.client, len(self.live), self.threads())):
+            self.owner[future.key] = (run, position)
+            self.finished.add(future)
+
+    def advance(self, run: Run) -> None:
+        """The run's batch is whole: tell it, save it at its log interval, send again or finish."""
+        try:
+            row = run.tell_batch()
+            run.settle(wait=False)  # a fault of the last save (a full disk) stops the run now
+            self.latest[run.name] = row
+            self.told += 1
+            self.bar.update(1)
+            self.bar.set_postfix(coverage=f"{row['coverage']:.3f}", qd=f"{row['qd_score']:.4g}",
+                                 best=f"{row['best_objective'] or float('nan'):.1f}", refresh=False)
+            if row["iteration"] >= run.target:
+                self.finish(run)
+            else:
+                self.send(run)
+                if run.due(row):
+                    run.log.info(describe_progress(row, run.target))
+                    run.save(self.saver)
+        except Exception as error:  # a task that failed, a write
+            self.check_scheduler(error)
+            self.fail(self.entries[run.name], run, error)
+
+    def check_scheduler(self, error: BaseException) -> None:
+        """A task lost with the scheduler is no run's fault: the whole drive stops (every run
+        keeps its checkpoint) rather than failing its runs one by one."""
+        if self.client.status != "running":
+            raise SchedulerLost(f"lost the Dask scheduler at {self.client.scheduler.address} "
+                                f"({clipped(fault_text(error))})") from None
+
+    def fail(self, entry: dict, run: Run | None, error: BaseException) -> None:
+        """A run's fault: with `isolated` runs, it stops that run alone (its checkpoint kept, its
+        state and cause recorded) and another takes its place; otherwise it ends the drive, as a
+        fault of the machine (a RunError) unless it is one already."""
+        if not self.isolated:
+            if isinstance(error, (UsageError, RunError, OSError)):
+                raise error
+            raise RunError(f"{type(error).__name__}: {fault_text(error)}") from error
+        if run is not None:
+            with contextlib.suppress(Exception):
+                run.save_checkpoint()
+            self.close(run, "failed", error)
+        else:
+            self.record(entry, "failed", error)
+        self.log.info(f"run {entry['name']} failed: {fault_text(error)}")
+        self.start_more()
+
+    def finish(self, run: Run) -> None:
+        """The run is complete: its folder is written in the saver thread (reap() closes it)
+        while another run takes its place."""
+        run.save(self.saver)
+        self.live.pop(run.name, None)
+        self.closing.append(run)
+        self.start_more()
+
+    def reap(self, wait: bool) -> None:
+        """Close the finished runs whose last save is written (with `wait`, all of them)."""
+        for run in [run for run in self.closing if wait or run.pending.done()]:
+            self.closing.remove(run)
+            try:
+                run.settle()
+            except Exception as error:
+                self.fail(self.entries[run.name], run, error)
+                continue
+            if run.metrics:
+                run.log.info("Done. " + describe_progress(run.metrics[-1], run.target))
+            self.close(run, "done")
+
+    def close(self, run: Run, state: str, error: BaseException | None = None) -> None:
+        self.live.pop(run.name, None)
+        run.leaving.close()
+        self.record(self.entries[run.name], state, error)
+
+
+class OneRun(Driver):
+    """search and resume: one run, made by `make` once the drive begins; its fault ends the drive."""
+
+    desc = "search"
+
+    def __init__(self, client, log: logging.Logger, iterations: int, make: Callable[[], Run]) -> None:
+        super().__init__(client, log, [{"name": "run"}], total=iterations)
+        self.make = make
+
+    def open(self, entry: dict) -> Run:
+        run = self.make()
+        run.name = entry["name"]
+        return run

@@ -1,0 +1,215 @@
+"""A run's configuration: the typed RunConfig made from the flag tables, the one `upgrade` of old
+folders, and config.json and the checkpoint read back, checked against the flags, each other and
+the archive.
+
+Map:
+- `RunConfig` (a frozen dataclass: a field per search flag, typed by what its check returns, and
+  RECORDS, what a run notes about itself), `upgrade`, `check_run_config` (every value checked:
+  the one way a RunConfig is made), `write_config`;
+- CHECKPOINT_FORMAT; `load_checkpoint`;
+- `load_run_config`, `load_checked_config` (what the results commands read), `load_run_state`
+  (what resume reads), `check_same_config`;
+- `check_archive` and `load_archive` (an archive must be the grid of its run's config).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from qdsearch.algorithms import archive_grid
+from qdsearch.flags import Flag, UsageError, check_flags, seed_number, shown
+from qdsearch.metrics import check_metrics
+from qdsearch.options import (
+    CLUSTER_FLAGS,
+    SEARCH_FLAGS,
+    before_the_flags,
+    check_sizes,
+    search_defaults,
+    with_task,
+)
+from qdsearch.run_files import read_pickle, read_run_json, write_json
+
+# What a run's config.json notes about the run besides its flags: each field's type, and what a
+# run that did not note it holds.
+RECORDS: dict[str, tuple[str, Any]] = {
+    "created": ("str | None", None),  # when it was started
+    "command": ("list[str]", []),  # the command line that started it
+    "versions": ("dict[str, str]", {}),  # the libraries it ran with
+    "experiment": ("str | None", None),  # the experiment folder it is a run of
+    "resumed": ("list[dict]", []),  # each resumption: when, from and to which iteration, workers
+}
+
+
+def flag_type(flag: Flag) -> str:
+    """A flag's type in a run's config: what its check returns (no check: a path or an address)."""
+    return flag.check.__annotations__.get("return", "Any") if flag.check else "str | None"
+
+
+class Settings:
+    """What a RunConfig does besides holding its fields."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The config as config.json and the checkpoint hold it: a plain dict, flags first."""
+        return {field.name: copy.deepcopy(getattr(self, field.name)) for field in dataclasses.fields(self)}
+
+    def replace(self, **changes: Any) -> RunConfig:
+        return dataclasses.replace(self, **changes)
+
+
+# A run's settings, read everywhere as config.<flag>: one field per flag of SEARCH_FLAGS (so a new
+# flag is a field at once), then RECORDS. Made only by check_run_config, so every value is checked.
+RunConfig = dataclasses.make_dataclass(
+    "RunConfig",
+    [*((name, flag_type(flag)) for name, flag in SEARCH_FLAGS.items()),
+     *((name, kind, dataclasses.field(default_factory=lambda value=value: copy.deepcopy(value)))
+       for name, (kind, value) in RECORDS.items())],
+    bases=(Settings,), frozen=True)
+RunConfig.__module__ = __name__  # (make_dataclass takes `module` from Python 3.12 on)
+
+
+def upgrade(recorded: dict) -> dict:
+    """A recorded config of any age in today's form: a run from before a flag existed ran with
+    what its entry's `before` says (--learning_rate 0.01, before it was a flag) or its default
+    (--env LunarLander-v3 and --grid 50, the tutorial's); one from before --measures, with its
+    task's own measures (with_task: the tutorial's)."""
+    return {**search_defaults(), **before_the_flags(), **recorded}
+
+
+def write_config(run_dir: Path, config: RunConfig) -> None:
+    write_json(run_dir / "config.json", config.to_json())
+
+
+CHECKPOINT_FORMAT = "lunar_lander.checkpoint/1"
+
+
+def load_run_config(run_dir: Path) -> RunConfig:
+    """A run folder's config.json, every flag valid (check_run_config)."""
+    recorded = read_run_json(run_dir, "config.json")  # its own error for a missing or bad file
+    try:
+        return check_run_config(recorded)
+    except UsageError as error:
+        raise UsageError(f"{run_dir / 'config.json'}: not a usable run config ({error})") from None
+
+
+def load_checked_config(run_dir: Path) -> RunConfig:
+    """What the results commands read of a run: its config.json, checked, and checked against its
+    checkpoint where it has one (an edit to another task of the same shape would go unseen by
+    the archive's own checks)."""
+    config = load_run_config(run_dir)
+    if (run_dir / "checkpoint.pkl").is_file():
+        check_same_config(config, load_checkpoint(run_dir / "checkpoint.pkl")["config"], run_dir)
+    return config
+
+
+# Flags that config.json may hold apart from its checkpoint: resume writes a larger --iterations
+# into config.json before the run's next checkpoint records it.
+MAY_DIFFER = ("iterations",)
+
+
+def load_run_state(run_dir: Path) -> tuple[RunConfig, dict | None]:
+    """A run folder's config and checkpoint, which must agree (a hand edit of config.json is
+    refused, not silently ignored). A run killed before its first checkpoint (while its cluster
+    started) has only config.json: its checkpoint is None, and resume starts it afresh from that
+    config, which records the seed, so it ends as the uninterrupted run would."""
+    path = run_dir / "checkpoint.pkl"
+    if path.is_file() or not (run_dir / "config.json").is_file():
+        checkpoint = load_checkpoint(path)
+        if (run_dir / "config.json").is_file():
+            check_same_config(load_run_config(run_dir), checkpoint["config"], run_dir)
+        return checkpoint["config"], checkpoint
+    return load_run_config(run_dir), None
+
+
+def check_same_config(recorded: RunConfig, checkpointed: RunConfig, run_dir: Path) -> None:
+    """config.json must say what the checkpoint ran with: a run goes on as it started."""
+    for name in SEARCH_FLAGS:
+        said, ran = getattr(recorded, name), getattr(checkpointed, name)
+        if name not in MAY_DIFFER and name not in CLUSTER_FLAGS and said != ran:
+            raise UsageError(
+                f"{run_dir / 'config.json'} says --{name} {shown(said)} but the run's "
+                f"checkpoint ran with {shown(ran)}: a run goes on with the settings "
+                f"it started with; undo the edit, or start a new run with the flags you want")
+
+
+def check_archive(archive: Any, path: Path, config: RunConfig) -> None:
+    """The archive must be the grid of the run's config: solution size, cells, measure ranges."""
+    from ribs.archives import GridArchive
+
+    if not isinstance(archive, GridArchive):
+        raise UsageError(f"{path}: holds a {type(archive).__name__}, not a GridArchive")
+    grid = archive_grid(config)
+    shape = (archive.solution_dim, tuple(archive.dims), np.round(archive.lower_bounds, 9).tolist(),
+             np.round(archive.upper_bounds, 9).tolist())
+    lower, upper = zip(*grid["ranges"])
+    expected = (grid["solution_dim"], tuple(grid["dims"]), np.round(lower, 9).tolist(),
+                np.round(upper, 9).tolist())
+    if shape[0] != expected[0]:
+        raise UsageError(f"{path}: its solutions have {shape[0]} weights, but --env "
+                         f"{config.env}'s policy has {expected[0]}: an archive of another task's run")
+    if shape != expected:
+        raise UsageError(f"{path}: archive of another shape (solution size, grid, lower and upper "
+                         f"bounds {shape}; the run's --measures {','.join(config.measures)} and "
+                         f"--grid {config.grid} need {expected})")
+
+
+def load_archive(path: Path, config: RunConfig):
+    """A saved archive, checked against the config of the run that uses it."""
+    archive = read_pickle(path, "archive pickle")
+    check_archive(archive, path, config)
+    if len(archive) == 0:
+        raise UsageError(f"{path}: the archive is empty; nothing to start from")
+    return archive
+
+
+def check_run_config(recorded: Any) -> RunConfig:
+    """A run's config from what was recorded (config.json, a checkpoint) or given (a search's
+    flags), upgraded and with every value checked (a UsageError says which is not)."""
+    if not isinstance(recorded, dict):
+        raise UsageError(f"holds a {type(recorded).__name__}, not the flags of a run")
+    config = upgrade(recorded)
+    for name, flag in SEARCH_FLAGS.items():
+        if config[name] is None and flag.default is not None:  # a check passes None: refuse it here
+            raise UsageError(f"--{name} is null")
+        if flag.check is None and not isinstance(config[name], (str, type(None))):
+            raise UsageError(f"--{name} is {shown(config[name])}, not a path or an address")
+    config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
+    for name, (kind, _) in RECORDS.items():
+        if config.get(name) is not None and not isinstance(config[name], RECORD_KINDS[kind]):
+            raise UsageError(f"{name} is {shown(config[name])}, not a {kind}")
+    config = with_task(config)
+    seed_number("seed", config["seed"])
+    check_sizes(config)
+    return RunConfig(**{name: config[name] for name in SEARCH_FLAGS},
+                     **{name: config[name] for name in RECORDS if config.get(name) is not None})
+
+
+RECORD_KINDS = {"str | None": str, "list[str]": list, "dict[str, str]": dict, "list[dict]": list}
+
+
+def load_checkpoint(path: Path) -> dict:
+    """A checkpoint written by this script and consistent with this script's problem."""
+    if not path.is_file():
+        raise UsageError(f"{path}: no checkpoint there (is {path.parent} a run folder of lunar_lander.py?)")
+    checkpoint = read_pickle(path, "checkpoint")
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
+    from ribs.schedulers import Scheduler
+
+    try:
+        checkpoint["config"] = check_run_config(checkpoint["config"])
+        metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
+        if not isinstance(checkpoint["scheduler"], Scheduler):
+            raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
+    except (KeyError, TypeError, UsageError) as error:
+        raise UsageError(f"{path}: checkpoint of an incompatible config ({error})") from None
+    if metrics:
+        check_metrics(metrics, path)
+    if [row["iteration"] for row in metrics if row["iteration"] > 0] != list(range(1, iteration + 1)):
+        raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
+    check_archive(checkpoint["scheduler"].archive, path, checkpoint["config"])
+    return checkpoint
