@@ -22,19 +22,20 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
 
 The work is done by the package `qdsearch`, one module per role, each opening with a map of
 itself; this script is its command line (COMMANDS, `main`: bad input is one line and exit code 2,
-a fault of the machine one line and exit code 1). The tutorial's story, module by module:
-- the problem, `qdsearch/tasks.py`: a task is a row of ENVIRONMENTS (Gymnasium id, the linear
-  policy's shape, its family's episode function, default measures, QD offset); a measure, a row
-  of MEASURES; `fly_lander` and `fly_walker` fly an episode, whose total reward is the objective;
-- the algorithms, `qdsearch/algorithms.py`: rows of ALGORITHMS and `build_scheduler` (pyribs);
-- the evaluation engine, `qdsearch/engine.py` and `qdsearch/cluster.py`: (solution, terrain)
-  chunks flown on Dask workers, in order; the cluster found, joined or started;
-- the run, `qdsearch/run.py`: ask -> evaluate -> tell (`run_loop`), checkpoints (`Run`), the run
-  folder's files, the `search` command and `resume` of a run folder;
-- the flags, `qdsearch/options.py`: every flag declared once;
-- the other commands: `qdsearch/experiments.py` (experiment; resume, which hands a run folder to
-  run.py), `qdsearch/results.py` (video, elites, trajectories, evaluate), `qdsearch/explorer.py`
-  (explore), `qdsearch/comparison.py` (compare).
+a fault of the machine one line and exit code 1). A search tells the tutorial's story:
+1. the problem: a task is a row of ENVIRONMENTS (`qdsearch/lander.py`: the Gymnasium id, the
+   linear policy's shape, default measures, QD offset) and a measure a row of MEASURES; an
+   episode (`fly_lander`) flies the policy W @ obs, and its total reward is the objective;
+2. the flags become a typed, checked RunConfig (`qdsearch/options.py` declares each flag once,
+   `qdsearch/run_config.py` makes the config and reads old folders);
+3. build the scheduler (`qdsearch/algorithms.py`: a row of ALGORITHMS made into pyribs' archive,
+   emitters and Scheduler, seeded from --seed);
+4. each iteration (`qdsearch/loop.py`, the one loop of search, resume and experiment): `Run.ask`
+   the emitters for solutions, `Run.send` them to the Dask workers in chunks (`qdsearch/engine.py`,
+   `qdsearch/cluster.py`), `Run.take` the chunks back, `Run.tell` the scheduler, and every
+   log_every iterations checkpoint and refresh the run folder (heatmap, metrics, archive);
+5. look at the archive: `qdsearch/results.py` (video, elites, trajectories, evaluate),
+   `qdsearch/explorer.py` (explore), `qdsearch/comparison.py` (compare).
 The package never imports this script.
 """
 

@@ -33,12 +33,13 @@ def one_setting(dim: int, rounds: int) -> None:
     import numpy as np
 
     sys.path.insert(0, str(ROOT))
-    from qdsearch import algorithms, options, tasks
+    from qdsearch import algorithms, options, run_config, tasks
 
     # A lander row with a policy of `dim` weights: the scheduler is the search's own.
     lander = tasks.ENVIRONMENTS["LunarLander-v3"]
     tasks.ENVIRONMENTS["bench"] = dataclasses.replace(lander, obs_dim=dim, action_dim=1)
-    config = {**options.search_defaults(), "env": "bench", "seed": 1, "measures": list(lander.measures)}
+    config = run_config.check_run_config({**options.search_defaults(), "env": "bench", "seed": 1,
+                                          "measures": list(lander.measures)})
     scheduler = algorithms.build_scheduler(config)
     rng, digest = np.random.default_rng(0), hashlib.sha256()
     times = []

@@ -23,14 +23,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from qdsearch import engine, options, tasks  # noqa: E402
+from qdsearch import engine, options, run_config, tasks  # noqa: E402
 from qdsearch.cluster import dask_client  # noqa: E402
 
 
 def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8), rounds: int = 3,
          workers: int = 2, batch: int = 150, sigma: float = 0.5) -> None:
     task = tasks.ENVIRONMENTS[env]
-    config = {**options.search_defaults(), "env": env, "env_seed": [52], "measures": list(task.measures)}
+    config = run_config.check_run_config({**options.search_defaults(), "env": env, "seed": 1})
     today = engine.CHUNKS_PER_WORKER
     times: dict[int, list[float]] = {count: [] for count in counts}
     with dask_client(workers, None, logging.getLogger("bench")) as client:

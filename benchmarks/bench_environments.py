@@ -48,7 +48,7 @@ def serial_search(env_name: str, iterations: int) -> dict:
             flight = tasks.fly(solution, 52, env, env_name=env_name)
             flying += time.perf_counter() - start
             steps, episodes = steps + flight.steps, episodes + 1
-            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config["measures"])])
+            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config.measures)])
         rows = np.array(rows)
         scheduler.tell(rows[:, 0], rows[:, 1:])
     return {"fly_s": flying, "steps": steps, "episodes": episodes, "archive": archive_of(scheduler)}

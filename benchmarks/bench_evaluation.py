@@ -35,11 +35,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from qdsearch import algorithms, engine, fast_lander, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, engine, fast_lander, run_config, run_files, tasks  # noqa: E402
+from qdsearch.options import search_defaults  # noqa: E402
 
-CONFIG = dict(algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
-              measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True,
-              env=tasks.DEFAULT_ENV)
+CONFIG = run_config.check_run_config(dict(
+    search_defaults(), algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
+    measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True, env=tasks.DEFAULT_ENV))
 
 
 def tutorial_simulate(model: np.ndarray, seed: int) -> tuple[float, float, float]:
@@ -79,11 +80,11 @@ def serial_evaluate(rollout: Callable) -> Callable:
 
 
 def streamlined_rollout(solution: np.ndarray, seed: int, env) -> tuple[float, ...]:
-    return tasks.rollout(solution, seed, env, env_name=CONFIG["env"])
+    return tasks.rollout(solution, seed, env, env_name=CONFIG.env)
 
 
 def engine_evaluate(client, solutions: np.ndarray, env_seed: int):
-    return engine.evaluate_batch(client, solutions, {**CONFIG, "env_seed": [env_seed]})
+    return engine.evaluate_batch(client, solutions, CONFIG.replace(env_seed=[env_seed]))
 
 
 def run_search(evaluate: Callable, client, iterations: int) -> dict:
@@ -108,7 +109,7 @@ def count_steps(iterations: int) -> int:
         solutions, results = scheduler.ask(), []
         for solution in solutions:
             path: list = []
-            results.append(tasks.rollout(solution, 52, env, trajectory=path, env_name=CONFIG["env"]))
+            results.append(tasks.rollout(solution, 52, env, trajectory=path, env_name=CONFIG.env))
             steps += len(path)
         results = np.array(results)
         scheduler.tell(results[:, 0], results[:, 1:])
@@ -124,7 +125,7 @@ def local_client(workers: int):
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
     client.gather(client.map(engine.fly_chunk, [np.zeros((1, 32))] * workers, env_seeds=[52],
-                             measures=tasks.TUTORIAL_MEASURES, fast_env=True, env_name=CONFIG["env"],
+                             measures=tasks.TUTORIAL_MEASURES, fast_env=True, env_name=CONFIG.env,
                              pure=False))
     return cluster, client
 
@@ -158,7 +159,7 @@ def main(iterations: int = 20, workers: tuple = (1, 2), repeats: int = 3,
          out: str = "benchmarks/results.json") -> None:
     """Median of `repeats` rounds of every variant: a shared machine's speed wanders by ~10%."""
     steps = count_steps(iterations)
-    rollouts = iterations * CONFIG["n_emitters"] * CONFIG["batch_size"]
+    rollouts = iterations * CONFIG.n_emitters * CONFIG.batch_size
     rounds = [run_variants(iterations, tuple(workers)) for _ in range(repeats)]
     def median(key, field):
         return float(np.median([r[key][field] for r in rounds]))

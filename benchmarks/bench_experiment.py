@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import algorithms, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, run_config, run_files, tasks  # noqa: E402
 
 
 def timed(*args: str) -> float:
@@ -49,14 +49,14 @@ def timed(*args: str) -> float:
 def serial_rollout_seconds(configs: list[dict]) -> float:
     """The runs again, in this process: only their rollouts are timed, one after another."""
     total = 0.0
-    for config in configs:
-        env = tasks.make_env(env_name=config["env"])
+    for config in map(run_config.check_run_config, configs):
+        env = tasks.make_env(env_name=config.env)
         scheduler = algorithms.build_scheduler(config)
-        for _ in range(config["iterations"]):
+        for _ in range(config.iterations):
             solutions = scheduler.ask()
             tic = time.perf_counter()
-            rows = np.array([tasks.rollout(s, config["env_seed"][0], env, config["measures"],
-                                           env_name=config["env"]) for s in solutions])
+            rows = np.array([tasks.rollout(s, config.env_seed[0], env, config.measures,
+                                           env_name=config.env) for s in solutions])
             total += time.perf_counter() - tic
             scheduler.tell(rows[:, 0], rows[:, 1:])
     return total

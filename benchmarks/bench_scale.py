@@ -45,7 +45,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import algorithms, engine, experiments, run_config, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, engine, experiments, loop, run_config, run_files, tasks  # noqa: E402
 
 TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start, end), time.time()
 
@@ -63,7 +63,7 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
             flight = tasks.fly(solution, 52, env, env_name=env_name)
             steps_time += time.perf_counter() - start
             lengths.append(flight.steps)
-            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config["measures"])])
+            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config.measures)])
         rows = np.array(rows)
         scheduler.tell(rows[:, 0], rows[:, 1:])
     return lengths, steps_time / sum(lengths)
@@ -96,12 +96,12 @@ class Recorder:
 
     def __init__(self, lengths: list[int], step_s: float) -> None:
         self.lengths, self.step_s, self.batches, self.run = lengths, step_s, [], ""
-        self.original, self.launch = engine.submit_flights, experiments.Experiment.launch
+        self.original, self.launch = engine.submit_flights, loop.Driver.send
         recorder = self
 
-        def launch(experiment, live) -> None:  # which run the next batch is of
-            recorder.run = live.entry["name"]
-            recorder.launch(experiment, live)
+        def launch(driver, run) -> None:  # which run the next batch is of
+            recorder.run = run.name
+            recorder.launch(driver, run)
         self.patched_launch = launch
 
     def __call__(self, client, solutions, env_seeds, measures, *args, **kwargs):
@@ -151,15 +151,15 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, lengths: 
                 client.wait_for_workers(processes, timeout=120)
                 client.run(install_simulation, lengths, step_s)
                 recorder = Recorder(lengths, step_s)
-                experiments.submit_flights = recorder  # the driver's engine call, recorded
-                experiments.Experiment.launch = recorder.patched_launch
+                loop.submit_flights = recorder  # the driver's engine call, recorded
+                loop.Driver.send = recorder.patched_launch
                 try:
                     experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
                                            log_every=iterations, outdir=str(folder / "exp"), env=env_name,
                                            scheduler_file=str(scheduler_file))
                 finally:
-                    experiments.submit_flights = recorder.original
-                    experiments.Experiment.launch = recorder.launch
+                    loop.submit_flights = recorder.original
+                    loop.Driver.send = recorder.launch
                 log = {}
                 for worker_log in client.run(lambda: __import__("bench_scale").TASK_LOG).values():
                     log.update(worker_log)

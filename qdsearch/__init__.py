@@ -7,15 +7,21 @@ Map, a module per role, imports going down the list only:
 - plots: heatmaps and progress curves;
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
   STOP (Ctrl-C and SIGTERM); the package shipped to workers that lack it;
-- fast_env: the streamlined Lunar Lander (bitwise gym.make's);
-- tasks: ENVIRONMENTS and MEASURES, the episodes (`fly`, `rollout`);
+- family: what a task family declares (`Family`, `Environment`, `Measure`), the linear policy;
+- fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
+- lander, walker: a module per task family: its rows, its episode, how it is drawn;
+- tasks: the families gathered: ENVIRONMENTS, MEASURES; an episode (`fly`, `rollout`);
 - algorithms: ALGORITHMS and `build_scheduler`;
-- engine: chunks of rollouts on the workers, back in order (`evaluate_batch`);
+- engine: chunks of rollouts on the workers, back in order;
 - options: every command's flags, declared once, and the bounds on sizes;
-- run: ask -> evaluate -> tell, checkpoints, run folders; `search` and `resume`;
-- experiments: `experiment`, many runs interleaved on one cluster;
+- metrics: a run's metrics rows;
+- run_config: the typed RunConfig made from the flags, `upgrade` of old folders, config.json and
+  the checkpoint read back;
+- loop: the one run loop (`Run`, `Driver`);
+- run: `search` and `resume` of a run folder;
+- experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
 - results: `video`, `elites`, `trajectories`, `evaluate`, and choosing elites;
-- explorer: `explore`, the page (explorer_page.html) and the poses and worlds it plays;
+- explorer: `explore`, the page (explorer_page.html) and the poses it plays;
 - comparison: `compare` and its statistics.
 """
 

@@ -4,6 +4,8 @@ many.
 
 A run's results depend on its own asks and tells only, so a run ends bit for bit the same
 whether it is driven alone or among others, whatever the order its chunks come back in.
+The driver needs only a Dask client and the runs' entries, so it may run in any process that
+reaches the scheduler (the main one today; a worker, through distributed's worker_client, later).
 
 Map:
 - `Saver`: the thread run folders are written in while the runs go on;

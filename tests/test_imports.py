@@ -63,3 +63,19 @@ def test_the_import_check_sees_a_lazy_import_inside_a_function(tmp_path):
     path = tmp_path / "lazy.py"
     path.write_text("def f():\n    from qdsearch import run\n    import lunar_lander\n")
     assert imported_modules(path) >= {"qdsearch.run", "lunar_lander"}
+
+
+def map_order() -> dict[str, int]:
+    """Each module's place in the package's map (qdsearch/__init__.py: "imports going down the
+    list only"); modules named on one line share a place."""
+    text = (PACKAGE / "__init__.py").read_text().split("Map,", 1)[1].split('"""', 1)[0]
+    lines = [line[2:].split(":", 1)[0] for line in text.splitlines() if line.startswith("- ")]
+    return {f"qdsearch.{name}": place for place, line in enumerate(lines) for name in line.split(", ")}
+
+
+def test_every_module_imports_only_those_above_it_in_the_packages_map():
+    order, graph = map_order(), package_graph()
+    assert set(order) == set(graph), set(order) ^ set(graph)  # the map names every module once
+    upward = {module: sorted(m for m in imported if order[m] >= order[module])
+              for module, imported in graph.items()}
+    assert not any(upward.values()), {module: up for module, up in upward.items() if up}
