@@ -38,8 +38,8 @@ def one_setting(dim: int, rounds: int) -> None:
     # A lander row with a policy of `dim` weights: the scheduler is the search's own.
     lander = tasks.ENVIRONMENTS["LunarLander-v3"]
     tasks.ENVIRONMENTS["bench"] = dataclasses.replace(lander, obs_dim=dim, action_dim=1)
-    config = run_config.check_run_config({**options.search_defaults(), "env": "bench", "seed": 1,
-                                          "measures": list(lander.measures)})
+    flags = {**options.search_defaults(), "env": "bench", "seed": 1, "measures": list(lander.measures)}
+    config = run_config.check_run_config(options.with_task(flags))
     scheduler = algorithms.build_scheduler(config)
     rng, digest = np.random.default_rng(0), hashlib.sha256()
     times = []

@@ -30,7 +30,8 @@ from qdsearch.cluster import dask_client  # noqa: E402
 def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8), rounds: int = 3,
          workers: int = 2, batch: int = 150, sigma: float = 0.5) -> None:
     task = tasks.ENVIRONMENTS[env]
-    config = run_config.check_run_config({**options.search_defaults(), "env": env, "seed": 1})
+    flags = {**options.search_defaults(), "env": env, "seed": 1}
+    config = run_config.check_run_config(options.with_task(flags))
     today = engine.CHUNKS_PER_WORKER
     times: dict[int, list[float]] = {count: [] for count in counts}
     with dask_client(workers, None, logging.getLogger("bench")) as client:

@@ -9,7 +9,8 @@ Map, a module per role, imports going down the list only:
   STOP (Ctrl-C and SIGTERM); the package shipped to workers that lack it;
 - family: what a task family declares (`Family`, `Environment`, `Measure`), the linear policy;
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
-- lander, walker: a module per task family: its rows, its episode, how it is drawn;
+- lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
+  each): its rows, its episode, how it is drawn;
 - tasks: the families gathered: ENVIRONMENTS, MEASURES; an episode (`fly`, `rollout`);
 - algorithms: ALGORITHMS and `build_scheduler`;
 - engine: chunks of rollouts on the workers, back in order;
@@ -29,6 +30,9 @@ import os
 
 # Plots are written to files, never shown: no display is needed (set before matplotlib loads).
 os.environ.setdefault("MPLBACKEND", "Agg")
+# MuJoCo renders videos headless through EGL (Debian's libegl1 and libegl-mesa0: Mesa's software
+# renderer on a machine without a GPU); set MUJOCO_GL=osmesa to use libosmesa6 instead.
+os.environ.setdefault("MUJOCO_GL", "egl")
 # ribs' CMA-ES code is written for numba, which compiles it on the first ask/tell of a process
 # (2.6-4.5 s). The compiled code's last bits differ (from the 26th iteration on, for 32 weights),
 # and it is not much faster: 1.31 vs 1.39 ms per ask+tell for 32 weights (the lander), 1.79 vs

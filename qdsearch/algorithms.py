@@ -2,13 +2,16 @@
 
 Map:
 - the ALGORITHMS table (--algorithm): each row's archive kwargs, result archive and emitters;
+- the ARCHIVES table (--archive): how each kind of archive is made (`grid_archives`,
+  `cvt_archives`: a CVT's centroids made once per run, by k-means from the run's seed), where its
+  cells lie (`cell_positions`) and an empty archive of the same cells (`empty_like`);
 - `task_of`, `derive_seeds` (the archive's and each emitter's seed, from the run's),
-  `archive_grid` and `build_scheduler` (a run's pyribs Scheduler, from its config).
+  `archive_shape` and `build_scheduler` (a run's pyribs Scheduler, from its config).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -65,12 +68,76 @@ def derive_seeds(seed: int, count: int) -> list[int]:
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
 
 
-def archive_grid(config: Any) -> dict[str, Any]:
-    """The archive's cells: --grid of them along each of the run's --measures, over its range."""
-    measures = config.measures
+def archive_shape(config: Any) -> dict[str, Any]:
+    """What every archive of the run shares: the solution size, the measures' ranges, the offset."""
     task = task_of(config)
-    return dict(solution_dim=task.solution_dim, dims=(config.grid,) * len(measures),
-                ranges=[MEASURES[name].range for name in measures], qd_score_offset=task.qd_offset)
+    return dict(solution_dim=task.solution_dim, ranges=[MEASURES[name].range for name in config.measures],
+                qd_score_offset=task.qd_offset)
+
+
+def grid_archives(config: Any) -> Callable[..., Any]:
+    """Empty grid archives of the run: --grid cells along each of its measures."""
+    from ribs.archives import GridArchive
+
+    shape, dims = archive_shape(config), (config.grid,) * len(config.measures)
+    return lambda **kwargs: GridArchive(**shape, dims=dims, **kwargs)
+
+
+CVT_SAMPLES = 100_000  # points k-means clusters into the centroids (pyribs' default)
+
+
+def cvt_archives(config: Any) -> Callable[..., Any]:
+    """Empty CVT archives of the run: --cells centroids, made once by k-means over points drawn
+    uniformly in the measures' ranges (pyribs' k_means_centroids), seeded from the run's seed
+    apart from the archive's and emitters' seeds (a grid run's seeds stay as they were)."""
+    from ribs.archives import CVTArchive, k_means_centroids
+
+    shape = archive_shape(config)
+    seed = int(np.random.SeedSequence([config.seed, 0xC07]).generate_state(1)[0])
+    centroids, _ = k_means_centroids(centroids=config.cells, ranges=shape["ranges"],
+                                     samples=CVT_SAMPLES, seed=seed)
+    return lambda **kwargs: CVTArchive(**shape, centroids=centroids, **kwargs)
+
+
+def grid_positions(archive: Any, indices: np.ndarray) -> np.ndarray:
+    return archive.int_to_grid_index(indices).astype(float)
+
+
+def cvt_positions(archive: Any, indices: np.ndarray) -> np.ndarray:
+    """A CVT cell's place: its centroid, in units of its measures' ranges."""
+    return (archive.centroids[indices] - archive.lower_bounds) / (archive.upper_bounds - archive.lower_bounds)
+
+
+def empty_grid(archive: Any) -> Any:
+    from ribs.archives import GridArchive
+
+    return GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
+                       ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+
+
+def empty_cvt(archive: Any) -> Any:
+    from ribs.archives import CVTArchive
+
+    return CVTArchive(solution_dim=archive.solution_dim, centroids=archive.centroids,
+                      ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+
+
+# The kinds of archive (--archive): the flag that sizes it, how a run makes its archives, where a
+# cell lies (to find the nearest occupied one), and an empty archive of the same cells (evaluate's
+# means). A grid grows
+# as cells^measures, so it takes at most MAX_GRID_MEASURES; a CVT archive has --cells cells
+# whatever the number of measures (QDax's default for QD-RL: 1,024).
+ARCHIVES: dict[str, dict[str, Any]] = {
+    "grid": {"class": "GridArchive", "size": "grid", "make": grid_archives,
+             "positions": grid_positions, "empty_like": empty_grid},
+    "cvt": {"class": "CVTArchive", "size": "cells", "make": cvt_archives,
+            "positions": cvt_positions, "empty_like": empty_cvt},
+}
+
+
+def kind_of(archive: Any) -> str | None:
+    """The ARCHIVES name of an archive object's kind (None: not one of ours)."""
+    return next((name for name, row in ARCHIVES.items() if type(archive).__name__ == row["class"]), None)
 
 
 def build_scheduler(config: Any, x0: np.ndarray | None = None):
@@ -79,15 +146,14 @@ def build_scheduler(config: Any, x0: np.ndarray | None = None):
     The emitters start from `x0` (default: zeros, as in the tutorial).
     """
     from ribs import emitters as ribs_emitters
-    from ribs.archives import GridArchive
     from ribs.schedulers import Scheduler
 
     spec = ALGORITHMS[config.algorithm]
     # A result archive's seed comes last, so the other seeds are those of a run without one.
     archive_seed, *emitter_seeds, result_seed = derive_seeds(config.seed, config.n_emitters + 2)
-    grid = archive_grid(config)
-    archive = GridArchive(**grid, seed=archive_seed, **spec["archive"](config))
-    result_archive = GridArchive(**grid, seed=result_seed) if spec["result_archive"] else None
+    make = ARCHIVES[config.archive]["make"](config)
+    archive = make(seed=archive_seed, **spec["archive"](config))
+    result_archive = make(seed=result_seed) if spec["result_archive"] else None
     emitter_class = getattr(ribs_emitters, spec["emitter"])
     emitters = [
         emitter_class(

@@ -161,6 +161,8 @@ def run_setting(config: dict) -> str:
             continue
         with contextlib.suppress(UsageError):
             value = check_flags(SEARCH_FLAGS, {flag: config[flag]})[flag]  # 52 and [52]: one terrain
+            if value is None:  # a flag of another archive kind (--grid of a CVT run)
+                continue
             if value != defaults[flag] or flag in own:
                 changed.append(f"{flag}={','.join(map(str, value)) if isinstance(value, list) else value}")
     return " ".join([str(config.get("algorithm", "?")), *changed])

@@ -19,13 +19,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.algorithms import task_of
+from qdsearch.algorithms import cvt_positions, kind_of, task_of
 from qdsearch.cluster import dask_client, scheduler_of
 from qdsearch.engine import gather_with_progress, worker_env
 from qdsearch.flags import takes
 from qdsearch.metrics import load_metrics
 from qdsearch.options import CLUSTER_FLAGS, TERRAIN_FLAGS, checked
-from qdsearch.plots import HEATMAP_RANGE
 from qdsearch.results import elite_rows, load_run, shown_terrain
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import atomic_write, check_writable, console_log
@@ -80,6 +79,18 @@ def record_flight(solution: np.ndarray, env_seed: int, env: gym.Env, env_name: s
     return np.clip(np.round(values * family.pose_scale), -32767, 32767).astype("<i2")
 
 
+PAGE_BINS = 50  # a CVT archive's map on the page: its first two measures' ranges cut 50 x 50
+
+
+def page_cells(archive, indices: np.ndarray) -> tuple[list[int], np.ndarray]:
+    """The page's map and each elite's cell on it: a grid's own cells; for a CVT archive, the bin
+    of its cell's centroid (the best elite of a bin is shown, as over a grid's third measure)."""
+    if kind_of(archive) != "cvt":
+        return [int(d) for d in archive.dims], archive.int_to_grid_index(indices)
+    bins = np.clip((cvt_positions(archive, indices)[:, :2] * PAGE_BINS).astype(int), 0, PAGE_BINS - 1)
+    return [PAGE_BINS] * min(2, archive.measure_dim), bins
+
+
 def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarray], env_seed: int,
                   run_dir: Path, metrics: list[dict]) -> dict:
     """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
@@ -88,7 +99,7 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
     import matplotlib
 
     offsets = np.cumsum([0, *(len(poses) for poses in flights)])
-    grid = archive.int_to_grid_index(rows["index"])
+    dims, grid = page_cells(archive, rows["index"])
     robust = {}
     if (run_dir / "robustness.csv").is_file():
         import pandas as pd
@@ -110,7 +121,7 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
         "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
                       "range": [float(lo), float(hi)]}
                      for name, lo, hi in zip(config.measures, archive.lower_bounds, archive.upper_bounds)],
-        "dims": [int(d) for d in archive.dims], "heat_range": list(HEATMAP_RANGE),
+        "dims": dims, "heat_range": list(task.heat),
         "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
         "elites": elites, "pose_scale": list(task.family.pose_scale),
         "poses": base64.b64encode(np.concatenate(flights).tobytes()).decode(),

@@ -49,7 +49,8 @@ class Environment:
     """A Gymnasium task a search can fly (a row of ENVIRONMENTS, picked by --env).
 
     The policy is W @ obs with no bias: `action_dim` rows of `obs_dim` weights, the solution the
-    QD algorithm searches. Its family flies the episode and gives its measures.
+    QD algorithm searches. Its family flies the episode and gives its measures; `objective` says
+    what of the episode is maximised.
     """
 
     gym_id: str
@@ -63,6 +64,9 @@ class Environment:
     env_seed: str  # what --env_seed picks in this task
     solved: float  # the return its env calls solved
     fast: Callable[[], gym.Env] | None = None  # a streamlined copy, bitwise the same
+    heat: tuple[float, float] = (-300.0, 300.0)  # the heatmaps' colour range of objectives
+    objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
+    # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)
 
     @property
     def solution_dim(self) -> int:
@@ -73,13 +77,13 @@ class Environment:
 class Measure:
     """One behaviour solutions are told apart by: its axis label, its range in the archive (values
     outside fall into the edge cells), a short name for file names, how an episode's summary gives
-    it, and the family whose summary that is."""
+    it, and the families whose summary that is (several robots may share a measure)."""
 
     label: str
     range: tuple[float, float]
     short: str
     of: Callable[[Any], float]
-    family: Family
+    families: tuple[Family, ...]
     descending: bool = False  # its axis drawn from the lower bound at the top (the tutorial puts the
     # fastest impacts, the most negative y-velocities, on top)
 

@@ -217,21 +217,21 @@ ENVIRONMENTS: dict[str, Environment] = {
 MEASURES: dict[str, Measure] = {
     # The tutorial's two: where and how fast the lander comes down (without a touchdown: its last
     # x-position and its fastest descent).
-    "impact_x": Measure("Impact x-position", (-1.0, 1.0), "x", lambda f: f.impact[0], LANDER),
+    "impact_x": Measure("Impact x-position", (-1.0, 1.0), "x", lambda f: f.impact[0], (LANDER,)),
     "impact_y_velocity": Measure(
-        "Impact y-velocity", (-3.0, 0.0), "v", descending=True, family=LANDER,
+        "Impact y-velocity", (-3.0, 0.0), "v", descending=True, families=(LANDER,),
         of=lambda f: f.min_y_velocity if f.touchdown is None else f.touchdown[3]),
-    "impact_x_velocity": Measure("Impact x-velocity", (-3.0, 3.0), "vx", lambda f: f.impact[2], LANDER),
+    "impact_x_velocity": Measure("Impact x-velocity", (-3.0, 3.0), "vx", lambda f: f.impact[2], (LANDER,)),
     # Angles are not wrapped: a lander that tumbles goes past pi, into the edge cells.
     "impact_angle": Measure("Impact angle (rad)", (-math.pi, math.pi), "angle", lambda f: f.impact[4],
-                            LANDER),
+                            (LANDER,)),
     # Fuel in main-engine firings at full power: a side firing costs a tenth of one, as in the
     # env's reward (with throttles: each firing weighed by its power).
     "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 600.0), "fuel",
-                    lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT]), LANDER),
+                    lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT]), (LANDER,)),
     # A lander falling freely touches down after ~51 steps; one that hovers flies all 1000.
     "flight_time": Measure("Steps to touchdown", (50.0, 1000.0), "steps",
-                           lambda f: f.steps if f.touchdown_step is None else f.touchdown_step, LANDER),
+                           lambda f: f.steps if f.touchdown_step is None else f.touchdown_step, (LANDER,)),
     "max_tilt": Measure("Largest tilt before touchdown (rad)", (0.0, math.pi), "tilt",
-                        lambda f: f.max_tilt, LANDER),
+                        lambda f: f.max_tilt, (LANDER,)),
 }

@@ -41,7 +41,7 @@ from qdsearch.metrics import describe_progress, iteration_metrics
 from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.run_files import RunError, atomic_write, fault_text, write_csv, write_json, write_pickle
-from qdsearch.tasks import MEASURES
+from qdsearch.tasks import ENVIRONMENTS, MEASURES
 
 
 class Saver(ThreadPoolExecutor):
@@ -98,6 +98,8 @@ class Run:
                       [iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0)], log)
             log.info(f"Warm start: {len(elites)} elites re-evaluated, {len(scheduler.result_archive)} "
                      f"kept; emitters start from the best (objective {objectives.max():.1f})")
+        if hasattr(run.scheduler.archive, "centroids"):  # a CVT archive's cells, for a reader to see
+            atomic_write(run_dir / "centroids.npy", lambda f: np.save(f, run.scheduler.archive.centroids))
         run.save_checkpoint(force=True)
         return run
 
@@ -200,7 +202,8 @@ def save_outputs(run_dir: Path, checkpoint: dict) -> None:
     write_csv(run_dir / "archive.csv", table)
     title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
-    save_heatmap(archive, [MEASURES[m] for m in checkpoint["config"]["measures"]], snapshot, title)
+    save_heatmap(archive, [MEASURES[m] for m in checkpoint["config"]["measures"]], snapshot, title,
+                 ENVIRONMENTS[checkpoint["config"]["env"]].heat)
     atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
     save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
 

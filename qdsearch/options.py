@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from qdsearch.algorithms import ALGORITHMS
+from qdsearch.algorithms import ALGORITHMS, ARCHIVES
 from qdsearch.family import Family
 from qdsearch.flags import (
     Flag,
@@ -35,7 +35,10 @@ from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, FAMILIES, MEASURES, family
 # Every size a user gives is bounded before anything is allocated or written (check_sizes and the
 # flags' checks): each bound is far past what QD papers run (1,000s of solutions per iteration,
 # 10,000s of iterations), and what it lets a run hold at once stays within a laptop's memory.
-MAX_CELLS = 1_000_000  # --grid ** len(--measures): each cell keeps one solution
+MAX_CELLS = 1_000_000  # --grid ** len(--measures), or --cells: each cell keeps one solution
+MAX_GRID_MEASURES = 4  # a grid's cells are --grid ** measures
+MAX_MEASURES = 10  # a CVT archive's: k-means and the nearest centroid work in any dimension
+DEFAULT_GRID, DEFAULT_CVT_CELLS = 50, 1024  # the tutorial's 50 x 50; QDax's 1,024 centroids
 MAX_ITERATIONS = 1_000_000  # the checkpoint keeps a row of metrics (~1 KB in memory) per iteration
 MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights covariance)
 MAX_SOLUTIONS = 100_000  # asked per iteration (n_emitters * batch_size): 173 MB of 216 weights
@@ -62,8 +65,8 @@ def ignores(algorithm: str, flag: str) -> bool:
 def check_sizes(config: dict) -> None:
     """The sizes that flags make together are bounded too: the archive's cells, the solutions
     asked per iteration and the rollouts they are flown in."""
-    cells, solutions = config["grid"] ** len(config["measures"]), config["n_emitters"] * config["batch_size"]
-    if cells > MAX_CELLS:
+    solutions = config["n_emitters"] * config["batch_size"]
+    if config["archive"] == "grid" and (cells := config["grid"] ** len(config["measures"])) > MAX_CELLS:
         raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
                          f"{cells:,} cells; at most {MAX_CELLS:,}")
     if solutions > MAX_SOLUTIONS:
@@ -115,13 +118,22 @@ SEARCH_FLAGS: dict[str, Flag] = {
                          "list (3,5,8) or both (0-4,10). With several terrains the objective is "
                          "the mean return over them, and each measure is its per-terrain values "
                          "averaged.", seed_list, label=1, text=True),
-    "measures": Flag(None, "1 to 3 rows of the MEASURES table of the task's family, "
+    "measures": Flag(None, f"1 to {MAX_GRID_MEASURES} rows (with --archive cvt up to {MAX_MEASURES}) "
+                           "of the MEASURES table of the task's family, "
                            "comma-separated, as the archive's axes; default: the task's own. "
                            + "; ".join(f"{family.title}: {', '.join(family_measures(family))} ("
                                        f"{','.join(default_measures(family))} by default)"
                                        for family in FAMILIES) + ".",
-                     distinct_names(MEASURES, "measures", 3), label=2, text=True),
-    "grid": Flag(50, "Archive cells along each measure.", positive_int, sweep=True, label=3),
+                     distinct_names(MEASURES, "measures", MAX_MEASURES), label=2, text=True),
+    "archive": Flag("grid", "The kind of archive, a row of ARCHIVES: grid (--grid cells along each "
+                            f"of at most {MAX_GRID_MEASURES} measures) or cvt (--cells centroids, "
+                            f"any number of measures up to {MAX_MEASURES}; pyribs' CVTArchive).",
+                    one_of(ARCHIVES), label=8),
+    "grid": Flag(None, f"Grid archive: cells along each measure; default {DEFAULT_GRID}.", positive_int,
+                 sweep=True, label=3, before=DEFAULT_GRID),
+    "cells": Flag(None, f"CVT archive: its cells (centroids, made once by k-means and kept in the "
+                        f"run); default {DEFAULT_CVT_CELLS}, at least 2^measures.",
+                  whole_number_up_to(MAX_CELLS), sweep=True, label=9),
     "algorithm": Flag("cma_me", "Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae "
                                 "(CMA-MAE) or map_elites (MAP-Elites with Gaussian mutation); "
                                 "each asks n_emitters * batch_size solutions per iteration.",
@@ -187,15 +199,34 @@ def checked(name: str, value: Any) -> Any:
 
 
 def with_task(config: dict[str, Any]) -> dict[str, Any]:
-    """The config with its task's default measures if it names none, and its measures checked
-    against its task (a walker has no impact x)."""
+    """The config with its task's default measures if it names none, its measures checked against
+    its task (a walker has no impact x), and its archive's cells: --grid for a grid (at most
+    MAX_GRID_MEASURES measures), --cells for a CVT (at least 2^measures: fewer cells can't tell
+    apart even the two halves of each measure's range)."""
     env = config["env"]
     task = ENVIRONMENTS[env]
     measures = list(task.measures if config.get("measures") is None else config["measures"])
-    if wrong := [name for name in measures if MEASURES[name].family is not task.family]:
+    if wrong := [name for name in measures if task.family not in MEASURES[name].families]:
         raise UsageError(f"--measures {wrong[0]} is not a measure of --env {env}; its measures: "
                          + ", ".join(family_measures(task.family)))
-    return {**config, "env": env, "measures": measures}
+    archive, grid, cells = config.get("archive", "grid"), config.get("grid"), config.get("cells")
+    if archive == "grid":
+        if cells is not None:
+            raise UsageError("--cells is for --archive cvt; a grid archive has --grid cells along "
+                             "each measure")
+        if len(measures) > MAX_GRID_MEASURES:
+            raise UsageError(f"--measures: {len(measures)} measures on a grid archive; a grid takes "
+                             f"at most {MAX_GRID_MEASURES} (its cells grow as --grid^measures): use "
+                             f"--archive cvt")
+        grid = DEFAULT_GRID if grid is None else grid
+    else:
+        if grid is not None:
+            raise UsageError("--grid is for --archive grid; a CVT archive has --cells centroids")
+        cells = DEFAULT_CVT_CELLS if cells is None else cells
+        if cells < 2 ** len(measures):
+            raise UsageError(f"--cells {cells} is too few for {len(measures)} measures: a CVT archive "
+                             f"needs at least 2^{len(measures)} = {2 ** len(measures)} cells")
+    return {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
 
 
 def search_defaults() -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """The pictures of a run folder and of a comparison, drawn with matplotlib and ribs.visualize.
 
 Map:
-- `save_heatmap`: the tutorial's heatmap of an archive (a strip for one measure; for three, the
-  best elite over the third), on the fixed colour range HEATMAP_RANGE;
+- `save_heatmap`: the tutorial's heatmap of an archive on its task's colour range (`draw_grid`: a
+  strip for one measure; for more, the best elite over the others; `draw_cvt`: the Voronoi cells,
+  or parallel axes past two measures);
 - `save_progress_plot` and `save_metric_panels`: QD score, coverage and best objective (the
   PROGRESS_PANELS) against iterations or evaluations, one curve per run or the mean and its 95%
   bootstrap band (`mean_band`) per group of runs.
@@ -19,35 +20,57 @@ import numpy as np
 
 from qdsearch.run_files import atomic_write
 
-HEATMAP_RANGE = (-300, 300)
 
-
-def save_heatmap(archive, axes: list, path: Path, title: str) -> None:
-    """The tutorial's heatmap: objective per cell (the fastest impacts on top). One measure
-    gives a strip; with three, each cell of the first two shows the best elite over the third."""
+def save_heatmap(archive, axes: list, path: Path, title: str, heat: tuple[float, float]) -> None:
+    """The tutorial's heatmap: objective per cell, on the task's fixed colour range `heat` (the
+    fastest impacts on top). A grid of one measure gives a strip; of more, each cell of the first
+    two shows the best elite over the others. A CVT archive of one or two measures draws its
+    Voronoi cells; of more, each elite is a line across the measures' axes (parallel axes)."""
     import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 6))
+    fig.subplots_adjust(left=0.1, right=0.99, bottom=0.09, top=0.94)  # a fixed layout draws once
+    draw = draw_cvt if type(archive).__name__ == "CVTArchive" else draw_grid
+    ax.set_title(title + draw(archive, ax, axes, heat))
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    plt.close(fig)
+
+
+def draw_grid(archive, ax, axes: list, heat: tuple[float, float]) -> str:
     from ribs.archives import GridArchive
     from ribs.visualize import grid_archive_heatmap
 
-    if archive.measure_dim == 3:
+    note, shown = "", archive
+    if archive.measure_dim > 2:
         data = archive.data(["solution", "objective", "measures"])
         shown = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims[:2],
                             ranges=list(zip(archive.lower_bounds[:2], archive.upper_bounds[:2])))
         shown.add(data["solution"], data["objective"], data["measures"][:, :2])
-        title += f" (best over {axes[2].label.lower()})"
-    else:
-        shown = archive
-    fig, ax = plt.subplots(figsize=(8, 6))
-    fig.subplots_adjust(left=0.1, right=0.99, bottom=0.09, top=0.94)  # a fixed layout draws once
-    grid_archive_heatmap(shown, ax=ax, vmin=HEATMAP_RANGE[0], vmax=HEATMAP_RANGE[1])
+        note = f" (best over {', '.join(axis.label.lower() for axis in axes[2:])})"
+    grid_archive_heatmap(shown, ax=ax, vmin=heat[0], vmax=heat[1])
+    label_axes(ax, axes)
+    return note
+
+
+def draw_cvt(archive, ax, axes: list, heat: tuple[float, float]) -> str:
+    from ribs.visualize import cvt_archive_heatmap, parallel_axes_plot
+
+    if archive.measure_dim <= 2:
+        cvt_archive_heatmap(archive, ax=ax, vmin=heat[0], vmax=heat[1], lw=0.2)
+        label_axes(ax, axes)
+        return ""
+    ax.figure.subplots_adjust(top=0.87)  # room for the axes' names under the title
+    parallel_axes_plot(archive, ax=ax, vmin=heat[0], vmax=heat[1], linewidth=0.6, alpha=0.5,
+                       measure_order=[(i, axis.short) for i, axis in enumerate(axes)])
+    return f" ({archive.measure_dim} measures: an elite per line)"
+
+
+def label_axes(ax, axes: list) -> None:
     ax.set_xlabel(axes[0].label)
     if len(axes) > 1:
         ax.set_ylabel(axes[1].label)
         if axes[1].descending:
             ax.invert_yaxis()
-    ax.set_title(title)
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
-    plt.close(fig)
 
 
 PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),

@@ -27,7 +27,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.algorithms import task_of
+from qdsearch.algorithms import ARCHIVES, kind_of, task_of
 from qdsearch.cluster import STOP, dask_client, scheduler_of
 from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_flights
 from qdsearch.flags import UsageError, check_flags, positive_int, seed_list, shown, takes
@@ -84,7 +84,7 @@ def parse_cells(cells: Any, measures: list[str]) -> list[tuple[float, ...]]:
 def parse_indices(index: Any, archive) -> list[int]:
     """--index as one archive cell index or several (the cell_index column of `elites`)."""
     values = list(index) if isinstance(index, (tuple, list)) else [index]
-    cells = int(np.prod(archive.dims))
+    cells = int(archive.cells)
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
             raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
@@ -115,10 +115,11 @@ def pick(rows: dict[str, np.ndarray], i: int, name: str) -> dict:
 
 
 def nearest_occupied(archive, point: tuple[float, ...]) -> dict:
-    """The elite whose cell is nearest the point's cell, counting in cells (ties: lowest index)."""
-    rows = elite_rows(archive)
-    target = archive.int_to_grid_index([archive.index_of_single(point)])[0]
-    distance = np.linalg.norm(archive.int_to_grid_index(rows["index"]) - target, axis=1)
+    """The elite whose cell is nearest the point's cell (ties: lowest index): counting in cells on
+    a grid, between centroids (in units of the ranges) in a CVT archive."""
+    rows, positions = elite_rows(archive), ARCHIVES[kind_of(archive)]["positions"]
+    target = positions(archive, np.array([archive.index_of_single(point)]))[0]
+    distance = np.linalg.norm(positions(archive, rows["index"]) - target, axis=1)
     return pick(rows, int(np.lexsort((rows["index"], distance))[0]), "")
 
 
@@ -433,7 +434,6 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
         env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10.
         top: Only the K elites with the highest objectives (default: all).
     """
-    from ribs.archives import GridArchive
 
     archive, config = load_run(run_dir)
     seeds, workers = seed_list("env_seeds", env_seeds), checked("workers", flags["workers"])
@@ -453,11 +453,11 @@ def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None =
     solved = task_of(config).solved
     table = robustness_table(rows, config.measures, seeds, objectives, solved)
     write_csv(run / "robustness.csv", table)
-    means = GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
-                        ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+    means = ARCHIVES[config.archive]["empty_like"](archive)
     means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
     save_heatmap(means, [MEASURES[m] for m in config.measures], run / "robustness_heatmap.png",
-                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})")
+                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})",
+                 task_of(config).heat)
     solves = table["solved_share"]
     print(f"{len(table)} elites on {len(seeds)} terrains: "
           f"mean objective {table['mean_objective'].mean():.1f}; "

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.algorithms import archive_grid
+from qdsearch.algorithms import ARCHIVES, archive_shape, kind_of
 from qdsearch.flags import Flag, UsageError, check_flags, seed_number, shown
 from qdsearch.metrics import check_metrics
 from qdsearch.options import (
@@ -46,8 +46,12 @@ RECORDS: dict[str, tuple[str, Any]] = {
 
 
 def flag_type(flag: Flag) -> str:
-    """A flag's type in a run's config: what its check returns (no check: a path or an address)."""
-    return flag.check.__annotations__.get("return", "Any") if flag.check else "str | None"
+    """A flag's type in a run's config: what its check returns (no check: a path or an address;
+    a flag without a default may be unset: --grid of a CVT run)."""
+    if flag.check is None:
+        return "str | None"
+    kind = flag.check.__annotations__.get("return", "Any")
+    return f"{kind} | None" if flag.default is None else kind
 
 
 class Settings:
@@ -137,24 +141,26 @@ def check_same_config(recorded: RunConfig, checkpointed: RunConfig, run_dir: Pat
 
 
 def check_archive(archive: Any, path: Path, config: RunConfig) -> None:
-    """The archive must be the grid of the run's config: solution size, cells, measure ranges."""
-    from ribs.archives import GridArchive
-
-    if not isinstance(archive, GridArchive):
-        raise UsageError(f"{path}: holds a {type(archive).__name__}, not a GridArchive")
-    grid = archive_grid(config)
-    shape = (archive.solution_dim, tuple(archive.dims), np.round(archive.lower_bounds, 9).tolist(),
-             np.round(archive.upper_bounds, 9).tolist())
-    lower, upper = zip(*grid["ranges"])
-    expected = (grid["solution_dim"], tuple(grid["dims"]), np.round(lower, 9).tolist(),
-                np.round(upper, 9).tolist())
-    if shape[0] != expected[0]:
-        raise UsageError(f"{path}: its solutions have {shape[0]} weights, but --env "
-                         f"{config.env}'s policy has {expected[0]}: an archive of another task's run")
-    if shape != expected:
-        raise UsageError(f"{path}: archive of another shape (solution size, grid, lower and upper "
-                         f"bounds {shape}; the run's --measures {','.join(config.measures)} and "
-                         f"--grid {config.grid} need {expected})")
+    """The archive must be the run's: its kind (--archive), solution size, cells and measure
+    ranges."""
+    kind = kind_of(archive)
+    if kind != config.archive:
+        raise UsageError(f"{path}: holds a {type(archive).__name__}, not the "
+                         f"{ARCHIVES[config.archive]['class']} of the run's --archive {config.archive}")
+    shape = archive_shape(config)
+    if archive.solution_dim != shape["solution_dim"]:
+        raise UsageError(f"{path}: its solutions have {archive.solution_dim} weights, but --env "
+                         f"{config.env}'s policy has {shape['solution_dim']}: an archive of another "
+                         f"task's run")
+    lower, upper = zip(*shape["ranges"])
+    cells = tuple(archive.dims) if kind == "grid" else archive.cells
+    found = (cells, np.round(archive.lower_bounds, 9).tolist(), np.round(archive.upper_bounds, 9).tolist())
+    expected = ((config.grid,) * len(config.measures) if kind == "grid" else config.cells,
+                np.round(lower, 9).tolist(), np.round(upper, 9).tolist())
+    if found != expected:
+        size = f"--grid {config.grid}" if kind == "grid" else f"--cells {config.cells}"
+        raise UsageError(f"{path}: archive of another shape (cells, lower and upper bounds {found}; "
+                         f"the run's --measures {','.join(config.measures)} and {size} need {expected})")
 
 
 def load_archive(path: Path, config: RunConfig):
@@ -178,6 +184,8 @@ def check_run_config(recorded: Any) -> RunConfig:
         if flag.check is None and not isinstance(config[name], (str, type(None))):
             raise UsageError(f"--{name} is {shown(config[name])}, not a path or an address")
     config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
+    if config[size := ARCHIVES[config["archive"]]["size"]] is None:  # what sizes its archive
+        raise UsageError(f"--{size} is null")
     for name, (kind, _) in RECORDS.items():
         if config.get(name) is not None and not isinstance(config[name], RECORD_KINDS[kind]):
             raise UsageError(f"{name} is {shown(config[name])}, not a {kind}")

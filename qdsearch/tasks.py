@@ -19,12 +19,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch import lander, walker
+from qdsearch import lander, locomotion, walker
 from qdsearch.family import Environment, Family, Measure, OnStep
 from qdsearch.flags import UsageError
 
-FAMILIES: tuple[Family, ...] = (lander.LANDER, walker.WALKER)
-FAMILY_MODULES = (lander, walker)  # each declares ENVIRONMENTS and MEASURES rows of its family
+FAMILIES: tuple[Family, ...] = (lander.LANDER, walker.WALKER, *locomotion.PLANAR, locomotion.ANT)
+FAMILY_MODULES = (lander, walker, locomotion)  # each declares ENVIRONMENTS and MEASURES rows
 
 # The tasks (--env) and the measures (--measures picks 1 to 3 of its task's family, in order).
 ENVIRONMENTS: dict[str, Environment] = {
@@ -36,7 +36,7 @@ TUTORIAL_MEASURES = ENVIRONMENTS[DEFAULT_ENV].measures  # what old run folders u
 
 
 def family_measures(family: Family) -> list[str]:
-    return [name for name, measure in MEASURES.items() if measure.family is family]
+    return [name for name, measure in MEASURES.items() if family in measure.families]
 
 
 def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str) -> gym.Env:
@@ -84,7 +84,7 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
 def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
             trajectory: list | None = None, *, env_name: str) -> tuple[float, ...]:
     """(objective, *measures) of one episode (default: the task's measures): the objective is the
-    episode's total reward."""
-    flight = fly(solution, env_seed, env, trajectory, env_name=env_name)
-    measures = ENVIRONMENTS[env_name].measures if measures is None else measures
-    return (float(flight.reward), *(float(MEASURES[name].of(flight)) for name in measures))
+    task's (its total reward, for every task but ant_omni)."""
+    flight, task = fly(solution, env_seed, env, trajectory, env_name=env_name), ENVIRONMENTS[env_name]
+    measures = task.measures if measures is None else measures
+    return (float(task.objective(flight)), *(float(MEASURES[name].of(flight)) for name in measures))

@@ -126,7 +126,7 @@ def scene(env_seed: int, task: Environment) -> dict:
     bodies.append({"points": [[x / upstream.SCALE, y / upstream.SCALE] for x, y in upstream.HULL_POLY],
                    "at": [0, 1, 2], "colours": ("#8066e6", "#4d4d80")})
     return {"width": upstream.VIEWPORT_W / upstream.SCALE, "height": upstream.VIEWPORT_H / upstream.SCALE,
-            "fps": upstream.FPS, "episode": "Walk", "sky": "#e6e6ff", "path": "#c33", "follow": 0.2,
+            "fps": upstream.FPS, "episode": "Walk", "sky": "#e6e6ff", "path": "#c33", "follow": [0.2, None],
             "statics": statics, "bodies": bodies}
 
 
@@ -166,13 +166,13 @@ MEASURES: dict[str, Measure] = {
     # The QD literature's walker measures (Cully et al. 2015's duty factor): the share of steps
     # each foot touches the ground.
     "foot1_contact": Measure("Share of steps foot 1 touches the ground", (0.0, 1.0), "foot1",
-                             lambda w: w.share(0), WALKER),
+                             lambda w: w.share(0), (WALKER,)),
     "foot2_contact": Measure("Share of steps foot 2 touches the ground", (0.0, 1.0), "foot2",
-                             lambda w: w.share(1), WALKER),
+                             lambda w: w.share(1), (WALKER,)),
     # How far, and how fast: the course is ~88 m from the start to its end.
-    "distance": Measure("Distance walked (m)", (-10.0, 90.0), "dist", lambda w: w.distance, WALKER),
+    "distance": Measure("Distance walked (m)", (-10.0, 90.0), "dist", lambda w: w.distance, (WALKER,)),
     "speed": Measure("Mean speed (m/s)", (-1.0, 3.0), "speed",
-                     lambda w: w.distance * 50 / max(w.steps, 1), WALKER),  # 50 steps a second
+                     lambda w: w.distance * 50 / max(w.steps, 1), (WALKER,)),  # 50 steps a second
     "hull_angle": Measure("Mean hull angle (rad)", (-1.0, 1.0), "hull",
-                          lambda w: w.hull_angles / max(w.steps, 1), WALKER),
+                          lambda w: w.hull_angles / max(w.steps, 1), (WALKER,)),
 }

@@ -61,8 +61,10 @@ def test_the_readmes_flag_table_says_what_the_flag_table_declares():
     for name, default in rows:
         assert name in options.SEARCH_FLAGS, name
         flag = options.SEARCH_FLAGS[name]
-        expected = shown.get(flag.default, [str(flag.default)]) if name != "outdir" else [
-            "`outputs/<timestamp>_seed<seed>`"]
+        expected = {"outdir": ["`outputs/<timestamp>_seed<seed>`"],  # the default says where
+                    "grid": [f"{options.DEFAULT_GRID} on a grid"],  # or of what archive
+                    "cells": [f"{options.DEFAULT_CVT_CELLS} in a CVT"]}.get(
+            name, shown.get(flag.default, [str(flag.default)]))
         assert default.strip() in expected, (name, default)
 
 

@@ -312,7 +312,7 @@ COMMANDS = [["resume"], ["elites"], ["video", "--best"], ["trajectories", "--bes
 
 @pytest.mark.parametrize("field, value, words", [
     ("env", None, "--env is null"), ("env_seed", None, "--env_seed is null"),
-    ("grid", None, "--grid is null"), ("measures", 7, "--measures takes 1 to 3"),
+    ("grid", None, "--grid is null"), ("measures", 7, "--measures takes 1 to 10"),
     ("outdir", 3, "--outdir is 3, not a path"), ("resumed", "yes", "resumed is 'yes'"),
 ])
 def test_every_command_refuses_a_config_with_a_wrong_type(run_cli, tiny_run, tmp_path, field, value, words):

@@ -106,7 +106,12 @@ def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_clus
 @pytest.mark.parametrize("args, fragments", [
     (["--measures", "fuel,speed"], ["--measures", "speed"]),
     (["--measures", "fuel,fuel"], ["--measures"]),
-    (["--measures", "impact_x,fuel,max_tilt,flight_time"], ["1 to 3"]),
+    (["--measures", "impact_x,fuel,max_tilt,flight_time"], ["6,250,000 cells"]),
+    (["--measures", "impact_x,fuel,max_tilt,flight_time,impact_angle", "--grid", "5"],
+     ["5 measures on a grid", "--archive cvt"]),
+    (["--archive", "cvt", "--cells", "7", "--measures", "impact_x,fuel,max_tilt"], ["--cells 7", "2^3 = 8"]),
+    (["--archive", "cvt", "--grid", "20"], ["--grid is for --archive grid"]),
+    (["--cells", "20"], ["--cells is for --archive cvt"]),
     (["--grid", "0"], ["--grid"]),
     (["--grid", "200", "--measures", "impact_x,fuel,max_tilt"], ["8,000,000 cells"]),
     (["--env_seed", "5-2"], ["--env_seed"]),

@@ -105,8 +105,8 @@ def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains
     env = gym.make("LunarLander-v3")
     direct = np.array([[tasks.rollout(s, seed, env, measures, env_name=LANDER) for seed in terrains]
                        for s in solutions])
-    config = run_config.check_run_config(
-        {**options.search_defaults(), "seed": 1, "env_seed": terrains, "measures": measures})
+    config = run_config.check_run_config(options.with_task(
+        {**options.search_defaults(), "seed": 1, "env_seed": terrains, "measures": measures}))
 
     objectives, values = engine.evaluate_batch(dask_client, solutions, config)
 

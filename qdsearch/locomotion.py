@@ -1,0 +1,257 @@
+"""The MuJoCo locomotion families: the QD-RL benchmark's Hopper, Walker2d, HalfCheetah and Ant
+(Gymnasium's v5 tasks), each a family of its own robot, sharing one episode function.
+
+The measures are the QD-RL literature's: for the `*_uni` tasks (Hopper-v5, Walker2d-v5,
+HalfCheetah-v5, Ant-v5 here) the share of steps each foot touches the floor, read from MuJoCo's
+own contacts (a contact between the foot's geom and the floor's); for `ant_omni`, the torso's
+final x-y position, with the forward reward left out of the objective. docs/locomotion.md says how
+each matches the literature's definition.
+
+Map:
+- `Robot` (a robot's torso, feet and view) and `Stride` (what an episode records);
+- the episode: `fly_robot` (with `feet_touching`);
+- how it is drawn: `position`, `pose` (the torso, then each capsule's ends, projected on the
+  view's plane), `scene`, `draw_paths`;
+- the declarations: ROBOTS, their families (`robot_family`), ENVIRONMENTS and MEASURES rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from qdsearch.family import Environment, Family, Measure, OnStep, linear_policy
+
+FLOOR = 0  # the floor is geom 0 in every robot's model
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A MuJoCo robot: its name in measures, its feet (geoms, in the measures' order), and the plane
+    it is seen in (planar robots from the side: x and height; the Ant from above: x and y)."""
+
+    name: str
+    title: str
+    feet: tuple[str, ...]
+    top: bool = False  # seen from above (the Ant walks the plane); else from the side
+
+    def plane(self) -> list[int]:
+        """The world axes the view shows: x and y from above, x and z from the side."""
+        return [0, 1] if self.top else [0, 2]
+
+
+@dataclasses.dataclass
+class Stride:
+    """A locomotion episode summed up, for the measures and the objective."""
+
+    reward: float = 0.0  # the episode's total reward
+    forward: float = 0.0  # its forward part (info["reward_forward"] summed): ant_omni leaves it out
+    steps: int = 0
+    contacts: list[int] = dataclasses.field(default_factory=list)  # steps each foot touches the floor
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the torso's position after the reset
+    end: tuple[float, float, float] = (0.0, 0.0, 0.0)  # and at the end
+    heights: float = 0.0  # the torso's height, summed over the steps
+
+    def share(self, foot: int) -> float:
+        return self.contacts[foot] / max(self.steps, 1)
+
+
+def feet_touching(data: Any, feet: np.ndarray) -> np.ndarray:
+    """Which feet (geom ids) touch the floor in this step's contacts."""
+    pairs = data.contact.geom[:data.ncon]
+    touching = np.concatenate([pairs[pairs[:, 0] == FLOOR, 1], pairs[pairs[:, 1] == FLOOR, 0]])
+    return np.isin(feet, touching)
+
+
+def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
+              on_step: OnStep | None = None, *, robot: Robot) -> Stride:
+    """One episode of the linear policy tanh(W @ obs) from the reset of `env_seed` (MuJoCo's tasks
+    draw their initial state's noise from it)."""
+    import mujoco
+
+    policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
+    obs, _ = env.reset(seed=env_seed)
+    model, data = env.unwrapped.model, env.unwrapped.data
+    feet = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, foot) for foot in robot.feet])
+    torso = data.body("torso").xpos  # a view: it follows the simulation
+    stride, done = Stride(contacts=[0] * len(feet), start=tuple(map(float, torso))), False
+    total, forward, heights, steps, contacts = 0.0, 0.0, 0.0, 0, np.zeros(len(feet), dtype=np.int64)
+    while not done:
+        action = policy(obs)
+        obs, reward, terminated, truncated, info = env.step(action)
+        done = terminated or truncated
+        steps += 1
+        total += reward
+        forward += info["reward_forward"]
+        heights += float(torso[2])
+        contacts += feet_touching(data, feet)
+        if on_step is not None:
+            on_step(action, obs)
+    stride.reward, stride.forward, stride.steps, stride.heights = float(total), float(forward), steps, heights
+    stride.contacts, stride.end = [int(c) for c in contacts], tuple(map(float, torso))
+    return stride
+
+
+def without_forward_reward(stride: Stride) -> float:
+    """ant_omni's objective: the return less its forward reward (survival, control and contact
+    costs), so no direction pays more than another."""
+    return stride.reward - stride.forward
+
+
+# ---- how an episode is drawn ------------------------------------------------------------------
+
+def position(env: gym.Env, obs: np.ndarray, *, robot: Robot) -> tuple[float, float]:
+    """A path's point: the torso on the view's plane (x and height; from above, x and y)."""
+    torso = env.unwrapped.data.body("torso").xpos
+    return float(torso[robot.plane()[0]]), float(torso[robot.plane()[1]])
+
+
+def marked_step(stride: Stride) -> int:
+    return stride.steps
+
+
+def capsules(model: Any) -> list[int]:
+    """The geoms the page draws as segments: every capsule (the floor and spheres are not)."""
+    import mujoco
+
+    return [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE]
+
+
+def pose(env: gym.Env, action: Any, *, robot: Robot) -> list[float]:
+    """A frame of the explorer page: the torso's position on the view's plane, then each
+    capsule's two ends (its centre -/+ its half length along its axis), projected on it."""
+    model, data = env.unwrapped.model, env.unwrapped.data
+    u, v = robot.plane()
+    values = [float(data.body("torso").xpos[u]), float(data.body("torso").xpos[v])]
+    for g in capsules(model):
+        axis = data.geom_xmat[g].reshape(3, 3)[:, 2] * model.geom_size[g][1]
+        ends = (data.geom_xpos[g] - axis, data.geom_xpos[g] + axis)
+        values += [float(ends[0][u]), float(ends[0][v]), float(ends[1][u]), float(ends[1][v])]
+    return values
+
+
+def scene(env_seed: int, task: Environment, *, robot: Robot) -> dict:
+    """What the explorer page draws: the floor (a line from the side, a 1 m grid from above), the
+    torso (a sphere's disc from above) and each capsule as a segment of its width; the view
+    follows the torso."""
+    env = gym.make(task.gym_id, **task.kwargs)
+    model = env.unwrapped.model
+    colours = ("#cc9966", "#805533")
+    bodies = []
+    if robot.top:  # the Ant's torso is a sphere
+        bodies.append({"circle": [0, 1], "radius": float(model.geom_size[1][0]), "colours": colours})
+    bodies += [{"segment": [2 + 4 * i, 3 + 4 * i, 4 + 4 * i, 5 + 4 * i],
+                "width": 2 * float(model.geom_size[g][0]), "colours": colours}
+               for i, g in enumerate(capsules(model))]
+    env.close()
+    if robot.top:
+        lines = ([[[k, -40.0], [k, 40.0]] for k in range(-40, 41)]
+                 + [[[-40.0, k], [40.0, k]] for k in range(-40, 41)])
+        statics = [{"points": line, "fill": None, "stroke": "#c8d2c8"} for line in lines]
+        view = {"width": 8.0, "height": 16 / 3, "follow": [0.5, 0.5]}
+    else:
+        statics = [{"points": [[-1000.0, -5.0], [1000.0, -5.0], [1000.0, 0.0], [-1000.0, 0.0]],
+                    "fill": "#99b399", "stroke": "#667a66"}]
+        view = {"width": 6.0, "height": 4.0, "follow": [0.3, None], "low": -0.5}
+    return {**view, "fps": round(1 / env.unwrapped.dt), "episode": "Run", "sky": "#eef2f7",
+            "path": "#36c", "statics": statics, "bodies": bodies}
+
+
+def draw_paths(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, task: Environment, *,
+               robot: Robot) -> str:
+    """The torsos' paths: from above for the Ant (x-y, start at the origin), else x and height
+    over the floor."""
+    if robot.top:
+        ax.plot([0], [0], marker="+", color="black", ms=12, label="start")
+        ax.set_aspect("equal")
+        ax.set_xlabel("x of the torso (m)")
+        ax.set_ylabel("y of the torso (m)")
+        return "Torso paths of {} elites from above, reset noise of seed {} (dots: the end)"
+    ax.axhline(0.0, color="0.5", lw=2, zorder=0)
+    ax.set_xlabel("x of the torso (m)")
+    ax.set_ylabel("height of the torso (m)")
+    return "Torso paths of {} elites, reset noise of seed {} (dots: the end)"
+
+
+# ---- the declarations ------------------------------------------------------------------------
+
+ROBOTS = {  # the feet, in the measures' order, are the geoms at the ends of the legs
+    "hopper": Robot("hopper", "Hopper", ("foot_geom",)),
+    "walker2d": Robot("walker2d", "Walker2d", ("foot_geom", "foot_left_geom")),  # right, left
+    "halfcheetah": Robot("halfcheetah", "HalfCheetah", ("bfoot", "ffoot")),  # back, front
+    # the ankles at (+x, +y), (-x, +y), (-x, -y), (+x, -y) of the torso (the Ant faces +x)
+    "ant": Robot("ant", "Ant", ("left_ankle_geom", "right_ankle_geom", "third_ankle_geom",
+                                "fourth_ankle_geom"), top=True),
+}
+
+# MuJoCo's v5 task steps, measured here (docs/locomotion.md), ~3 to 19x a lander's: a state of
+# 5-15 bodies and a contact solver; pose arrays are 1 cm (the HalfCheetah runs ~100 m).
+POSE_SCALE_CM = 1e2
+
+
+def robot_family(robot: Robot, pose_size: int) -> Family:
+    return Family(
+        robot.name, robot.title, functools.partial(fly_robot, robot=robot),
+        functools.partial(position, robot=robot), marked_step, functools.partial(pose, robot=robot),
+        (POSE_SCALE_CM,) * pose_size, (), functools.partial(scene, robot=robot),
+        functools.partial(draw_paths, robot=robot))
+
+
+# The pose's size: the torso's two coordinates and 4 per capsule (hopper 4, walker2d 7,
+# halfcheetah 8, ant 12 capsules).
+HOPPER = robot_family(ROBOTS["hopper"], 2 + 4 * 4)
+WALKER2D = robot_family(ROBOTS["walker2d"], 2 + 4 * 7)
+HALFCHEETAH = robot_family(ROBOTS["halfcheetah"], 2 + 4 * 8)
+ANT = robot_family(ROBOTS["ant"], 2 + 4 * 12)
+PLANAR = (HOPPER, WALKER2D, HALFCHEETAH)
+
+ANT_KWARGS = {"include_cfrc_ext_in_observation": False}  # 27 observations, as in the QD-RL tasks
+
+# Every policy is tanh(W @ obs): each task's action box is [-1, 1]. The QD offsets are below the
+# lowest returns of real runs (docs/locomotion.md).
+ENVIRONMENTS: dict[str, Environment] = {
+    "Hopper-v5": Environment("Hopper-v5", {}, 11, 3, True, HOPPER, ("hopper_foot1",), -100.0,
+                             "the reset's noise", 3800.0, heat=(-100.0, 3000.0)),
+    "Walker2d-v5": Environment("Walker2d-v5", {}, 17, 6, True, WALKER2D,
+                               ("walker2d_foot1", "walker2d_foot2"), -100.0, "the reset's noise", 5000.0,
+                               heat=(-100.0, 3000.0)),
+    "HalfCheetah-v5": Environment("HalfCheetah-v5", {}, 17, 6, True, HALFCHEETAH,
+                                  ("halfcheetah_foot1", "halfcheetah_foot2"), -4000.0,
+                                  "the reset's noise", 4800.0, heat=(-1000.0, 3000.0)),
+    "Ant-v5": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT,
+                          ("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), -5000.0,
+                          "the reset's noise", 6000.0, heat=(-1000.0, 3000.0)),
+    # The Ant in every direction: the final position as measures, no reward for going forward.
+    "ant_omni": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT, ("final_x", "final_y"), -4000.0,
+                            "the reset's noise", 1000.0, heat=(-1000.0, 1000.0),
+                            objective=without_forward_reward),
+}
+
+
+def foot_measures(family: Family, robot: Robot, names: tuple[str, ...]) -> dict[str, Measure]:
+    """A robot's foot-contact measures: the share of steps each foot touches the floor."""
+    return {f"{robot.name}_foot{i + 1}": Measure(
+        f"Share of steps the {robot.title}'s {name} touches the floor", (0.0, 1.0),
+        f"{robot.name[0]}f{i + 1}", lambda stride, i=i: stride.share(i), (family,))
+        for i, name in enumerate(names)}
+
+
+MEASURES: dict[str, Measure] = {
+    **foot_measures(HOPPER, ROBOTS["hopper"], ("foot",)),
+    **foot_measures(WALKER2D, ROBOTS["walker2d"], ("right foot", "left foot")),
+    **foot_measures(HALFCHEETAH, ROBOTS["halfcheetah"], ("back foot", "front foot")),
+    **foot_measures(ANT, ROBOTS["ant"], ("foot 1 (+x,+y)", "foot 2 (-x,+y)", "foot 3 (-x,-y)",
+                                         "foot 4 (+x,-y)")),
+    # ant_omni's: where the torso ends, x and y, in QDax's [-30, 30] m
+    "final_x": Measure("Final x of the torso (m)", (-30.0, 30.0), "x", lambda s: s.end[0], (ANT,)),
+    "final_y": Measure("Final y of the torso (m)", (-30.0, 30.0), "y", lambda s: s.end[1], (ANT,)),
+    # Cheap and telling for every robot: how far forward, and how high the torso is carried.
+    "forward_distance": Measure("Distance the torso moved along x (m)", (-10.0, 50.0), "dx",
+                                lambda s: s.end[0] - s.start[0], (HOPPER, WALKER2D, HALFCHEETAH, ANT)),
+    "torso_height": Measure("Mean height of the torso (m)", (0.0, 2.0), "z",
+                            lambda s: s.heights / max(s.steps, 1), (HOPPER, WALKER2D, HALFCHEETAH, ANT)),
+}
