@@ -26,13 +26,17 @@ Map, a module per role, imports going down the list only:
 - comparison: `compare` and its statistics.
 """
 
+import ctypes.util
 import os
 
 # Plots are written to files, never shown: no display is needed (set before matplotlib loads).
 os.environ.setdefault("MPLBACKEND", "Agg")
 # MuJoCo renders videos headless through EGL (Debian's libegl1 and libegl-mesa0: Mesa's software
-# renderer on a machine without a GPU); set MUJOCO_GL=osmesa to use libosmesa6 instead.
-os.environ.setdefault("MUJOCO_GL", "egl")
+# renderer on a machine without a GPU), where the machine has it; MUJOCO_GL=osmesa picks libosmesa6.
+# (MuJoCo loads the renderer MUJOCO_GL names when it is imported, so one that is missing would stop
+# every MuJoCo episode, not only videos.)
+if ctypes.util.find_library("EGL"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
 # ribs' CMA-ES code is written for numba, which compiles it on the first ask/tell of a process
 # (2.6-4.5 s). The compiled code's last bits differ (from the 26th iteration on, for 32 weights),
 # and it is not much faster: 1.31 vs 1.39 ms per ask+tell for 32 weights (the lander), 1.79 vs

@@ -65,6 +65,7 @@ class Environment:
     solved: float  # the return its env calls solved
     fast: Callable[[], gym.Env] | None = None  # a streamlined copy, bitwise the same
     heat: tuple[float, float] = (-300.0, 300.0)  # the heatmaps' colour range of objectives
+    archive: str = "grid"  # the default --archive (a CVT for measures too many for a grid)
     objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
     # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)
 

@@ -224,7 +224,7 @@ ENVIRONMENTS: dict[str, Environment] = {
                                   "the reset's noise", 4800.0, heat=(-1000.0, 3000.0)),
     "Ant-v5": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT,
                           ("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), -5000.0,
-                          "the reset's noise", 6000.0, heat=(-1000.0, 3000.0)),
+                          "the reset's noise", 6000.0, heat=(-1000.0, 3000.0), archive="cvt"),
     # The Ant in every direction: the final position as measures, no reward for going forward.
     "ant_omni": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT, ("final_x", "final_y"), -4000.0,
                             "the reset's noise", 1000.0, heat=(-1000.0, 1000.0),

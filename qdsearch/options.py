@@ -125,10 +125,11 @@ SEARCH_FLAGS: dict[str, Flag] = {
                                        f"{','.join(default_measures(family))} by default)"
                                        for family in FAMILIES) + ".",
                      distinct_names(MEASURES, "measures", MAX_MEASURES), label=2, text=True),
-    "archive": Flag("grid", "The kind of archive, a row of ARCHIVES: grid (--grid cells along each "
-                            f"of at most {MAX_GRID_MEASURES} measures) or cvt (--cells centroids, "
-                            f"any number of measures up to {MAX_MEASURES}; pyribs' CVTArchive).",
-                    one_of(ARCHIVES), label=8),
+    "archive": Flag(None, "The kind of archive, a row of ARCHIVES: grid (--grid cells along each "
+                          f"of at most {MAX_GRID_MEASURES} measures) or cvt (--cells centroids, "
+                          f"any number of measures up to {MAX_MEASURES}; pyribs' CVTArchive); "
+                          "default: the task's (a grid; Ant-v5's 4 feet: cvt).",
+                    one_of(ARCHIVES), label=8, before="grid"),
     "grid": Flag(None, f"Grid archive: cells along each measure; default {DEFAULT_GRID}.", positive_int,
                  sweep=True, label=3, before=DEFAULT_GRID),
     "cells": Flag(None, f"CVT archive: its cells (centroids, made once by k-means and kept in the "
@@ -209,7 +210,7 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
     if wrong := [name for name in measures if task.family not in MEASURES[name].families]:
         raise UsageError(f"--measures {wrong[0]} is not a measure of --env {env}; its measures: "
                          + ", ".join(family_measures(task.family)))
-    archive, grid, cells = config.get("archive", "grid"), config.get("grid"), config.get("cells")
+    archive, grid, cells = config.get("archive") or task.archive, config.get("grid"), config.get("cells")
     if archive == "grid":
         if cells is not None:
             raise UsageError("--cells is for --archive cvt; a grid archive has --grid cells along "

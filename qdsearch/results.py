@@ -35,13 +35,7 @@ from qdsearch.options import CLUSTER_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS, chec
 from qdsearch.plots import save_heatmap
 from qdsearch.run_config import RunConfig, load_archive, load_checked_config
 from qdsearch.run_files import RunError, atomic_write, check_writable, console_log, fault_text, write_csv
-from qdsearch.tasks import (
-    ENVIRONMENTS,
-    MEASURES,
-    fly,
-    make_env,
-    rollout,
-)
+from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly, make_env, renderer_missing, rollout
 
 
 def load_run(run_dir: Any) -> tuple[Any, RunConfig]:
@@ -203,7 +197,7 @@ class Mp4Recorder(gym.Wrapper):
     def _write_frame(self) -> None:
         import imageio_ffmpeg
 
-        frame = self.env.render()
+        frame = rendered(self.env)
         if self._writer is None:  # macro_block_size 8: 600x400 is encoded as is, not rescaled
             self._writer = imageio_ffmpeg.write_frames(
                 str(self.path), (frame.shape[1], frame.shape[0]), fps=self.metadata["render_fps"],
@@ -218,6 +212,16 @@ class Mp4Recorder(gym.Wrapper):
             self._writer.close()
             self._writer = None
         super().close()
+
+
+def rendered(env: gym.Env) -> np.ndarray:
+    """The env's frame; a MuJoCo renderer whose library is missing is one line naming it."""
+    try:
+        return env.render()
+    except (ImportError, AttributeError, RuntimeError, OSError) as error:
+        if not hasattr(env.unwrapped, "mujoco_renderer"):
+            raise
+        raise renderer_missing(error) from None
 
 
 def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[RunConfig, list[dict], int]:

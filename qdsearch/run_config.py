@@ -184,8 +184,8 @@ def check_run_config(recorded: Any) -> RunConfig:
         if flag.check is None and not isinstance(config[name], (str, type(None))):
             raise UsageError(f"--{name} is {shown(config[name])}, not a path or an address")
     config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
-    if config[size := ARCHIVES[config["archive"]]["size"]] is None:  # what sizes its archive
-        raise UsageError(f"--{size} is null")
+    if config["archive"] is None or config[size := ARCHIVES[config["archive"]]["size"]] is None:
+        raise UsageError(f"--{'archive' if config['archive'] is None else size} is null")
     for name, (kind, _) in RECORDS.items():
         if config.get(name) is not None and not isinstance(config[name], RECORD_KINDS[kind]):
             raise UsageError(f"{name} is {shown(config[name])}, not a {kind}")

@@ -7,13 +7,15 @@ To add one, write its module and add it to FAMILIES.
 Map:
 - the tables: FAMILIES, ENVIRONMENTS (--env), MEASURES (--measures), DEFAULT_ENV,
   TUTORIAL_MEASURES; `family_measures`;
-- the environment: `make_env`, `check_spaces`;
+- the environment: `make_env` (`plain_env`: gym.make's), `check_spaces`; `renderer_missing`
+  (GL_PACKAGES: what MuJoCo's headless renderers need);
 - an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
   measures).
 """
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -21,7 +23,8 @@ import numpy as np
 
 from qdsearch import lander, locomotion, walker
 from qdsearch.family import Environment, Family, Measure, OnStep
-from qdsearch.flags import UsageError
+from qdsearch.flags import UsageError, one_line
+from qdsearch.run_files import RunError
 
 FAMILIES: tuple[Family, ...] = (lander.LANDER, walker.WALKER, *locomotion.PLANAR, locomotion.ANT)
 FAMILY_MODULES = (lander, walker, locomotion)  # each declares ENVIRONMENTS and MEASURES rows
@@ -45,14 +48,40 @@ def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str
     task = ENVIRONMENTS[env_name]
     if fast and render_mode is None and task.fast is not None:
         return task.fast()
-    return gym.make(task.gym_id, render_mode=render_mode, **task.kwargs)
+    return plain_env(env_name, render_mode)
+
+
+def plain_env(env_name: str, render_mode: str | None = None) -> gym.Env:
+    """gym.make's env of the task; a simulator that is not installed (MuJoCo) is one line."""
+    task = ENVIRONMENTS[env_name]
+    try:
+        return gym.make(task.gym_id, render_mode=render_mode, **task.kwargs)
+    except gym.error.DependencyNotInstalled as error:
+        raise UsageError(f"--env {env_name} needs a package that is not installed "
+                         f"({one_line(str(error))[:200]}): pip install -r requirements.txt") from None
+    except (ImportError, AttributeError, RuntimeError) as error:  # MuJoCo's import of its renderer
+        if not os.environ.get("MUJOCO_GL"):
+            raise
+        raise renderer_missing(error) from None
+
+
+# The Debian packages each of MuJoCo's headless renderers (MUJOCO_GL) needs.
+GL_PACKAGES = {"egl": "libegl1 libegl-mesa0", "osmesa": "libosmesa6"}
+
+
+def renderer_missing(error: BaseException) -> RunError:
+    """One line for a MuJoCo renderer whose library the machine lacks, naming what to install."""
+    gl = os.environ.get("MUJOCO_GL", "")
+    needs = GL_PACKAGES.get(gl, " or ".join(GL_PACKAGES.values()))
+    return RunError(f"MuJoCo cannot render headless here through MUJOCO_GL={gl} "
+                    f"({one_line(str(error))[:200]}): apt-get install -y {needs}")
 
 
 def check_spaces(env_name: str) -> None:
     """Refuse a row whose task the linear policy can't serve: its observation must be a vector of
     obs_dim numbers, its actions action_dim choices, or a box of action_dim numbers in [-1, 1]."""
     task = ENVIRONMENTS[env_name]
-    env = gym.make(task.gym_id, **task.kwargs)
+    env = plain_env(env_name)
     obs, act = env.observation_space, env.action_space
     env.close()
     fits = isinstance(obs, gym.spaces.Box) and obs.shape == (task.obs_dim,) and (

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import engine, experiments, explorer, family, results, run, tasks, walker
+from qdsearch import engine, experiments, explorer, family, lander, results, run, tasks, walker
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -126,7 +126,8 @@ def experiment_flags(search_flags: dict) -> dict:
 def test_an_experiments_run_equals_its_lone_twin(env_name, task_runs, tmp_path, dask_cluster):
     flags = experiment_flags(tiny_flags(dask_cluster, env=env_name))
     experiments.experiment(algorithms="cma_me", seeds="7", outdir=str(tmp_path / "exp"), **flags)
-    assert_same_run(tmp_path / "exp" / "cma_me_n_emitters_2_batch_size_6_seed7", task_runs[env_name])
+    [entry] = json.loads((tmp_path / "exp" / "experiment.json").read_text())["runs"]
+    assert_same_run(tmp_path / "exp" / entry["name"], task_runs[env_name])
 
 
 @pytest.fixture(scope="module")
@@ -218,10 +219,10 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
         tasks.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
         actions = action_trace(solutions[elite["index"]], env, env_name)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]]
-        if task.family is walker.WALKER:  # the hull, to the centimetre
-            assert np.abs(flown[:, :2] - np.array(path)).max() < 0.006
-        else:  # the throttles: the main engine's power is drawn whenever it fires
+        if task.family is lander.LANDER:  # the throttles: the main engine's flame whenever it fires
             assert ((flown[:, 5] > 0) == np.array([a[0] > 0 for a in actions])).all()
+        else:  # the walker's hull, a robot's torso: the path's points, to the centimetre
+            assert np.abs(flown[:, :2] - np.array(path)).max() < 0.006
     page = browser.new_page(viewport={"width": 1300, "height": 1000})
     errors = []
     page.on("pageerror", lambda error: errors.append(str(error)))
@@ -230,7 +231,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     page.locator("#elites tbody tr").first.click()
     page.wait_for_timeout(300)
     assert errors == [] and page.title() == f"{env_name} archive explorer"
-    assert page.locator("#episode").text_content() == ("Walk" if task.family is walker.WALKER else "Landing")
+    assert page.locator("#episode").text_content() == task.family.scene(52, task)["episode"]
     page.close()
 
 

@@ -25,9 +25,14 @@ REFERENCE_ITERATIONS = 12  # the uninterrupted run that stopped-and-resumed runs
 
 
 def tiny_flags(cluster=None, **overrides) -> dict:
-    """Keyword arguments of `search` for a tiny run, on `cluster` (a LocalCluster) if given."""
+    """Keyword arguments of `search` for a tiny run, on `cluster` (a LocalCluster) if given; a
+    task whose archive is a CVT gets 32 cells (k-means makes 1,024 in seconds)."""
+    from qdsearch import tasks
+
     address = {} if cluster is None else {"scheduler_address": cluster.scheduler_address}
-    return {**TINY, **address, **overrides}
+    flags = {**TINY, **address, **overrides}
+    cvt = (flags.get("archive") or tasks.ENVIRONMENTS[flags.get("env", tasks.DEFAULT_ENV)].archive) == "cvt"
+    return {"cells": 32, **flags} if cvt else flags
 
 
 def load_pickle(path):
