@@ -77,8 +77,8 @@ def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environme
     obs, _ = env.reset(seed=env_seed)
     model, data = env.unwrapped.model, env.unwrapped.data
     feet = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, foot) for foot in robot.feet])
-    torso = data.body("torso").xpos  # a view: it follows the simulation
-    stride, done = Stride(contacts=[0] * len(feet), start=tuple(map(float, torso))), False
+    scratch = mujoco.MjData(model)
+    stride, done = Stride(contacts=[0] * len(feet), start=tuple(torso_at(model, data, scratch))), False
     total, forward, heights, steps, contacts = 0.0, 0.0, 0.0, 0, np.zeros(len(feet), dtype=np.int64)
     while not done:
         action = policy(obs)
@@ -87,13 +87,25 @@ def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environme
         steps += 1
         total += reward
         forward += info["reward_forward"]
-        heights += float(torso[2])
-        contacts += feet_touching(data, feet)
+        contacts += feet_touching(data, feet)  # found at the last substep's start, as MuJoCo does
+        heights += float(torso_at(model, data, scratch)[2])
         if on_step is not None:
             on_step(action, obs)
     stride.reward, stride.forward, stride.steps, stride.heights = float(total), float(forward), steps, heights
-    stride.contacts, stride.end = [int(c) for c in contacts], tuple(map(float, torso))
+    stride.contacts, stride.end = [int(c) for c in contacts], tuple(torso_at(model, data, scratch))
     return stride
+
+
+def torso_at(model: Any, data: Any, scratch: Any) -> list[float]:
+    """The torso's position in the state the simulation has reached. mj_step computes positions
+    before it integrates, so data's lag a substep behind; they are computed again on a scratch
+    copy of the state, leaving the env's own data as the env reads it (the Ant's forward reward
+    reads the lagging positions: refreshing them there changed its returns)."""
+    import mujoco
+
+    scratch.qpos[:] = data.qpos
+    mujoco.mj_kinematics(model, scratch)
+    return [float(value) for value in scratch.body("torso").xpos]
 
 
 def without_forward_reward(stride: Stride) -> float:

@@ -275,7 +275,7 @@ class Driver:
             self.start_more()
             while self.live:
                 with STOP.interruptible():
-                    future, result = next(self.finished)
+                    future, result = self.next_chunk()
                 run, position = self.owner.pop(future.key, (None, 0))
                 if run is not None and run.name in self.live and run.take(position, result):
                     self.advance(run)  # else a chunk of a run that has failed meanwhile
@@ -297,6 +297,18 @@ class Driver:
         finally:
             self.saver.shutdown()
             self.bar.close()
+
+    def next_chunk(self) -> tuple[Any, Any]:
+        """The next chunk back, as as_completed hands it. A client that has given up on its
+        scheduler (closed) leaves its futures pending, and as_completed would wait on them for
+        ever: the wait looks at the client as it goes, as as_completed's own wait does (a
+        condition woken by each result, or every 0.1 s)."""
+        while not self.finished.has_ready():
+            if self.client.status not in ("running", "connecting"):
+                self.check_scheduler(RunError(f"the Dask client is {self.client.status}"))
+            with self.finished.thread_condition:
+                self.finished.thread_condition.wait(timeout=0.1)
+        return next(self.finished)
 
     def start_more(self) -> None:
         """Open waiting runs until `limit` are in flight."""

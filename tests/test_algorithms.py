@@ -26,9 +26,9 @@ RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "met
              "heatmap.png", "progress.png", "run.log"}
 
 
-CONFIG = run_config.check_run_config(dict(
+CONFIG = run_config.check_run_config(options.with_task(dict(
     options.search_defaults(), algorithm="cma_me", seed=3, n_emitters=5, sigma0=1.0, batch_size=30,
-    measures=list(tasks.TUTORIAL_MEASURES), grid=50))
+    measures=list(tasks.TUTORIAL_MEASURES), grid=50)))
 
 
 def test_cma_me_is_the_tutorial_setup():

@@ -26,6 +26,9 @@ from util import (
 RNG = np.random.default_rng(20)
 OTHER_ROWS = [name for name in tasks.ENVIRONMENTS if name != tasks.DEFAULT_ENV]
 WALKER = "BipedalWalker-v3"
+# Rows whose every episode lasts 1,000 steps: a minute of software rendering here (the other
+# MuJoCo rows test MuJoCo's video; these test the rest).
+LONG_VIDEOS = {"HalfCheetah-v5"}
 
 
 def policies(env_name: str, count: int = 4) -> np.ndarray:
@@ -167,13 +170,14 @@ def test_compare_keeps_tasks_apart(task_runs, tiny_run, run_cli, tmp_path):
 def test_video_and_elites_of_every_row(env_name, task_runs, tmp_path, capsys):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
-    results.video(str(run_dir), best=True)
-    index = pd.read_csv(run_dir / "videos" / "index.csv")
-    assert index["reproduced"].tolist() == [True]
-    solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
-    steps = tasks.fly(solution, 52, tasks.make_env(env_name=env_name), env_name=env_name).steps
-    frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
-    assert frames == steps + 1
+    if env_name not in LONG_VIDEOS:
+        results.video(str(run_dir), best=True)
+        index = pd.read_csv(run_dir / "videos" / "index.csv")
+        assert index["reproduced"].tolist() == [True]
+        solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
+        steps = tasks.fly(solution, 52, tasks.make_env(env_name=env_name), env_name=env_name).steps
+        frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
+        assert frames == steps + 1
     results.elites(str(run_dir), top=2)
     table = pd.read_csv(run_dir / "elites.csv")
     assert list(table.columns) == ["objective", *tasks.ENVIRONMENTS[env_name].measures, "cell_index"]
