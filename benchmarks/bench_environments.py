@@ -2,6 +2,7 @@
 """What does a step of each task cost, and does the engine keep 2 workers busy on it?
 
     python benchmarks/bench_environments.py [--iterations 10] [--envs BipedalWalker-v3,LunarLander-v3]
+        [--out environments_results.json]   # a file beside this script
 
 For each row of ENVIRONMENTS, the same seeded CMA-ME search (the default 5 emitters x 30, the
 task's default measures, terrain 52) runs for --iterations iterations twice:
@@ -29,11 +30,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from qdsearch import algorithms, engine, run_config, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, engine, options, run_config, run_files, tasks  # noqa: E402
 
 
 def config_of(env_name: str) -> dict:
-    return run_config.check_run_config({"seed": 1, "env": env_name})
+    return run_config.check_run_config(options.with_task({**options.search_defaults(), "seed": 1,
+                                                          "env": env_name}))
 
 
 def serial_search(env_name: str, iterations: int) -> dict:
@@ -48,7 +50,8 @@ def serial_search(env_name: str, iterations: int) -> dict:
             flight = tasks.fly(solution, 52, env, env_name=env_name)
             flying += time.perf_counter() - start
             steps, episodes = steps + flight.steps, episodes + 1
-            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config.measures)])
+            rows.append([tasks.ENVIRONMENTS[env_name].objective(flight),
+                         *(tasks.MEASURES[m].of(flight) for m in config.measures)])
         rows = np.array(rows)
         scheduler.tell(rows[:, 0], rows[:, 1:])
     return {"fly_s": flying, "steps": steps, "episodes": episodes, "archive": archive_of(scheduler)}
@@ -70,7 +73,8 @@ def archive_of(scheduler) -> list:
     return sorted(zip(data["index"].tolist(), data["objective"].tolist()))
 
 
-def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVIRONMENTS)) -> None:
+def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVIRONMENTS),
+         out: str = "environments_results.json") -> None:
     from dask.distributed import Client, LocalCluster
 
     envs = [name.strip() for name in str(envs).split(",")]
@@ -95,7 +99,7 @@ def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVI
     result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
               "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
               "workers": workers, "rows": rows, "versions": run_files.library_versions()}
-    out = Path(__file__).with_name("environments_results.json")
+    out = Path(__file__).with_name(out)
     out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"| env | mean steps | us/step | rollouts/s (1 core) | s/iteration ({workers} workers) | "
           f"efficiency | same archive |\n| --- | --- | --- | --- | --- | --- | --- |")

@@ -63,7 +63,8 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
             flight = tasks.fly(solution, 52, env, env_name=env_name)
             steps_time += time.perf_counter() - start
             lengths.append(flight.steps)
-            rows.append([flight.reward, *(tasks.MEASURES[m].of(flight) for m in config.measures)])
+            rows.append([tasks.ENVIRONMENTS[env_name].objective(flight),
+                         *(tasks.MEASURES[m].of(flight) for m in config.measures)])
         rows = np.array(rows)
         scheduler.tell(rows[:, 0], rows[:, 1:])
     return lengths, steps_time / sum(lengths)

@@ -91,8 +91,9 @@ QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
 # CQD score (Kent 2022, ribs.archives.cqd_score) with fixed settings, so that a number means the
 # same in every table: target points drawn uniformly in the archive's measure box with this seed,
 # penalties spread evenly over [0, 1], objectives normalised over [obj_min, obj_max], distances
-# over the box's diagonal (obj_min is the task's QD offset). Written next to every comparison.
-CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0, "obj_max": 350.0}
+# over the box's diagonal (obj_min is the task's QD offset, obj_max its `objective_max`). Written
+# next to every comparison.
+CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0}
 SUMMARISED = ("qd_score", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
 TESTED = ("qd_score", QD_AUC, CQD_SCORE)  # pairwise between settings: final, anytime, spread
 FEW_RUNS = 5
@@ -110,7 +111,7 @@ def cqd(run_dir: Path, task: Environment) -> float | None:
     targets = np.random.default_rng(CQD["target_seed"]).uniform(
         lower, upper, size=(CQD["iterations"], CQD["targets"], len(lower)))
     return float(cqd_score(archive, iterations=CQD["iterations"], target_points=targets,
-                           penalties=CQD["penalties"], obj_min=task.qd_offset, obj_max=CQD["obj_max"],
+                           penalties=CQD["penalties"], obj_min=task.qd_offset, obj_max=task.objective_max,
                            dist_max=float(np.linalg.norm(upper - lower))).mean)
 
 
@@ -231,7 +232,7 @@ def markdown_report(stats, tests, env: str) -> str:
                   f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
               f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
               f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
-              f"normalised over [{task.qd_offset:g}, {CQD['obj_max']:g}].", ""]
+              f"normalised over [{task.qd_offset:g}, {task.objective_max:g}].", ""]
     if len(tests):
         lines += ["| metric | A | B | U | p (Holm) | A12 |", "| --- | --- | --- | --- | --- | --- |"]
         lines += [f"| {t['metric']} | {t['setting_a']} | {t['setting_b']} | {t['U']:.1f} | "

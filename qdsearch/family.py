@@ -42,6 +42,7 @@ class Family:
     scene: Callable[[int, Environment], dict]  # the page's world and bodies (explorer_page.html)
     draw_paths: Callable[[Any, list, int, Environment], str]  # the trajectories picture's
     # ground and axes on a matplotlib Axes; returns its title with {} for the count and terrain
+    prepare: Callable[[], None] = lambda: None  # called before one of its envs is made
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +66,7 @@ class Environment:
     solved: float  # the return its env calls solved
     fast: Callable[[], gym.Env] | None = None  # a streamlined copy, bitwise the same
     heat: tuple[float, float] = (-300.0, 300.0)  # the heatmaps' colour range of objectives
+    objective_max: float = 350.0  # a return above (almost) every policy's: CQD's normalisation
     archive: str = "grid"  # the default --archive (a CVT for measures too many for a grid)
     objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
     # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)

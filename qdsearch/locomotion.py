@@ -150,6 +150,7 @@ def scene(env_seed: int, task: Environment, *, robot: Robot) -> dict:
     """What the explorer page draws: the floor (a line from the side, a 1 m grid from above), the
     torso (a sphere's disc from above) and each capsule as a segment of its width; the view
     follows the torso."""
+    quiet_mujoco()
     env = gym.make(task.gym_id, **task.kwargs)
     model = env.unwrapped.model
     colours = ("#cc9966", "#805533")
@@ -205,12 +206,24 @@ ROBOTS = {  # the feet, in the measures' order, are the geoms at the ends of the
 POSE_SCALE_CM = 1e2
 
 
+def quiet_mujoco() -> None:
+    """MuJoCo's warnings (Gymnasium's Ant model uses a deprecated attribute) go to Python's log at
+    debug level, not to a MUJOCO_LOG.TXT in the user's folder and the terminal."""
+    import logging
+
+    try:
+        import mujoco
+    except ImportError:  # gym.make says what to install
+        return
+    mujoco.set_mju_user_warning(logging.getLogger("mujoco").debug)
+
+
 def robot_family(robot: Robot, pose_size: int) -> Family:
     return Family(
         robot.name, robot.title, functools.partial(fly_robot, robot=robot),
         functools.partial(position, robot=robot), marked_step, functools.partial(pose, robot=robot),
         (POSE_SCALE_CM,) * pose_size, (), functools.partial(scene, robot=robot),
-        functools.partial(draw_paths, robot=robot))
+        functools.partial(draw_paths, robot=robot), quiet_mujoco)
 
 
 # The pose's size: the torso's two coordinates and 4 per capsule (hopper 4, walker2d 7,
@@ -224,22 +237,24 @@ PLANAR = (HOPPER, WALKER2D, HALFCHEETAH)
 ANT_KWARGS = {"include_cfrc_ext_in_observation": False}  # 27 observations, as in the QD-RL tasks
 
 # Every policy is tanh(W @ obs): each task's action box is [-1, 1]. The QD offsets are below the
-# lowest returns of real runs (docs/locomotion.md).
+# lowest returns of real runs (docs/locomotion.md); "solved" and CQD's top are Gymnasium's reward
+# thresholds (Walker2d has none: 5,000, as the others' scale).
+NOISE = "the reset's noise"  # what --env_seed seeds in a MuJoCo task
 ENVIRONMENTS: dict[str, Environment] = {
     "Hopper-v5": Environment("Hopper-v5", {}, 11, 3, True, HOPPER, ("hopper_foot1",), -100.0,
-                             "the reset's noise", 3800.0, heat=(-100.0, 3000.0)),
+                             NOISE, 3800.0, heat=(-100.0, 3000.0), objective_max=3800.0),
     "Walker2d-v5": Environment("Walker2d-v5", {}, 17, 6, True, WALKER2D,
-                               ("walker2d_foot1", "walker2d_foot2"), -100.0, "the reset's noise", 5000.0,
-                               heat=(-100.0, 3000.0)),
+                               ("walker2d_foot1", "walker2d_foot2"), -100.0, NOISE, 5000.0,
+                               heat=(-100.0, 3000.0), objective_max=5000.0),
     "HalfCheetah-v5": Environment("HalfCheetah-v5", {}, 17, 6, True, HALFCHEETAH,
-                                  ("halfcheetah_foot1", "halfcheetah_foot2"), -4000.0,
-                                  "the reset's noise", 4800.0, heat=(-1000.0, 3000.0)),
+                                  ("halfcheetah_foot1", "halfcheetah_foot2"), -4000.0, NOISE, 4800.0,
+                                  heat=(-1000.0, 3000.0), objective_max=4800.0),
     "Ant-v5": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT,
-                          ("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), -5000.0,
-                          "the reset's noise", 6000.0, heat=(-1000.0, 3000.0), archive="cvt"),
+                          ("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), -5000.0, NOISE, 6000.0,
+                          heat=(-1000.0, 3000.0), archive="cvt", objective_max=6000.0),
     # The Ant in every direction: the final position as measures, no reward for going forward.
     "ant_omni": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT, ("final_x", "final_y"), -4000.0,
-                            "the reset's noise", 1000.0, heat=(-1000.0, 1000.0),
+                            NOISE, 1000.0, heat=(-1000.0, 1000.0), objective_max=1000.0,
                             objective=without_forward_reward),
 }
 

@@ -55,6 +55,7 @@ def plain_env(env_name: str, render_mode: str | None = None) -> gym.Env:
     """gym.make's env of the task; a simulator that is not installed (MuJoCo) is one line."""
     task = ENVIRONMENTS[env_name]
     try:
+        task.family.prepare()
         return gym.make(task.gym_id, render_mode=render_mode, **task.kwargs)
     except gym.error.DependencyNotInstalled as error:
         raise UsageError(f"--env {env_name} needs a package that is not installed "
