@@ -93,6 +93,7 @@ def test_a_cvt_run_keeps_its_centroids_and_resumes_to_its_twin(cvt_run, tmp_path
     assert np.array_equal(np.load(resumed / "centroids.npy"), archive.centroids)  # seeded: the same
 
 
+@pytest.mark.slow
 def test_every_command_reads_a_cvt_run(cvt_run, tmp_path, run_cli, dask_cluster):
     run_dir = tmp_path / "run"
     subprocess.run(["cp", "-r", str(cvt_run), str(run_dir)], check=True)
@@ -118,6 +119,7 @@ def test_every_command_reads_a_cvt_run(cvt_run, tmp_path, run_cli, dask_cluster)
     assert run_archive(run_dir).equals(before)  # nothing changed the run's archive
 
 
+@pytest.mark.slow
 def test_a_config_edited_to_another_archive_kind_is_refused(cvt_run, tmp_path, run_cli):
     run_dir = tmp_path / "run"
     subprocess.run(["cp", "-r", str(cvt_run), str(run_dir)], check=True)
@@ -128,6 +130,7 @@ def test_a_config_edited_to_another_archive_kind_is_refused(cvt_run, tmp_path, r
     assert folder_state(run_dir) == before
 
 
+@pytest.mark.slow
 def test_four_feet_on_a_cvt_archive_and_a_grid_of_four(tmp_path, dask_cluster):
     """Ant-v5 takes a CVT archive by default; a grid of 4 measures is refused only by its size."""
     config = run_config.check_run_config(load_pickle(
@@ -143,6 +146,7 @@ def _tiny(run_dir, cluster, **flags):
     return run_dir
 
 
+@pytest.mark.slow
 def test_a_mujoco_task_without_mujoco_is_one_line_and_writes_nothing(tmp_path):
     """A real process in which `import mujoco` fails, as on a machine without it."""
     code = ("import sys, runpy; sys.modules['mujoco'] = None; sys.argv = sys.argv[1:]; "
@@ -154,6 +158,7 @@ def test_a_mujoco_task_without_mujoco_is_one_line_and_writes_nothing(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_a_renderer_without_its_library_is_one_line(tmp_path, dask_cluster):
     """MUJOCO_GL=osmesa on a machine without libOSMesa: MuJoCo can't load its renderer."""
     import ctypes.util
