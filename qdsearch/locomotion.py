@@ -201,8 +201,8 @@ ROBOTS = {  # the feet, in the measures' order, are the geoms at the ends of the
                                 "fourth_ankle_geom"), top=True),
 }
 
-# MuJoCo's v5 task steps, measured here (docs/locomotion.md), ~3 to 19x a lander's: a state of
-# 5-15 bodies and a contact solver; pose arrays are 1 cm (the HalfCheetah runs ~100 m).
+# The explorer's poses in centimetres: a good HalfCheetah runs ~100 m in an episode, and int16
+# holds +-327 m at that scale.
 POSE_SCALE_CM = 1e2
 
 
