@@ -34,6 +34,12 @@ from qdsearch.tasks import ENVIRONMENTS, MEASURES
 # - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
 #   fixed sigma (--sigma0). (Lunar Lander's policy argmax(W @ obs) ignores W's scale, so there
 #   only sigma relative to the elites' weights matters; tanh(W @ obs) does not ignore it.)
+# - line_map_elites: sphere.py's row of the same name: IsoLineEmitters (Vassiliades & Mouret
+#   2018) with iso_sigma --sigma0 and line_sigma --line_sigma (0.2, as there).
+# - cma_me_mu, cma_me_rd: sphere.py's "cma_me_imp_mu" and "cma_me_rd": CMA-ME with mu
+#   selection, and with the random-direction ranker ("2rd"); cma_me is its "cma_me_imp".
+# - sep_cma_mae, lm_ma_mae: sphere.py's scalable CMA-MAE rows (Tjanaka et al. 2023): cma_mae
+#   with Sep-CMA-ES or LM-MA-ES, for policies of thousands of weights.
 ALGORITHMS: dict[str, dict[str, Any]] = {
     "cma_me": {
         "archive": lambda config: {},
@@ -55,7 +61,32 @@ ALGORITHMS: dict[str, dict[str, Any]] = {
         "emitter": "GaussianEmitter",
         "emitter_kwargs": lambda config: {"sigma": config.sigma0},
     },
+    "line_map_elites": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "IsoLineEmitter",
+        "emitter_kwargs": lambda config: {"iso_sigma": config.sigma0, "line_sigma": config.line_sigma},
+    },
+    "cma_me_mu": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "2imp",
+                                          "selection_rule": "mu", "restart_rule": "no_improvement"},
+    },
+    "cma_me_rd": {
+        "archive": lambda config: {},
+        "result_archive": False,
+        "emitter": "EvolutionStrategyEmitter",
+        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "2rd",
+                                          "selection_rule": "filter", "restart_rule": "no_improvement"},
+    },
 }
+# The scalable CMA-MAE rows: cma_mae's archive and emitters with an ES whose cost grows linearly in
+# the solution's size (a diagonal covariance; a limited memory) instead of quadratically.
+for _name, _es in (("sep_cma_mae", "sep_cma_es"), ("lm_ma_mae", "lm_ma_es")):
+    ALGORITHMS[_name] = {**ALGORITHMS["cma_mae"], "emitter_kwargs": lambda config, es=_es: {
+        **ALGORITHMS["cma_mae"]["emitter_kwargs"](config), "es": es}}
 
 
 def task_of(config: Any) -> Environment:

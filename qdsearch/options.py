@@ -135,9 +135,11 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "cells": Flag(None, f"CVT archive: its cells (centroids, made once by k-means and kept in the "
                         f"run); default {DEFAULT_CVT_CELLS}, at least 2^measures.",
                   whole_number_up_to(MAX_CELLS), sweep=True, label=9),
-    "algorithm": Flag("cma_me", "Which QD algorithm: cma_me (the tutorial's CMA-ME), cma_mae "
-                                "(CMA-MAE) or map_elites (MAP-Elites with Gaussian mutation); "
-                                "each asks n_emitters * batch_size solutions per iteration.",
+    "algorithm": Flag("cma_me", "Which QD algorithm, a row of ALGORITHMS: cma_me (the tutorial's "
+                                "CMA-ME), cma_mae (CMA-MAE), map_elites (MAP-Elites with Gaussian "
+                                "mutation), line_map_elites, cma_me_mu, cma_me_rd, sep_cma_mae, "
+                                "lm_ma_mae (docs/algorithms.md); each asks n_emitters * "
+                                "batch_size solutions per iteration.",
                       one_of(ALGORITHMS), per_run=True),
     "n_emitters": Flag(5, f"Number of emitters (at most {MAX_EMITTERS:,}).",
                        whole_number_up_to(MAX_EMITTERS), sweep=True, label=4),
@@ -146,11 +148,16 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "batch_size": Flag(30, f"Solutions each emitter proposes per iteration (n_emitters * "
                            f"batch_size: at most {MAX_SOLUTIONS:,}).", whole_number_up_to(MAX_SOLUTIONS),
                        sweep=True, label=5),
-    "learning_rate": Flag(0.5, "cma_mae only: how fast a cell's threshold follows its "
+    "learning_rate": Flag(0.5, "cma_mae (and sep_cma_mae, lm_ma_mae) only: how fast a cell's "
+                               "threshold follows its "
                                "improvements, in (0, 1]. 0.5 did best of 0.01, 0.1 and 0.5 over "
                                "6 seeds of 300 iterations (docs/algorithms.md); pyribs' 0.01 is "
                                "for far longer runs; 1 makes the archive CMA-ME's.", fraction,
-                          sweep=True, label=7, only_for=("cma_mae",), before=0.01),
+                          sweep=True, label=7, only_for=("cma_mae", "sep_cma_mae", "lm_ma_mae"),
+                          before=0.01),
+    "line_sigma": Flag(0.2, "line_map_elites only: the step along the line between two elites "
+                            "(pyribs' IsoLineEmitter line_sigma; its iso_sigma is --sigma0).",
+                       positive_float, sweep=True, label=10, only_for=("line_map_elites",)),
     "log_every": Flag(25, "Log a line and refresh the run folder every this many iterations.",
                       positive_int),
     "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "

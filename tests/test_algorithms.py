@@ -7,8 +7,13 @@ import json
 import numpy as np
 import pytest
 from ribs.archives import GridArchive
-from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter
-from ribs.emitters.rankers import ImprovementRanker, TwoStageImprovementRanker
+from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter, IsoLineEmitter
+from ribs.emitters.opt import LMMAEvolutionStrategy, SeparableCMAEvolutionStrategy
+from ribs.emitters.rankers import (
+    ImprovementRanker,
+    TwoStageImprovementRanker,
+    TwoStageRandomDirectionRanker,
+)
 from ribs.schedulers import Scheduler
 
 from qdsearch import algorithms, experiments, options, results, run, run_config, run_files, tasks
@@ -21,7 +26,7 @@ from util import (
     tiny_flags,
 )
 
-ALGORITHMS = ["cma_me", "cma_mae", "map_elites"]
+ALGORITHMS = list(algorithms.ALGORITHMS)  # every row: a run folder each, and their resumes
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
 
@@ -67,13 +72,27 @@ def algorithm_flags(dask_cluster, algorithm, **overrides):
     return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **overrides})
 
 
+class TinyRuns(dict):
+    """A 2-iteration run folder of each algorithm, made when a test first asks for it."""
+
+    def __init__(self, root, cluster) -> None:
+        super().__init__()
+        self.root, self.cluster = root, cluster
+
+    def __missing__(self, algorithm: str):
+        run.search(**algorithm_flags(self.cluster, algorithm), outdir=str(self.root / algorithm))
+        self[algorithm] = self.root / algorithm
+        return self[algorithm]
+
+
 @pytest.fixture(scope="module")
 def tiny_runs(tmp_path_factory, dask_cluster):
-    """A 2-iteration run folder of each algorithm."""
-    root = tmp_path_factory.mktemp("algorithms")
-    for algorithm in ALGORITHMS:
-        run.search(**algorithm_flags(dask_cluster, algorithm), outdir=str(root / algorithm))
-    return {algorithm: root / algorithm for algorithm in ALGORITHMS}
+    return TinyRuns(tmp_path_factory.mktemp("algorithms"), dask_cluster)
+
+
+# The tutorial's three in the quick subset; pyribs' other rows in the whole suite.
+QUICK = ("cma_me", "cma_mae", "map_elites")
+EVERY_ROW = [name if name in QUICK else pytest.param(name, marks=pytest.mark.slow) for name in ALGORITHMS]
 
 
 def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
@@ -95,11 +114,22 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
     elites = schedulers["map_elites"]
     assert elites.result_archive is elites.archive
     assert all(isinstance(e, GaussianEmitter) and np.all(e.sigma == 1.0) for e in elites.emitters)
+    line = schedulers["line_map_elites"]  # pyribs' sphere.py rows, with our step sizes
+    assert all(isinstance(e, IsoLineEmitter) and np.all(e.iso_sigma == 1.0)
+               and np.all(e.line_sigma == 0.2) for e in line.emitters)
+    assert all(e._selection_rule == "mu" and type(e._ranker) is TwoStageImprovementRanker
+               for e in schedulers["cma_me_mu"].emitters)
+    assert all(type(e._ranker) is TwoStageRandomDirectionRanker for e in schedulers["cma_me_rd"].emitters)
+    scalable_rows = (("sep_cma_mae", SeparableCMAEvolutionStrategy), ("lm_ma_mae", LMMAEvolutionStrategy))
+    for name, es in scalable_rows:
+        scalable = schedulers[name]
+        assert scalable.archive.learning_rate == 0.01 and scalable.result_archive is not scalable.archive
+        assert all(type(e._opt) is es and type(e._ranker) is ImprovementRanker for e in scalable.emitters)
     for scheduler in schedulers.values():
         assert scheduler.ask().shape == (5 * 30, 32)
 
 
-@pytest.mark.parametrize("algorithm", ALGORITHMS)
+@pytest.mark.parametrize("algorithm", EVERY_ROW)
 def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
     run_dir = tiny_runs[algorithm]
     assert RUN_FILES <= {p.name for p in run_dir.iterdir()}
@@ -128,7 +158,7 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 
 
 @pytest.mark.slow  # a resume or warm start per algorithm: the whole suite has them
-@pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
+@pytest.mark.parametrize("algorithm", [name for name in ALGORITHMS if name != "cma_me"])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_runs, algorithm):
     run_dir = tmp_path / "run"
     run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
