@@ -146,10 +146,9 @@ def scene(env_seed: int, task: Environment) -> dict:
     body. The view is the env's own, 600 x 400 pixels of 1/SCALE m."""
     edges, _, _ = seeded_randoms(env_seed)
     pixel = 1 / SCALE
-    flags = [x for x in (edges[3][1][0], edges[5][1][0])]
     statics = [{"points": [[0.0, 0.0], edges[0][0], *(end for _, end in edges), [WIDTH, 0.0]],
                 "fill": "#fff", "stroke": None}]
-    for x in flags:
+    for x in (edges[3][1][0], edges[5][1][0]):  # the helipad's flags
         top = HELIPAD_Y + 50 * pixel
         statics += [{"points": [[x, HELIPAD_Y], [x, top]], "fill": None, "stroke": "#fff"},
                     {"points": [[x, top], [x, top - 10 * pixel], [x + 25 * pixel, top - 5 * pixel]],

@@ -77,8 +77,9 @@ def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environme
     obs, _ = env.reset(seed=env_seed)
     model, data = env.unwrapped.model, env.unwrapped.data
     feet = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, foot) for foot in robot.feet])
-    scratch = mujoco.MjData(model)
-    stride, done = Stride(contacts=[0] * len(feet), start=tuple(torso_at(model, data, scratch))), False
+    scratch, torso = mujoco.MjData(model), mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    stride = Stride(contacts=[0] * len(feet), start=tuple(torso_at(model, data, scratch, torso)))
+    done = False
     total, forward, heights, steps, contacts = 0.0, 0.0, 0.0, 0, np.zeros(len(feet), dtype=np.int64)
     while not done:
         action = policy(obs)
@@ -88,15 +89,15 @@ def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environme
         total += reward
         forward += info["reward_forward"]
         contacts += feet_touching(data, feet)  # found at the last substep's start, as MuJoCo does
-        heights += float(torso_at(model, data, scratch)[2])
+        heights += torso_at(model, data, scratch, torso)[2]
         if on_step is not None:
             on_step(action, obs)
     stride.reward, stride.forward, stride.steps, stride.heights = float(total), float(forward), steps, heights
-    stride.contacts, stride.end = [int(c) for c in contacts], tuple(torso_at(model, data, scratch))
+    stride.contacts, stride.end = [int(c) for c in contacts], tuple(torso_at(model, data, scratch, torso))
     return stride
 
 
-def torso_at(model: Any, data: Any, scratch: Any) -> list[float]:
+def torso_at(model: Any, data: Any, scratch: Any, torso: int) -> list[float]:
     """The torso's position in the state the simulation has reached. mj_step computes positions
     before it integrates, so data's lag a substep behind; they are computed again on a scratch
     copy of the state, leaving the env's own data as the env reads it (the Ant's forward reward
@@ -105,7 +106,7 @@ def torso_at(model: Any, data: Any, scratch: Any) -> list[float]:
 
     scratch.qpos[:] = data.qpos
     mujoco.mj_kinematics(model, scratch)
-    return [float(value) for value in scratch.body("torso").xpos]
+    return scratch.xpos[torso].tolist()
 
 
 def without_forward_reward(stride: Stride) -> float:

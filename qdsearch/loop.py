@@ -8,7 +8,6 @@ The driver needs only a Dask client and the runs' entries, so it may run in any 
 reaches the scheduler (the main one today; a worker, through distributed's worker_client, later).
 
 Map:
-- `Saver`: the thread run folders are written in while the runs go on;
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
   chunk back), `tell`, the checkpoint (built and written here only) and `save` (its folder's
   files: `save_outputs`);
@@ -42,14 +41,6 @@ from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.run_files import RunError, atomic_write, fault_text, write_csv, write_json, write_pickle
 from qdsearch.tasks import ENVIRONMENTS, MEASURES
-
-
-class Saver(ThreadPoolExecutor):
-    """The thread run folders are written in while the runs go on (one thread: the plots'
-    matplotlib is not thread-safe)."""
-
-    def __init__(self) -> None:
-        super().__init__(1, thread_name_prefix="save")
 
 
 class Run:
@@ -169,15 +160,11 @@ class Run:
                 write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
                 self.saved = self.iteration
 
-    def save(self, saver: Saver | None = None) -> None:
-        """Refresh every file of the run folder, the checkpoint first; with a `saver`, in its
-        thread, so the workers are fed meanwhile."""
+    def save(self, saver: ThreadPoolExecutor) -> None:
+        """Refresh every file of the run folder, the checkpoint first, in the saver's thread, so
+        the workers are fed meanwhile."""
         self.settle()
-        checkpoint = self.checkpoint()
-        if saver is None:
-            self.write(checkpoint)
-        else:
-            self.pending = saver.submit(self.write, checkpoint)
+        self.pending = saver.submit(self.write, self.checkpoint())
 
     def write(self, checkpoint: dict) -> None:
         write_pickle(self.dir / "checkpoint.pkl", checkpoint)
@@ -245,7 +232,9 @@ class Driver:
         self.latest: dict[str, dict] = {}  # run name -> its last metrics row
         self.told = 0  # iterations told in this drive
         self.closing: list[Run] = []  # finished runs whose last save is being written
-        self.saver = Saver()
+        # Run folders are written in this thread while the runs go on (one thread: the plots'
+        # matplotlib is not thread-safe).
+        self.saver = ThreadPoolExecutor(1, thread_name_prefix="save")
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
         self.finished = as_completed(with_results=True, raise_errors=False)
@@ -419,11 +408,10 @@ class OneRun(Driver):
 
     desc = "search"
 
-    def __init__(self, client, log: logging.Logger, iterations: int, make: Callable[[], Run]) -> None:
-        super().__init__(client, log, [{"name": "run"}], total=iterations)
+    def __init__(self, client, log: logging.Logger, run_dir: Path, iterations: int,
+                 make: Callable[[], Run]) -> None:
+        super().__init__(client, log, [{"name": run_dir.name}], total=iterations)
         self.make = make
 
     def open(self, entry: dict) -> Run:
-        run = self.make()
-        run.name = entry["name"]
-        return run
+        return self.make()

@@ -61,7 +61,7 @@ def search(**flags: Any) -> None:
             from_archive=str(Path(config.from_archive).resolve()) if config.from_archive else None)
         write_config(run_dir, config)
         with run_session(run_dir, config.workers, address) as (client, log):
-            OneRun(client, log, config.iterations,
+            OneRun(client, log, run_dir, config.iterations,
                    lambda: Run.start(run_dir, config, client, log, seed_archive)).drive()
     print(where_to_look(run_dir))
 
@@ -96,7 +96,7 @@ def resume_run(run_dir: str, **flags: Any) -> None:
                        else Run.from_checkpoint(path, {**checkpoint, "config": config}, log))
                 run.target = iterations  # --iterations below the run's own stops it there
                 return run
-            OneRun(client, log, iterations, make).drive()
+            OneRun(client, log, path, iterations, make).drive()
     print(where_to_look(path))
 
 

@@ -36,12 +36,12 @@ from qdsearch.run_files import read_pickle, read_run_json, write_json
 
 # What a run's config.json notes about the run besides its flags: each field's type, and what a
 # run that did not note it holds.
-RECORDS: dict[str, tuple[str, Any]] = {
-    "created": ("str | None", None),  # when it was started
-    "command": ("list[str]", []),  # the command line that started it
-    "versions": ("dict[str, str]", {}),  # the libraries it ran with
-    "experiment": ("str | None", None),  # the experiment folder it is a run of
-    "resumed": ("list[dict]", []),  # each resumption: when, from and to which iteration, workers
+RECORDS: dict[str, tuple[str, type, Any]] = {  # field: its annotation, the JSON type it holds, unset
+    "created": ("str | None", str, None),  # when it was started
+    "command": ("list[str]", list, []),  # the command line that started it
+    "versions": ("dict[str, str]", dict, {}),  # the libraries it ran with
+    "experiment": ("str | None", str, None),  # the experiment folder it is a run of
+    "resumed": ("list[dict]", list, []),  # each resumption: when, from and to which iteration, workers
 }
 
 
@@ -71,7 +71,7 @@ RunConfig = dataclasses.make_dataclass(
     "RunConfig",
     [*((name, flag_type(flag)) for name, flag in SEARCH_FLAGS.items()),
      *((name, kind, dataclasses.field(default_factory=lambda value=value: copy.deepcopy(value)))
-       for name, (kind, value) in RECORDS.items())],
+       for name, (kind, _, value) in RECORDS.items())],
     bases=(Settings,), frozen=True)
 RunConfig.__module__ = __name__  # (make_dataclass takes `module` from Python 3.12 on)
 
@@ -186,17 +186,14 @@ def check_run_config(recorded: Any) -> RunConfig:
     config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
     if config["archive"] is None or config[size := ARCHIVES[config["archive"]]["size"]] is None:
         raise UsageError(f"--{'archive' if config['archive'] is None else size} is null")
-    for name, (kind, _) in RECORDS.items():
-        if config.get(name) is not None and not isinstance(config[name], RECORD_KINDS[kind]):
+    for name, (kind, holds, _) in RECORDS.items():
+        if config.get(name) is not None and not isinstance(config[name], holds):
             raise UsageError(f"{name} is {shown(config[name])}, not a {kind}")
     config = with_task(config)
     seed_number("seed", config["seed"])
     check_sizes(config)
     return RunConfig(**{name: config[name] for name in SEARCH_FLAGS},
                      **{name: config[name] for name in RECORDS if config.get(name) is not None})
-
-
-RECORD_KINDS = {"str | None": str, "list[str]": list, "dict[str, str]": dict, "list[dict]": list}
 
 
 def load_checkpoint(path: Path) -> dict:

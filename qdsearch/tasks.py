@@ -16,6 +16,7 @@ Map:
 from __future__ import annotations
 
 import os
+import sys
 from typing import Any
 
 import gymnasium as gym
@@ -60,8 +61,8 @@ def plain_env(env_name: str, render_mode: str | None = None) -> gym.Env:
     except gym.error.DependencyNotInstalled as error:
         raise UsageError(f"--env {env_name} needs a package that is not installed "
                          f"({one_line(str(error))[:200]}): pip install -r requirements.txt") from None
-    except (ImportError, AttributeError, RuntimeError) as error:  # MuJoCo's import of its renderer
-        if not os.environ.get("MUJOCO_GL"):
+    except (ImportError, AttributeError, RuntimeError) as error:
+        if not os.environ.get("MUJOCO_GL") or "mujoco" in sys.modules:  # not MuJoCo's import failing
             raise
         raise renderer_missing(error) from None
 
