@@ -34,7 +34,8 @@ a fault of the machine one line and exit code 1). A search tells the tutorial's 
    the emitters for solutions, `Run.send` them to the Dask workers in chunks (`qdsearch/engine.py`,
    `qdsearch/cluster.py`), `Run.take` the chunks back, `Run.tell` the scheduler, and every
    log_every iterations checkpoint and refresh the run folder (heatmap, metrics, archive);
-5. look at the archive: `qdsearch/results.py` (video, elites, trajectories, evaluate),
+5. look at the archive: `qdsearch/results.py` (video, elites, trajectories),
+   `qdsearch/evaluation.py` (evaluate: other terrains, the corrected archive),
    `qdsearch/explorer.py` (explore), `qdsearch/comparison.py` (compare).
 The package never imports this script.
 """
@@ -66,7 +67,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "search": ("qdsearch.run", "search"), "resume": ("qdsearch.experiments", "resume"),
     "experiment": ("qdsearch.experiments", "experiment"), "video": ("qdsearch.results", "video"),
     "elites": ("qdsearch.results", "elites"), "trajectories": ("qdsearch.results", "trajectories"),
-    "evaluate": ("qdsearch.results", "evaluate_robustness"), "explore": ("qdsearch.explorer", "explore"),
+    "evaluate": ("qdsearch.evaluation", "evaluate"), "explore": ("qdsearch.explorer", "explore"),
     "compare": ("qdsearch.comparison", "compare"),
 }
 

@@ -21,8 +21,10 @@ Map, a module per role, imports going down the list only:
 - loop: the one run loop (`Run`, `Driver`);
 - run: `search` and `resume` of a run folder;
 - experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
-- results: `video`, `elites`, `trajectories`, `evaluate`, and choosing elites;
+- results: `video`, `elites`, `trajectories`, and choosing elites;
+- evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);
 - explorer: `explore`, the page (explorer_page.html) and the poses it plays;
+- stats: statistics across seeds (BCa, rliable's IQM and P(A>B) with stratified bootstrap, Holm);
 - comparison: `compare` and its statistics.
 """
 

@@ -11,6 +11,7 @@ Map:
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Callable
 
 import numpy as np
@@ -18,75 +19,153 @@ import numpy as np
 from qdsearch.family import Environment
 from qdsearch.tasks import ENVIRONMENTS, MEASURES
 
-# One row per algorithm, in the spirit of pyribs' examples/sphere.py: the archive's extra kwargs,
-# whether a separate result archive keeps the elites, and the emitter class with its kwargs, each
-# a small function of the run's config. All rows share the grid, the seeds, x0 and the batch
-# size, so every algorithm asks n_emitters * batch_size solutions per iteration. (A flag only some
-# algorithms use says so in its entry of SEARCH_FLAGS: an experiment sweeps it for them alone, and
-# labels name it for them alone.)
-# - cma_me: the tutorial's CMA-ME (EvolutionStrategyEmitter, two-stage improvement ranker).
-# - cma_mae: pyribs' CMA-MAE tutorial and sphere.py's "cma_mae" row: a soft archive with
-#   learning_rate (--learning_rate; 0.01 there, 0.5 here: docs/algorithms.md) and threshold_min (0
-#   there for objectives in [0, 100]; here the task's QD offset, below almost every episode's
-#   return), a plain result archive of the same grid that keeps the best solutions (metrics,
-#   heatmaps and archive.pkl come from it), and emitters with the "imp" ranker, "mu" selection
-#   and "basic" restarts.
-# - map_elites: sphere.py's "map_elites" row: GaussianEmitters that mutate random elites with a
-#   fixed sigma (--sigma0). (Lunar Lander's policy argmax(W @ obs) ignores W's scale, so there
-#   only sigma relative to the elites' weights matters; tanh(W @ obs) does not ignore it.)
-# - line_map_elites: sphere.py's row of the same name: IsoLineEmitters (Vassiliades & Mouret
-#   2018) with iso_sigma --sigma0 and line_sigma --line_sigma (0.2, as there).
-# - cma_me_mu, cma_me_rd: sphere.py's "cma_me_imp_mu" and "cma_me_rd": CMA-ME with mu
-#   selection, and with the random-direction ranker ("2rd"); cma_me is its "cma_me_imp".
-# - sep_cma_mae, lm_ma_mae: sphere.py's scalable CMA-MAE rows (Tjanaka et al. 2023): cma_mae
-#   with Sep-CMA-ES or LM-MA-ES, for policies of thousands of weights.
-ALGORITHMS: dict[str, dict[str, Any]] = {
-    "cma_me": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "2imp"},
-    },
-    "cma_mae": {
-        "archive": lambda config: {"learning_rate": config.learning_rate,
-                                   "threshold_min": task_of(config).qd_offset},
-        "result_archive": True,
-        "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "imp",
-                                          "selection_rule": "mu", "restart_rule": "basic"},
-    },
-    "map_elites": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "GaussianEmitter",
-        "emitter_kwargs": lambda config: {"sigma": config.sigma0},
-    },
-    "line_map_elites": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "IsoLineEmitter",
-        "emitter_kwargs": lambda config: {"iso_sigma": config.sigma0, "line_sigma": config.line_sigma},
-    },
-    "cma_me_mu": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "2imp",
-                                          "selection_rule": "mu", "restart_rule": "no_improvement"},
-    },
-    "cma_me_rd": {
-        "archive": lambda config: {},
-        "result_archive": False,
-        "emitter": "EvolutionStrategyEmitter",
-        "emitter_kwargs": lambda config: {"sigma0": config.sigma0, "ranker": "2rd",
-                                          "selection_rule": "filter", "restart_rule": "no_improvement"},
-    },
+
+@dataclasses.dataclass(frozen=True)
+class Emitters:
+    """A group of pyribs emitters of one class: `kind` names it in ribs.emitters, `kwargs` gives
+    its keyword arguments from the run's config (the archive, x0, batch size and seed come from
+    build_scheduler)."""
+
+    kind: str
+    kwargs: Callable[[Any], dict[str, Any]]
+
+
+@dataclasses.dataclass(frozen=True)
+class Algorithm:
+    """A row of ALGORITHMS: the pyribs objects of one QD algorithm, each a small function of the
+    run's config, so that every row asks n_emitters * batch_size solutions per iteration.
+
+    The run's own archive (grid or CVT, --archive) is the one measured, saved and shown. A row
+    either searches in it (`archive`: its extra kwargs, such as CMA-MAE's learning rate) or in an
+    archive of another kind (`search_archive`: a proximity, DNS or density archive, made from the
+    config, the run's archive and a seed), the run's archive then being pyribs' result archive.
+    """
+
+    summary: str  # what --help and docs/algorithms.md call it
+    emitters: tuple[Emitters, ...]  # one group: n_emitters of it; several: a bandit's pool
+    archive: Callable[[Any], dict[str, Any]] = lambda config: {}
+    result_archive: bool = False  # a plain copy of the run's archive keeps the best (CMA-MAE)
+    search_archive: Callable[..., Any] | None = None
+    emitters_on_result: bool = False  # the search archive keeps no elites to sample (DDS)
+    bandit: bool = False  # pyribs' BanditScheduler picks n_emitters of the pool (UCB1)
+    flags: tuple[str, ...] = ()  # the flags of SEARCH_FLAGS only this row (and others) use
+
+
+def evolution_strategy(ranker: str, selection_rule: str = "filter", restart_rule: str = "no_improvement",
+                       es: str | None = None, sigma_scale: float = 1.0) -> Emitters:
+    """EvolutionStrategyEmitters (CMA-ES by default) starting at sigma_scale * --sigma0."""
+    extra = {} if es is None else {"es": es}
+    return Emitters("EvolutionStrategyEmitter", lambda config: {
+        "sigma0": sigma_scale * config.sigma0, "ranker": ranker, "selection_rule": selection_rule,
+        "restart_rule": restart_rule, **extra})
+
+
+def iso_line(iso_scale: float = 1.0, line_scale: float = 1.0) -> Emitters:
+    """IsoLineEmitters: iso_sigma iso_scale * --sigma0, line_sigma line_scale * --line_sigma."""
+    return Emitters("IsoLineEmitter", lambda config: {"iso_sigma": iso_scale * config.sigma0,
+                                                      "line_sigma": line_scale * config.line_sigma})
+
+
+def soft_archive(config: Any) -> dict[str, Any]:
+    """CMA-MAE's archive: thresholds follow improvements at --learning_rate, from the QD offset."""
+    return {"learning_rate": config.learning_rate, "threshold_min": task_of(config).qd_offset}
+
+
+def measure_span(config: Any) -> float:
+    """The mean width of the measures' ranges: distances in measure space are fractions of it
+    (pyribs' sphere.py sets its thresholds as fractions of its one width, 512)."""
+    return float(np.mean([high - low for low, high in archive_shape(config)["ranges"]]))
+
+
+def proximity_archive(local_competition: bool) -> Callable[..., Any]:
+    """Novelty search's archive: a solution enters if its mean distance to its 15 nearest
+    neighbours in measure space is at least --novelty_threshold of the measures' span."""
+    def make(config: Any, archive: Any, seed: int) -> Any:
+        from ribs.archives import ProximityArchive
+
+        return ProximityArchive(solution_dim=archive.solution_dim, measure_dim=archive.measure_dim,
+                                k_neighbors=15,
+                                novelty_threshold=config.novelty_threshold * measure_span(config),
+                                local_competition=local_competition,
+                                qd_score_offset=archive.qd_score_offset, seed=seed)
+    return make
+
+
+DNS_NEIGHBOURS = 3  # the DNS paper's k (Bahlous-Boldi et al. 2025)
+
+
+def dns_archive(config: Any, archive: Any, seed: int) -> Any:
+    """Dominated Novelty Search's population: as many solutions as the run's archive has cells,
+    the survivors those farthest from their 3 nearest fitter neighbours."""
+    from ribs.archives import DNSArchive
+
+    return DNSArchive(solution_dim=archive.solution_dim, measure_dim=archive.measure_dim,
+                      capacity=archive.cells, k_neighbors=DNS_NEIGHBOURS,
+                      qd_score_offset=archive.qd_score_offset, seed=seed)
+
+
+def density_archive(config: Any, archive: Any, seed: int) -> Any:
+    """Density Descent Search's KDE over a reservoir of 10,000 measures, its bandwidth
+    --bandwidth of the measures' span."""
+    from ribs.archives import DensityArchive
+
+    return DensityArchive(measure_dim=archive.measure_dim, buffer_size=10_000, density_method="kde",
+                          bandwidth=config.bandwidth * measure_span(config), seed=seed)
+
+
+# One row per algorithm, in the spirit of pyribs' examples/sphere.py (its row names in brackets
+# where ours differ), with its step sizes scaled to ours: sphere.py's rows start at sigma 0.5,
+# ours at --sigma0. All rows share the run's archive, seeds, x0 (zeros) and batch, so equal flags
+# give equal budgets. docs/algorithms.md tells the rows, their sources and their measured ranks.
+ALGORITHMS: dict[str, Algorithm] = {
+    # The tutorial's CMA-ME (sphere.py's cma_me_imp).
+    "cma_me": Algorithm("CMA-ME", (evolution_strategy("2imp"),)),
+    # pyribs' CMA-MAE tutorial and sphere.py: a soft archive (learning rate 0.01 there, 0.5 here:
+    # docs/algorithms.md; threshold_min 0 there for objectives in [0, 100], here the QD offset,
+    # below almost every episode's return), and a result archive keeping the best.
+    "cma_mae": Algorithm("CMA-MAE", (evolution_strategy("imp", "mu", "basic"),), archive=soft_archive,
+                         result_archive=True, flags=("learning_rate",)),
+    # GaussianEmitters mutating random elites with a fixed sigma. (Lunar Lander's policy
+    # argmax(W @ obs) ignores W's scale, so there only sigma relative to the elites' weights
+    # matters; tanh(W @ obs) does not ignore it.)
+    "map_elites": Algorithm("MAP-Elites", (
+        Emitters("GaussianEmitter", lambda config: {"sigma": config.sigma0}),)),
+    # Iso+line variation (Vassiliades & Mouret 2018), line_sigma 0.2 as in sphere.py.
+    "line_map_elites": Algorithm("MAP-Elites (line)", (iso_line(),), flags=("line_sigma",)),
+    # Multi-emitter MAP-Elites (sphere.py's me_map_elites): a BanditScheduler keeps n_emitters
+    # active out of a pool of four kinds, n_emitters of each; the iso+line emitters' steps are
+    # sphere.py's (0.01 and 0.1) relative to its sigma0 0.5 and line_sigma 0.2.
+    "me_map_elites": Algorithm("ME-MAP-Elites (bandit)", (
+        evolution_strategy("obj"), evolution_strategy("2rd"), evolution_strategy("2imp"),
+        iso_line(0.02, 0.5)),
+        bandit=True, flags=("line_sigma",)),
+    # CMA-ME with mu selection (cma_me_imp_mu), and with the random-direction ranker (cma_me_rd).
+    "cma_me_mu": Algorithm("CMA-ME (mu)", (evolution_strategy("2imp", "mu"),)),
+    "cma_me_rd": Algorithm("CMA-ME (random direction)", (evolution_strategy("2rd"),)),
+    # Novelty search with CMA-ES (ns_cma, from the DDS paper): a proximity archive, objectives
+    # ignored; the run's archive keeps what it finds. NSLC ranks by novelty and local competition;
+    # sphere.py's own nslc threshold is marked untuned, so both rows share ns_cma's.
+    "ns_cma": Algorithm("Novelty search (CMA-ES)", (evolution_strategy("nov", "mu", "basic"),),
+                        search_archive=proximity_archive(False), result_archive=True,
+                        flags=("novelty_threshold",)),
+    "nslc": Algorithm("NSLC (CMA-ES)", (evolution_strategy("nslc"),), search_archive=proximity_archive(True),
+                      result_archive=True, flags=("novelty_threshold",)),
+    # Dominated Novelty Search (not in sphere.py): pyribs' DNSArchive with the paper's iso+line
+    # variation and k; its population as large as the run's archive.
+    "dns": Algorithm("Dominated Novelty Search", (iso_line(),), search_archive=dns_archive,
+                     result_archive=True, flags=("line_sigma",)),
+    # Density Descent Search (dds, Lee et al. 2024): a KDE of the measures, CMA-ES descending it
+    # from 3 * --sigma0 (sphere.py: 1.5 where its other rows take 0.5), sampling the run's archive.
+    "dds": Algorithm("Density Descent Search",
+                     (evolution_strategy("density", "mu", "basic", sigma_scale=3.0),),
+                     search_archive=density_archive, result_archive=True, emitters_on_result=True,
+                     flags=("bandwidth",)),
 }
-# The scalable CMA-MAE rows: cma_mae's archive and emitters with an ES whose cost grows linearly in
+# The scalable CMA-MAE rows (Tjanaka et al. 2023): cma_mae with an ES whose cost grows linearly in
 # the solution's size (a diagonal covariance; a limited memory) instead of quadratically.
 for _name, _es in (("sep_cma_mae", "sep_cma_es"), ("lm_ma_mae", "lm_ma_es")):
-    ALGORITHMS[_name] = {**ALGORITHMS["cma_mae"], "emitter_kwargs": lambda config, es=_es: {
-        **ALGORITHMS["cma_mae"]["emitter_kwargs"](config), "es": es}}
+    ALGORITHMS[_name] = dataclasses.replace(ALGORITHMS["cma_mae"], summary=f"CMA-MAE ({_es})",
+                                            emitters=(evolution_strategy("imp", "mu", "basic", es=_es),))
 
 
 def task_of(config: Any) -> Environment:
@@ -143,19 +222,21 @@ def empty_grid(archive: Any) -> Any:
     from ribs.archives import GridArchive
 
     return GridArchive(solution_dim=archive.solution_dim, dims=archive.dims,
-                       ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+                       ranges=list(zip(archive.lower_bounds, archive.upper_bounds)),
+                       qd_score_offset=archive.qd_score_offset)
 
 
 def empty_cvt(archive: Any) -> Any:
     from ribs.archives import CVTArchive
 
     return CVTArchive(solution_dim=archive.solution_dim, centroids=archive.centroids,
-                      ranges=list(zip(archive.lower_bounds, archive.upper_bounds)))
+                      ranges=list(zip(archive.lower_bounds, archive.upper_bounds)),
+                      qd_score_offset=archive.qd_score_offset)
 
 
 # The kinds of archive (--archive): the flag that sizes it, how a run makes its archives, where a
-# cell lies (to find the nearest occupied one), and an empty archive of the same cells (evaluate's
-# means). A grid grows
+# cell lies (to find the nearest occupied one), and an empty archive of the same cells and QD offset
+# (evaluate's means, the corrected archive). A grid grows
 # as cells^measures, so it takes at most MAX_GRID_MEASURES; a CVT archive has --cells cells
 # whatever the number of measures (QDax's default for QD-RL: 1,024).
 ARCHIVES: dict[str, dict[str, Any]] = {
@@ -172,28 +253,31 @@ def kind_of(archive: Any) -> str | None:
 
 
 def build_scheduler(config: Any, x0: np.ndarray | None = None):
-    """The archive, emitters and scheduler of `config.algorithm`, seeded from `config.seed`.
+    """The archives, emitters and scheduler of `config.algorithm`, seeded from `config.seed`.
 
     The emitters start from `x0` (default: zeros, as in the tutorial).
     """
     from ribs import emitters as ribs_emitters
-    from ribs.schedulers import Scheduler
+    from ribs.schedulers import BanditScheduler, Scheduler
 
-    spec = ALGORITHMS[config.algorithm]
+    row = ALGORITHMS[config.algorithm]
     # A result archive's seed comes last, so the other seeds are those of a run without one.
-    archive_seed, *emitter_seeds, result_seed = derive_seeds(config.seed, config.n_emitters + 2)
+    archive_seed, *emitter_seeds, result_seed = derive_seeds(
+        config.seed, len(row.emitters) * config.n_emitters + 2)
     make = ARCHIVES[config.archive]["make"](config)
-    archive = make(seed=archive_seed, **spec["archive"](config))
-    result_archive = make(seed=result_seed) if spec["result_archive"] else None
-    emitter_class = getattr(ribs_emitters, spec["emitter"])
-    emitters = [
-        emitter_class(
-            archive,
-            x0=np.zeros(task_of(config).solution_dim) if x0 is None else x0,
-            batch_size=config.batch_size,
-            seed=emitter_seed,
-            **spec["emitter_kwargs"](config),
-        )
-        for emitter_seed in emitter_seeds
-    ]
+    if row.search_archive is None:
+        archive = make(seed=archive_seed, **row.archive(config))
+        result_archive = make(seed=result_seed) if row.result_archive else None
+    else:
+        result_archive = make(seed=result_seed)
+        archive = row.search_archive(config, result_archive, archive_seed)
+    start = np.zeros(task_of(config).solution_dim) if x0 is None else x0
+    sampled = result_archive if row.emitters_on_result else archive
+    seeds = iter(emitter_seeds)
+    emitters = [getattr(ribs_emitters, group.kind)(sampled, x0=start, batch_size=config.batch_size,
+                                                   seed=next(seeds), **group.kwargs(config))
+                for group in row.emitters for _ in range(config.n_emitters)]
+    if row.bandit:
+        return BanditScheduler(archive, emitters, result_archive, num_active=config.n_emitters,
+                               reselect="terminated")
     return Scheduler(archive, emitters, result_archive=result_archive)

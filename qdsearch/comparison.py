@@ -1,17 +1,26 @@
-"""Comparing runs: QD score, coverage and best objective against evaluations on one picture, a
-table of final values, and statistics across seeds between settings.
+"""Comparing runs: QD score, coverage and best objective against evaluations on one picture, the
+final archives' score distributions on another, a table of final values, and statistics across
+seeds between settings.
 
 Runs of one setting (the same algorithm and flags, other seeds: `experiments.run_setting`) are
-repeats of one experiment. Per setting: the mean with a 95% BCa bootstrap interval of each
-summarised metric. Between settings: two-sided Mann-Whitney U tests, Holm-adjusted over the
-pairs, with Vargha-Delaney A12 as the effect size.
+repeats of one experiment; returns of different tasks share no scale, so every statistic is per
+(task, setting). Per setting: the mean with a 95% BCa bootstrap interval, the median, and the
+interquartile mean (IQM) with a 95% stratified bootstrap interval of each summarised metric.
+Between settings: two-sided Mann-Whitney U tests, Holm-adjusted over the pairs, with
+Vargha-Delaney A12 as the effect size, which is also rliable's probability of improvement
+P(A > B), here with its interval. Runs of several tasks are also pooled per setting on scales
+that every task shares (the QD score normalised by the archive's cells and the task's objective
+range, coverage), as rliable aggregates over tasks (qdsearch/stats.py).
 
 Map:
-- reading runs: `expand_folders` (an experiment folder is its runs), `load_run_metrics`;
-- a run's figures: `solved_cells`, `qd_auc`, `cqd` (pyribs' cqd_score with fixed settings, CQD);
-- `comparison_table` (a row per run), `setting_statistics`, `bootstrap_interval`,
-  `pairwise_tests`, `holm`, `holm_floor`;
-- output: `comparison_outputs` (file names), `format_table`, `markdown_report`;
+- reading runs: `expand_folders` (an experiment folder is its runs), `load_run_metrics`,
+  `read_corrected` (compare --corrected: corrected.json), `final_archive`;
+- a run's figures: `solved_cells`, `qd_auc`, `cqd` (pyribs' cqd_score with fixed settings, CQD),
+  `archive_cells`, `normalised_qd_score`;
+- `comparison_table` (a row per run), `setting_statistics`, `pairwise_tests` (per task),
+  `aggregate_statistics` (across tasks);
+- output: `comparison_outputs` (file names), `format_table`, `markdown_report` (`task_section`,
+  `settings_table`, `aggregate_section`), `save_score_distributions`;
 - `compare`: the command.
 """
 
@@ -21,31 +30,46 @@ import datetime
 import itertools
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from qdsearch.algorithms import task_of
+from qdsearch.algorithms import kind_of, task_of
 from qdsearch.experiments import read_experiment, run_setting
 from qdsearch.family import Environment
-from qdsearch.flags import UsageError, boolean
-from qdsearch.metrics import load_metrics
+from qdsearch.flags import UsageError, boolean, shown
+from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics
 from qdsearch.plots import save_metric_panels
 from qdsearch.run_config import RunConfig, load_checked_config
-from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, write_csv
+from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, read_run_json, write_csv
+from qdsearch.stats import (
+    RESAMPLES,
+    bootstrap_interval,
+    holm,
+    holm_floor,
+    improvement_interval,
+    iqm_interval,
+    mean_interval,
+)
 from qdsearch.tasks import ENVIRONMENTS
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
+CORRECTED = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective")  # --corrected's
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task
+NORMALISED = "normalised_qd_score"  # QD score over its most: comparable between tasks
+# The files a run's final figures come from: its own, or (--corrected) those `evaluate --corrected` wrote.
+ARCHIVE_FILES = {False: ("archive.pkl", "archive.csv"),
+                 True: ("corrected_archive.pkl", "corrected_archive.csv")}
 
 
-def solved_cells(run_dir: Path, task: Environment) -> int | None:
-    """Cells of the final archive whose elite solves the task, a return of at least task.solved
-    (200 for Lunar Lander: a good landing); None without archive.csv. QD score and coverage count
-    crashes too; this counts only the solutions."""
+def solved_cells(path: Path, task: Environment) -> int | None:
+    """Cells of the final archive (its CSV at `path`) whose elite solves the task, a return of at
+    least task.solved (200 for Lunar Lander: a good landing); None without the CSV. QD score and
+    coverage count crashes too; this counts only the solutions."""
     import pandas as pd
 
     try:
-        objectives = pd.read_csv(run_dir / "archive.csv", usecols=["objective"])["objective"]
+        objectives = pd.read_csv(path, usecols=["objective"])["objective"]
         return int((objectives >= task.solved).sum())
     except (OSError, ValueError):
         return None
@@ -58,9 +82,31 @@ def load_run_metrics(run_dir: Path) -> tuple[RunConfig, list[dict]]:
     return load_checked_config(run_dir), metrics
 
 
+def read_corrected(run_dir: Path) -> dict:
+    """A run's corrected metrics (corrected.json, written by `evaluate RUN --corrected`: its
+    elites flown again on new seeds), each of CORRECTED of its metrics.json type, and `repeats`."""
+    path = run_dir / "corrected.json"
+    if not path.is_file():
+        raise UsageError(f"{run_dir} has no corrected.json: run `python lunar_lander.py evaluate "
+                         f"{run_dir} --corrected` first")
+    recorded = read_run_json(run_dir, "corrected.json")
+    if not isinstance(recorded, dict):
+        raise UsageError(f"{path}: holds a {type(recorded).__name__}, not corrected metrics")
+    for field in (*CORRECTED, "repeats"):
+        kinds = METRIC_FIELDS.get(field, (int,))
+        if field not in recorded or not holds(recorded[field], kinds):
+            raise UsageError(f"{path}: {field} is {shown(recorded.get(field))}, not "
+                             f"{' or '.join(kind.__name__ for kind in kinds)}; run `python "
+                             f"lunar_lander.py evaluate {run_dir} --corrected` again")
+    return recorded
+
+
 def run_labels(run_dirs: list[Path], configs: list[RunConfig]) -> list[str]:
-    """'setting seed N' for each run, or the folders as given when that would be ambiguous."""
-    labels = [f"{run_setting(config.to_json())} seed {config.seed}" for config in configs]
+    """'setting seed N' for each run ('TASK: setting seed N' with several tasks), or the folders
+    as given when that would be ambiguous."""
+    several = len({config.env for config in configs}) > 1
+    labels = [f"{config.env + ': ' if several else ''}{run_setting(config.to_json())} seed {config.seed}"
+              for config in configs]
     return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
 
 
@@ -70,7 +116,9 @@ def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
     def named(png: Path) -> dict[str, Path]:
         return {"png": png, "csv": png.with_suffix(".csv"), "md": png.with_suffix(".md"),
                 "settings": png.with_name(f"{png.stem}_settings.csv"),
-                "tests": png.with_name(f"{png.stem}_tests.csv")}
+                "tests": png.with_name(f"{png.stem}_tests.csv"),
+                "aggregate": png.with_name(f"{png.stem}_aggregate.csv"),
+                "scores": png.with_name(f"{png.stem}_scores.png")}
 
     if out is None:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -96,18 +144,25 @@ QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
 CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0}
 SUMMARISED = ("qd_score", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
 TESTED = ("qd_score", QD_AUC, CQD_SCORE)  # pairwise between settings: final, anytime, spread
+AGGREGATED = (NORMALISED, "coverage")  # across tasks: on scales every task shares
 FEW_RUNS = 5
 
 
-def cqd(run_dir: Path, task: Environment) -> float | None:
-    """The CQD score of a run's final archive (None without a readable archive.pkl)."""
+def final_archive(path: Path):
+    """A run's final archive (archive.pkl, or corrected_archive.pkl), or None where there is no
+    readable archive of ours."""
+    try:
+        archive = read_pickle(path, "archive pickle")
+    except UsageError:
+        return None
+    return archive if kind_of(archive) else None
+
+
+def cqd(archive, task: Environment) -> float:
+    """The CQD score of a run's final archive."""
     from ribs.archives import cqd_score
 
-    try:
-        archive = read_pickle(run_dir / "archive.pkl", "archive pickle")
-        lower, upper = archive.lower_bounds, archive.upper_bounds
-    except (UsageError, AttributeError):
-        return None
+    lower, upper = archive.lower_bounds, archive.upper_bounds
     targets = np.random.default_rng(CQD["target_seed"]).uniform(
         lower, upper, size=(CQD["iterations"], CQD["targets"], len(lower)))
     return float(cqd_score(archive, iterations=CQD["iterations"], target_points=targets,
@@ -122,139 +177,288 @@ def qd_auc(metrics: list[dict]) -> float:
     return float(np.trapezoid([0, *(row["qd_score"] for row in metrics)], evaluations) / evaluations[-1])
 
 
+def archive_cells(config: RunConfig) -> int:
+    """The cells of a run's archive: --grid along each measure, or a CVT's --cells."""
+    return config.grid ** len(config.measures) if config.archive == "grid" else config.cells
+
+
+def normalised_qd_score(qd_score: float, config: RunConfig) -> float:
+    """QD score over the most it could be, every cell holding an elite of the task's
+    objective_max: in [0, 1] (objective_max is above almost every return) whatever the task and
+    the archive's size, so tasks pool."""
+    task = task_of(config)
+    return qd_score / (archive_cells(config) * (task.objective_max - task.qd_offset))
+
+
 def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunConfig],
-                     runs: list[list[dict]]):
-    """One row per run: its final metrics, with the algorithm and seed that produced them."""
+                     runs: list[list[dict]], corrected: list[dict] | None = None):
+    """One row per run: its final metrics (or its `corrected` ones), with the task, algorithm and
+    seed that produced them; and each run's final objectives (None without a readable archive),
+    for the score distributions. QD-score AUC is always from metrics.json: a curve."""
     import pandas as pd
 
-    table = pd.DataFrame([
-        {"run": label, "folder": str(run_dir), "setting": run_setting(config.to_json()),
-         "seed": config.seed, "iterations": metrics[-1]["iteration"],
-         **{key: metrics[-1][key] for key in COMPARED}, SOLVED_CELLS: solved_cells(run_dir, task_of(config)),
-         QD_AUC: qd_auc(metrics), CQD_SCORE: cqd(run_dir, task_of(config))}
-        for label, run_dir, config, metrics in zip(labels, run_dirs, configs, runs)
-    ])
+    pickle_name, csv_name = ARCHIVE_FILES[corrected is not None]
+    rows, objectives = [], []
+    for i, (label, run_dir, config, metrics) in enumerate(zip(labels, run_dirs, configs, runs)):
+        final = metrics[-1] if corrected is None else {**metrics[-1], **{
+            key: corrected[i][key] for key in CORRECTED}}
+        task, archive = task_of(config), final_archive(run_dir / pickle_name)
+        objectives.append(None if archive is None else archive.data("objective"))
+        rows.append({"run": label, "folder": str(run_dir), "task": config.env,
+                     "setting": run_setting(config.to_json()), "seed": config.seed,
+                     "iterations": metrics[-1]["iteration"], **{key: final[key] for key in COMPARED},
+                     NORMALISED: normalised_qd_score(final["qd_score"], config),
+                     SOLVED_CELLS: solved_cells(run_dir / csv_name, task), QD_AUC: qd_auc(metrics),
+                     CQD_SCORE: None if archive is None else cqd(archive, task)})
+    table = pd.DataFrame(rows)
     for column in (SOLVED_CELLS, CQD_SCORE):
         table[column] = pd.to_numeric(table[column])  # None (no archive): NaN
-    return table
-
-
-def bootstrap_interval(values: np.ndarray) -> tuple[float, float]:
-    """95% BCa bootstrap confidence interval of the mean (seeded, so repeatable)."""
-    from scipy.stats import bootstrap
-
-    if len(values) < 2:
-        return math.nan, math.nan
-    if np.ptp(values) == 0:
-        return float(values[0]), float(values[0])
-    result = bootstrap((values,), np.mean, confidence_level=0.95, n_resamples=9999, method="BCa",
-                       rng=np.random.default_rng(0))
-    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+    return table, objectives
 
 
 def setting_statistics(table):
-    """Per setting and summarised metric: runs, mean, median and the 95% interval of the mean."""
+    """Per task, setting and summarised metric: runs, mean, median and the 95% BCa interval of
+    the mean; the IQM and its 95% (stratified: one task) bootstrap interval."""
     import pandas as pd
 
     rows = []
-    for setting, group in table.groupby("setting", sort=False):
+    for (task, setting), group in table.groupby(["task", "setting"], sort=False):
         for metric in SUMMARISED:
             values = group[metric].dropna().to_numpy(dtype=float)
             low, high = bootstrap_interval(values)
-            rows.append({"setting": setting, "metric": metric, "runs": len(values),
+            iqm, iqm_low, iqm_high = iqm_interval([values])
+            rows.append({"task": task, "setting": setting, "metric": metric, "runs": len(values),
                          "mean": values.mean() if len(values) else math.nan,
                          "median": float(np.median(values)) if len(values) else math.nan,
-                         "ci95_low": low, "ci95_high": high})
+                         "ci95_low": low, "ci95_high": high,
+                         "iqm": iqm, "iqm_low": iqm_low, "iqm_high": iqm_high})
     return pd.DataFrame(rows)
 
 
-def holm(p_values: list[float]) -> list[float]:
-    """Holm's step-down adjustment of p-values for testing them all at once."""
-    adjusted, running = [0.0] * len(p_values), 0.0
-    for rank, i in enumerate(np.argsort(p_values)):
-        running = max(running, min(1.0, (len(p_values) - rank) * p_values[i]))
-        adjusted[i] = running
-    return adjusted
+TEST_COLUMNS = ["task", "metric", "setting_a", "setting_b", "runs_a", "runs_b", "U", "p", "p_holm", "A12",
+                "p_improvement", "p_improvement_low", "p_improvement_high"]
 
 
-def pairwise_tests(table):
-    """Every pair of settings, on each TESTED metric: two-sided Mann-Whitney U, Holm-adjusted over
-    the pairs, and Vargha-Delaney A12 (the chance that a run of A beats a run of B; 0.5: even)."""
+def setting_pairs(settings: list[str], baseline: str | None) -> list[tuple[str, str]]:
+    """The pairs of settings tested: every pair, or (--baseline) the baseline against each other
+    setting: fewer tests, so Holm's adjustment costs less power."""
+    if baseline is None:
+        return list(itertools.combinations(settings, 2))
+    return [(baseline, setting) for setting in settings if setting != baseline and baseline in settings]
+
+
+def pairwise_tests(table, baseline: str | None = None):
+    """The pairs of settings of a task (`setting_pairs`), on each TESTED metric: two-sided
+    Mann-Whitney U, Holm-adjusted over the pairs, and Vargha-Delaney A12 (the chance that a run
+    of A beats a run of B; 0.5: even), which is rliable's P(A > B) of one task, with its 95%
+    bootstrap interval."""
     import pandas as pd
     from scipy.stats import mannwhitneyu
 
-    settings, rows = list(dict.fromkeys(table["setting"])), []
-    for metric in TESTED:
-        block = []
-        for a, b in itertools.combinations(settings, 2):
-            x = table.loc[table["setting"] == a, metric].dropna().to_numpy(dtype=float)
-            y = table.loc[table["setting"] == b, metric].dropna().to_numpy(dtype=float)
-            if len(x) and len(y):
-                test = mannwhitneyu(x, y, alternative="two-sided")
-                block.append({"metric": metric, "setting_a": a, "setting_b": b, "runs_a": len(x),
-                              "runs_b": len(y), "U": float(test.statistic), "p": float(test.pvalue),
-                              "A12": float(test.statistic) / (len(x) * len(y))})
-        for row, adjusted in zip(block, holm([row["p"] for row in block])):
-            row["p_holm"] = adjusted
-        rows += block
-    return pd.DataFrame(rows, columns=["metric", "setting_a", "setting_b", "runs_a", "runs_b", "U",
-                                       "p", "p_holm", "A12"])
+    rows = []
+    for task, runs in table.groupby("task", sort=False):
+        settings = list(dict.fromkeys(runs["setting"]))
+        for metric in TESTED:
+            block = []
+            for a, b in setting_pairs(settings, baseline):
+                x = runs.loc[runs["setting"] == a, metric].dropna().to_numpy(dtype=float)
+                y = runs.loc[runs["setting"] == b, metric].dropna().to_numpy(dtype=float)
+                if len(x) and len(y):
+                    test = mannwhitneyu(x, y, alternative="two-sided")
+                    improvement = improvement_interval([x], [y])
+                    block.append({"task": task, "metric": metric, "setting_a": a, "setting_b": b,
+                                  "runs_a": len(x), "runs_b": len(y), "U": float(test.statistic),
+                                  "p": float(test.pvalue), "A12": float(test.statistic) / (len(x) * len(y)),
+                                  **dict(zip(TEST_COLUMNS[-3:], improvement))})
+            for row, adjusted in zip(block, holm([row["p"] for row in block])):
+                row["p_holm"] = adjusted
+            rows += block
+    return pd.DataFrame(rows, columns=TEST_COLUMNS)
+
+
+AGGREGATE_COLUMNS = ["statistic", "metric", "setting", "versus", "tasks", "runs", "runs_versus",
+                     "value", "low", "high"]
+
+
+def aggregate_statistics(table, baseline: str | None = None):
+    """Across tasks, per setting: the IQM and mean of each AGGREGATED metric over all its runs of
+    all tasks, each with a 95% stratified bootstrap interval (strata: the tasks); between settings,
+    P(A > B) on the normalised QD score averaged over the tasks both have runs of. A setting
+    missing from a task is aggregated over the tasks it has: the notes say which."""
+    import pandas as pd
+
+    tasks, settings = list(dict.fromkeys(table["task"])), list(dict.fromkeys(table["setting"]))
+
+    def scores(setting: str, metric: str) -> list[np.ndarray]:  # per task ([] where it has none)
+        return [table.loc[(table["task"] == task) & (table["setting"] == setting), metric]
+                .dropna().to_numpy(dtype=float) for task in tasks]
+
+    rows, notes = [], []
+    for setting in settings:
+        if missing := [task for task, runs in zip(tasks, scores(setting, NORMALISED)) if not len(runs)]:
+            notes.append(f"{setting} has no runs of {', '.join(missing)}: aggregated over the "
+                         f"tasks it has")
+        for metric in AGGREGATED:
+            per_task = scores(setting, metric)
+            for statistic, interval in (("iqm", iqm_interval), ("mean", mean_interval)):
+                rows.append(dict(zip(AGGREGATE_COLUMNS, (
+                    statistic, metric, setting, "", sum(1 for runs in per_task if len(runs)),
+                    sum(map(len, per_task)), None, *interval(per_task)))))
+    for a, b in setting_pairs(settings, baseline):
+        shared = [(x, y) for x, y in zip(scores(a, NORMALISED), scores(b, NORMALISED)) if len(x) and len(y)]
+        if shared:
+            rows.append(dict(zip(AGGREGATE_COLUMNS, (
+                "p_improvement", NORMALISED, a, b, len(shared), sum(len(x) for x, _ in shared),
+                sum(len(y) for _, y in shared),
+                *improvement_interval([x for x, _ in shared], [y for _, y in shared])))))
+    aggregate = pd.DataFrame(rows, columns=AGGREGATE_COLUMNS)
+    aggregate["runs_versus"] = aggregate["runs_versus"].astype("Int64")
+    return aggregate, notes
 
 
 METRIC_FORMATS = {"evaluations": "{:.0f}", "num_elites": "{:.0f}", "coverage": "{:.4f}",
                   "qd_score": "{:,.0f}", "best_objective": "{:.1f}", "mean_objective": "{:.1f}",
-                  SOLVED_CELLS: "{:.0f}", QD_AUC: "{:,.0f}", CQD_SCORE: "{:.2f}"}
+                  NORMALISED: "{:.4f}", SOLVED_CELLS: "{:.0f}", QD_AUC: "{:,.0f}", CQD_SCORE: "{:.2f}"}
 
 
 def format_table(table) -> str:
     """The table as aligned text, with as many digits as a reader compares."""
-    shown = table.drop(columns=["folder"], errors="ignore")
-    return shown.to_string(index=False, formatters={k: v.format for k, v in METRIC_FORMATS.items()
-                                                    if k in shown})
+    shown_table = table.drop(columns=["folder"], errors="ignore")
+    return shown_table.to_string(index=False, formatters={
+        k: v.format for k, v in METRIC_FORMATS.items() if k in shown_table})
 
 
-def markdown_report(stats, tests, env: str) -> str:
-    """The statistics as Markdown tables, ready for a README or a paper."""
-    def cell(row) -> str:
-        number = METRIC_FORMATS[row["metric"]].format
-        interval = ("" if math.isnan(row["ci95_low"]) else
-                    f" [{number(row['ci95_low'])}, {number(row['ci95_high'])}]")
-        return f"{number(row['mean'])}{interval}"
+def with_interval(number, point: float, low: float, high: float) -> str:
+    """'point [low, high]', or the point alone where there is no interval (one run)."""
+    return number(point) + ("" if math.isnan(low) else f" [{number(low)}, {number(high)}]")
 
+
+def settings_table(stats, point: str, low: str, high: str) -> list[str]:
+    """A Markdown table: a row per setting, a column per SUMMARISED metric with its `point`
+    statistic [`low`, `high`]."""
     lines = ["| setting | runs | " + " | ".join(SUMMARISED) + " |",
              "| --- | --- |" + " --- |" * len(SUMMARISED)]
     for setting, group in stats.groupby("setting", sort=False):
-        cells = {row["metric"]: cell(row) for row in group.to_dict("records")}
+        cells = {row["metric"]: with_interval(METRIC_FORMATS[row["metric"]].format, row[point], row[low],
+                                              row[high]) for row in group.to_dict("records")}
         lines.append(f"| {setting} | {group['runs'].max()} | "
                      + " | ".join(cells[m] for m in SUMMARISED) + " |")
+    return lines
+
+
+def task_section(stats, tests, env: str) -> list[str]:
+    """One task's statistics as Markdown tables: the mean and the IQM per setting, the tests."""
     task = ENVIRONMENTS[env]
-    lines += ["", f"{env}. Mean [95% bootstrap confidence interval of the mean, BCa] over each "
-                  f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
-              f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
-              f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
-              f"normalised over [{task.qd_offset:g}, {task.objective_max:g}].", ""]
+    lines = [*settings_table(stats, "mean", "ci95_low", "ci95_high"),
+             "", f"{env}. Mean [95% bootstrap confidence interval of the mean, BCa] over each "
+                 f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
+             f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
+             f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
+             f"normalised over [{task.qd_offset:g}, {task.objective_max:g}].", "",
+             "IQM [95% stratified bootstrap interval]:", "",
+             *settings_table(stats, "iqm", "iqm_low", "iqm_high"),
+             "", f"IQM: the interquartile mean (the mean of the middle half of the runs, rliable's); "
+                 f"its interval: the 2.5th and 97.5th percentiles of {RESAMPLES:,} resamples of the "
+                 f"runs.", ""]
     if len(tests):
-        lines += ["| metric | A | B | U | p (Holm) | A12 |", "| --- | --- | --- | --- | --- | --- |"]
-        lines += [f"| {t['metric']} | {t['setting_a']} | {t['setting_b']} | {t['U']:.1f} | "
-                  f"{t['p_holm']:.3g} | {t['A12']:.2f} |" for t in tests.to_dict("records")]
+        lines += ["| metric | A | B | U | p (Holm) | A12 = P(A>B) [95% interval] |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for t in tests.to_dict("records"):
+            improvement = with_interval("{:.2f}".format, t["A12"], t["p_improvement_low"],
+                                        t["p_improvement_high"])
+            lines.append(f"| {t['metric']} | {t['setting_a']} | {t['setting_b']} | {t['U']:.1f} | "
+                         f"{t['p_holm']:.3g} | {improvement} |")
         lines += ["", "Two-sided Mann-Whitney U tests, Holm-adjusted over the pairs of each metric; "
                   "A12: the chance that a run of A beats a run of B (0.5: even; 0.71 or more, or "
-                  "0.29 or less: a large effect)."]
+                  "0.29 or less: a large effect), rliable's probability of improvement P(A>B), with "
+                  "its bootstrap interval (A's and B's runs resampled apart)."]
         floor = holm_floor(tests)
         if floor > 0.05:
             lines += ["", f"With so few runs per setting, no pair can reach p < 0.05 after Holm's "
                           f"adjustment: the smallest adjusted p possible here is {floor:.3g} (a "
                           f"complete separation, A12 of 0 or 1). Read the effect sizes and the "
                           f"intervals; more seeds give the tests power."]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
-def holm_floor(tests) -> float:
-    """The smallest Holm-adjusted p-value any pair of a metric could reach: the exact two-sided
-    Mann-Whitney p of a complete separation, 2 / C(n_a + n_b, n_a), times the number of pairs."""
-    pairs = tests[tests["metric"] == tests["metric"].iloc[0]]
-    return min(1.0, len(pairs) * min(2 / math.comb(int(a + b), int(a))
-                                     for a, b in zip(pairs["runs_a"], pairs["runs_b"])))
+def aggregate_section(aggregate, notes: list[str], tasks: list[str]) -> list[str]:
+    """The statistics across tasks as Markdown: per setting, then P(A > B) between settings."""
+    per_setting = aggregate[aggregate["statistic"] != "p_improvement"]
+    columns = [(metric, statistic) for metric in AGGREGATED for statistic in ("iqm", "mean")]
+    lines = [f"## All tasks ({', '.join(tasks)})", "",
+             "| setting | tasks | runs | " + " | ".join(f"{m} {s.upper() if s == 'iqm' else s}"
+                                                     for m, s in columns) + " |",
+             "| --- | --- | --- |" + " --- |" * len(columns)]
+    for setting, group in per_setting.groupby("setting", sort=False):
+        found = group.set_index(["metric", "statistic"])
+        cells = [with_interval("{:.4f}".format, *found.loc[column, ["value", "low", "high"]])
+                 for column in columns]
+        lines.append(f"| {setting} | {group['tasks'].iloc[0]} | {group['runs'].iloc[0]} | "
+                     + " | ".join(cells) + " |")
+    lines += ["", f"IQM and mean [95% stratified bootstrap interval: each task's runs resampled "
+                  f"within the task, {RESAMPLES:,} times] over every run of every task. "
+                  f"{NORMALISED}: QD score / (cells x (objective_max - QD offset)), 1 when every "
+                  f"cell holds an elite of the task's objective_max. The mean is rliable's: the "
+                  f"mean of the tasks' means.", *(f"Note: {note}." for note in notes), ""]
+    tests = aggregate[aggregate["statistic"] == "p_improvement"]
+    if len(tests):
+        lines += [f"| A | B | tasks | P(A>B) on {NORMALISED} [95% interval] |", "| --- | --- | --- | --- |"]
+        lines += [f"| {t['setting']} | {t['versus']} | {t['tasks']} | "
+                  f"{with_interval('{:.2f}'.format, t['value'], t['low'], t['high'])} |"
+                  for t in tests.to_dict("records")]
+        lines += ["", "P(A>B): per task, the chance that a run of A beats a run of B (ties count "
+                      "half), averaged over the tasks both have runs of (rliable's probability of "
+                      "improvement).", ""]
+    return lines
+
+
+def markdown_report(stats, tests, aggregate, notes: list[str], used: str) -> str:
+    """The statistics as Markdown, ready for a README or a paper: each task's own (a section per
+    task when there are several), then with several tasks the aggregate, and which final values
+    they are of (`used`)."""
+    tasks, lines = list(dict.fromkeys(stats["task"])), []
+    for env in tasks:
+        section = task_section(stats[stats["task"] == env], tests[tests["task"] == env], env)
+        lines += section if len(tasks) == 1 else [f"## {env}", "", *section, ""]
+    if aggregate is not None:
+        lines += aggregate_section(aggregate, notes, tasks)
+    while lines and not lines[-1]:
+        lines.pop()
+    return "\n".join([*lines, "", used]) + "\n"
+
+
+def save_score_distributions(table, objectives: list, archive_name: str, path: Path) -> None:
+    """A panel per task, a line per setting: pyribs' aggregate_cdf of its runs' final archives,
+    complementary (Vassiliades 2018): the mean number of cells holding at least each objective,
+    with a band of one standard deviation, on one objective range per task. Runs without a
+    readable archive are left out, with a note."""
+    import matplotlib.pyplot as plt
+    from ribs.visualize import aggregate_cdf
+
+    if missing := [folder for folder, found in zip(table["folder"], objectives) if found is None]:
+        print(f"note: {', '.join(missing)}: no readable {archive_name}; left out of the score distributions")
+    runs = [row for row, found in zip(table.to_dict("records"), objectives) if found is not None]
+    tasks = list(dict.fromkeys(table["task"]))
+    fig, axes = plt.subplots(1, len(tasks), figsize=(7 * len(tasks), 4.5), squeeze=False)
+    for ax, task in zip(axes[0], tasks):
+        found = [objs for row, objs in zip(table.to_dict("records"), objectives)
+                 if objs is not None and row["task"] == task]
+        values = np.concatenate(found) if found else np.empty(0)
+        vmin, vmax = (float(values.min()), float(values.max())) if len(values) else (None, None)
+        for setting in dict.fromkeys(row["setting"] for row in runs if row["task"] == task):
+            archives = [read_pickle(Path(row["folder"]) / archive_name, "archive pickle") for row in runs
+                        if row["task"] == task and row["setting"] == setting]
+            line, _ = aggregate_cdf(archives, ax=ax, cumulative=-1, vmin=vmin, vmax=vmax)
+            line.set_label(f"{setting} ({len(archives)} run{'s' if len(archives) > 1 else ''})")
+        kind = "corrected archives" if archive_name.startswith("corrected") else "final archives"
+        ax.set_title(f"{task}: {kind}" if found else f"{task}: no readable {archive_name}")
+        ax.set_xlabel("Objective")
+        ax.set_ylabel("Cells with at least that objective (mean, ±1 sd)")
+        ax.grid(alpha=0.3)
+        if found:
+            ax.legend(loc="upper right", fontsize="small")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    plt.close(fig)
 
 
 def expand_folders(paths: list[Path]) -> list[Path]:
@@ -275,66 +479,108 @@ def expand_folders(paths: list[Path]) -> list[Path]:
     return list(expanded.values())
 
 
-def one_task(paths: list[Path], configs: list[RunConfig]) -> str:
-    """The task every run flew: returns of different tasks share no scale, so they are not
-    pooled in one table."""
-    tasks = {config.env: path for path, config in zip(paths, configs)}
-    if len(tasks) > 1:
-        raise UsageError("these runs flew different tasks (" + ", ".join(
-            f"{path}: {env}" for env, path in tasks.items()) + "); compare each task's runs apart")
-    return next(iter(tasks))
+def values_used(corrected: list[dict] | None) -> str:
+    """The one line that says which final values the comparison is of."""
+    if corrected is None:
+        return "Final values: each run's last row of metrics.json, and its archive.pkl and archive.csv."
+    repeats = sorted({fix["repeats"] for fix in corrected})
+    seeds = f"{repeats[0]}" if len(repeats) == 1 else f"{repeats[0]} to {repeats[-1]}"
+    return (f"Final values: each run's corrected metrics (corrected.json: its elites flown again on "
+            f"{seeds} new seeds), corrected_archive.pkl and corrected_archive.csv; {QD_AUC} from "
+            f"metrics.json (a curve).")
 
 
-def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False) -> None:
-    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, and a
-    table of their final values (printed, and written as CSV next to the PNG).
+def check_baseline(baseline: Any, settings: list[str]) -> str | None:
+    """--baseline names one of the compared settings (as the tables label them)."""
+    if baseline is None or str(baseline) in settings:
+        return None if baseline is None else str(baseline)
+    raise UsageError(f"--baseline {shown(baseline)} is not a setting of these runs; they are: "
+                     + ", ".join(repr(setting) for setting in settings))
+
+
+def check_fresh(fixes: list[dict], runs: list[list[dict]], paths: list[Path]) -> None:
+    """A run's corrected.json must be of its last iteration: a run extended since needs it again."""
+    for fix, metrics, path in zip(fixes, runs, paths):
+        if fix.get("iteration") != metrics[-1]["iteration"]:
+            raise UsageError(f"{path / 'corrected.json'} is of iteration {shown(fix.get('iteration'))}, "
+                             f"the run is at {metrics[-1]['iteration']}: run `python lunar_lander.py "
+                             f"evaluate {path} --corrected` again")
+
+
+def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, corrected: bool = False,
+            baseline: str | None = None) -> None:
+    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, the
+    final archives' score distributions on another (OUT_scores.png), and a table of their final
+    values (printed, and written as CSV next to the PNG).
 
     Runs of one setting (the same algorithm and flags, other seeds; an experiment's runs) are
-    grouped: the PNG shows their mean with a 95% confidence band, and per setting the number of
-    runs, mean, median and 95% bootstrap interval of QD score, coverage, best objective, solved
-    cells, QD-score AUC and CQD score are printed and written (OUT_settings.csv); between
-    settings, Mann-Whitney U tests on final QD score, QD-score AUC (how soon it got there) and
-    CQD score, Holm-adjusted, with Vargha-Delaney A12 (OUT_tests.csv); and both as Markdown
-    (OUT.md). Runs of the same batch, iterations and env seed give an equal-budget comparison.
+    grouped, task by task: the PNG shows their mean with a 95% confidence band, and per setting
+    the number of runs, mean, median and 95% bootstrap interval, and IQM with its stratified
+    bootstrap interval, of QD score, coverage, best objective, solved cells, QD-score AUC and CQD
+    score are printed and written (OUT_settings.csv); between settings, Mann-Whitney U tests on
+    final QD score, QD-score AUC (how soon it got there) and CQD score, Holm-adjusted, with
+    Vargha-Delaney A12 = P(A>B) and its interval (OUT_tests.csv); and both as Markdown (OUT.md).
+    Runs of several tasks are also aggregated per setting on the normalised QD score and coverage
+    (OUT_aggregate.csv). Runs of the same batch, iterations and env seed give an equal-budget
+    comparison.
 
     Args:
         run_dirs: Run folders or experiment folders written by this script.
         out: The PNG to write (the other files get the same name); default: a new
             outputs/compare_<timestamp>.png.
         overwrite: Replace those files if they already exist.
+        corrected: Compare each run's corrected metrics and archive (corrected.json and
+            corrected_archive.pkl, written by `evaluate RUN --corrected`) instead of its own.
+        baseline: Test only this setting against each other one (its label as the tables show
+            it, e.g. cma_me), instead of every pair: with many settings, Holm's adjustment over
+            every pair leaves the tests little power.
     """
     if not run_dirs:
         raise UsageError("compare needs at least one run folder: "
                          "python lunar_lander.py compare RUN_A RUN_B ...")
-    overwrite = boolean("overwrite", overwrite)
+    overwrite, corrected = boolean("overwrite", overwrite), boolean("corrected", corrected)
     paths = expand_folders([Path(str(run_dir)) for run_dir in run_dirs])
     if not paths:
         raise UsageError(f"no run with metrics in {', '.join(map(str, run_dirs))}")
     configs, runs = zip(*(load_run_metrics(path) for path in paths))
-    env = one_task(paths, configs)
+    fixes = [read_corrected(path) for path in paths] if corrected else None
+    if fixes is not None:
+        check_fresh(fixes, list(runs), paths)
+    baseline = check_baseline(baseline, list(dict.fromkeys(run_setting(c.to_json()) for c in configs)))
     files = comparison_outputs(None if out is None else str(out), overwrite)
     labels = run_labels(paths, list(configs))
-    table = comparison_table(labels, paths, list(configs), list(runs))
-    grouped = table["setting"].duplicated().any()
+    table, objectives = comparison_table(labels, paths, list(configs), list(runs), fixes)
+    several = table["task"].nunique() > 1
+    keys = table["task"] + ": " + table["setting"] if several else table["setting"]
+    grouped = several or keys.duplicated().any()
     groups: dict[str, list] = {}
-    for label, setting, metrics in zip(labels, table["setting"], runs):
-        groups.setdefault(setting if grouped else label, []).append(metrics)
+    for label, key, metrics in zip(labels, keys, runs):
+        groups.setdefault(key if grouped else label, []).append(metrics)
     save_metric_panels(groups, "evaluations", "Evaluations", files["png"])
+    save_score_distributions(table, objectives, ARCHIVE_FILES[corrected][0], files["scores"])
     write_csv(files["csv"], table)
-    print(format_table(table.drop(columns=["setting"])))  # the run's label names its setting
-    if table["evaluations"].nunique() > 1:
-        print("note: the runs end at different numbers of evaluations; compare at an equal budget")
-    written = [files["png"], files["csv"]]
+    print(format_table(table.drop(columns=["task", "setting"])))  # the run's label names them
+    if (table.groupby("task")["evaluations"].nunique() > 1).any():
+        print("note: the runs of a task end at different numbers of evaluations; compare at an equal budget")
+    used = values_used(fixes)
+    if not grouped:  # else the report says it
+        print(used)
+    written = [files["png"], files["scores"], files["csv"]]
     if grouped:
-        stats, tests = setting_statistics(table), pairwise_tests(table)
+        stats, tests = setting_statistics(table), pairwise_tests(table, baseline)
+        aggregate, notes = aggregate_statistics(table, baseline) if several else (None, [])
+        report = markdown_report(stats, tests, aggregate, notes, used)
         write_csv(files["settings"], stats)
         write_csv(files["tests"], tests)
-        atomic_write(files["md"], lambda f: f.write(markdown_report(stats, tests, env)), mode="w")
-        print("\nper setting: mean [95% bootstrap interval of the mean] over its runs\n"
-              + markdown_report(stats, tests, env))
-        sizes = table["setting"].value_counts()
+        written += [files["settings"], files["tests"]]
+        if several:
+            write_csv(files["aggregate"], aggregate)
+            written.append(files["aggregate"])
+        atomic_write(files["md"], lambda f: f.write(report), mode="w")
+        print("\nper setting: mean [95% bootstrap interval of the mean] over its runs\n" + report)
+        sizes = keys.value_counts(sort=False)
         if (few := sizes[sizes < FEW_RUNS]).size:
             print(f"note: {', '.join(f'{s} ({n} runs)' for s, n in few.items())}: fewer than "
                   f"{FEW_RUNS} runs; the intervals are wide and the tests can hardly reject anything")
-        written += [files["settings"], files["tests"], files["md"]]
+        written.append(files["md"])
     print(f"wrote {', '.join(map(str, written))}")

@@ -157,7 +157,6 @@ class Flag:
     sweep: bool = False  # experiment: a list of values is one more axis of its grid
     per_run: bool = False  # experiment sets it for each run itself (the seed, the folder...)
     label: int = 0  # >0: a value other than the default names a run's setting, at this place
-    only_for: tuple[str, ...] = ()  # the algorithms that use it (empty: every one)
     before: Any = None  # what runs recorded before the flag existed ran with (None: the default)
     text: bool = False  # the command line hands its check the text as typed (not Fire's literal)
 

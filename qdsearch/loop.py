@@ -89,8 +89,9 @@ class Run:
                       [iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0)], log)
             log.info(f"Warm start: {len(elites)} elites re-evaluated, {len(scheduler.result_archive)} "
                      f"kept; emitters start from the best (objective {objectives.max():.1f})")
-        if hasattr(run.scheduler.archive, "centroids"):  # a CVT archive's cells, for a reader to see
-            atomic_write(run_dir / "centroids.npy", lambda f: np.save(f, run.scheduler.archive.centroids))
+        kept = run.scheduler.result_archive
+        if hasattr(kept, "centroids"):  # a CVT archive's cells, for a reader to see
+            atomic_write(run_dir / "centroids.npy", lambda f: np.save(f, kept.centroids))
         run.save_checkpoint(force=True)
         return run
 

@@ -38,6 +38,8 @@ from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, FAMILIES, MEASURES, family
 MAX_CELLS = 1_000_000  # --grid ** len(--measures), or --cells: each cell keeps one solution
 MAX_GRID_MEASURES = 4  # a grid's cells are --grid ** measures
 MAX_MEASURES = 10  # a CVT archive's: k-means and the nearest centroid work in any dimension
+# The flags only some algorithms use (each row of ALGORITHMS names its own).
+ROW_FLAGS = frozenset(flag for row in ALGORITHMS.values() for flag in row.flags)
 DEFAULT_GRID, DEFAULT_CVT_CELLS = 50, 1024  # the tutorial's 50 x 50; QDax's 1,024 centroids
 MAX_ITERATIONS = 1_000_000  # the checkpoint keeps a row of metrics (~1 KB in memory) per iteration
 MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights covariance)
@@ -52,14 +54,14 @@ def default_measures(family: Family) -> tuple[str, ...]:
 
 
 def own_flags(algorithm: str) -> tuple[str, ...]:
-    """The flags only some algorithms use that this one does (cma_mae: learning_rate)."""
-    return tuple(name for name, flag in SEARCH_FLAGS.items() if algorithm in flag.only_for)
+    """The flags only some algorithms use that this one does (cma_mae: learning_rate), as its
+    row of ALGORITHMS declares."""
+    return ALGORITHMS[algorithm].flags
 
 
 def ignores(algorithm: str, flag: str) -> bool:
     """Whether the algorithm ignores the flag (another algorithm's own, like cma_mae's rate)."""
-    only_for = SEARCH_FLAGS[flag].only_for if flag in SEARCH_FLAGS else ()
-    return bool(only_for) and algorithm not in only_for
+    return flag in ROW_FLAGS and flag not in own_flags(algorithm)
 
 
 def check_sizes(config: dict) -> None:
@@ -135,12 +137,9 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "cells": Flag(None, f"CVT archive: its cells (centroids, made once by k-means and kept in the "
                         f"run); default {DEFAULT_CVT_CELLS}, at least 2^measures.",
                   whole_number_up_to(MAX_CELLS), sweep=True, label=9),
-    "algorithm": Flag("cma_me", "Which QD algorithm, a row of ALGORITHMS: cma_me (the tutorial's "
-                                "CMA-ME), cma_mae (CMA-MAE), map_elites (MAP-Elites with Gaussian "
-                                "mutation), line_map_elites, cma_me_mu, cma_me_rd, sep_cma_mae, "
-                                "lm_ma_mae (docs/algorithms.md); each asks n_emitters * "
-                                "batch_size solutions per iteration.",
-                      one_of(ALGORITHMS), per_run=True),
+    "algorithm": Flag("cma_me", "Which QD algorithm, a row of ALGORITHMS: " + ", ".join(
+        f"{name} ({row.summary})" for name, row in ALGORITHMS.items()) + "; each asks n_emitters * "
+        "batch_size solutions per iteration (docs/algorithms.md).", one_of(ALGORITHMS), per_run=True),
     "n_emitters": Flag(5, f"Number of emitters (at most {MAX_EMITTERS:,}).",
                        whole_number_up_to(MAX_EMITTERS), sweep=True, label=4),
     "sigma0": Flag(1.0, "Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed "
@@ -148,16 +147,20 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "batch_size": Flag(30, f"Solutions each emitter proposes per iteration (n_emitters * "
                            f"batch_size: at most {MAX_SOLUTIONS:,}).", whole_number_up_to(MAX_SOLUTIONS),
                        sweep=True, label=5),
-    "learning_rate": Flag(0.5, "cma_mae (and sep_cma_mae, lm_ma_mae) only: how fast a cell's "
-                               "threshold follows its "
+    "learning_rate": Flag(0.5, "The CMA-MAE rows: how fast a cell's threshold follows its "
                                "improvements, in (0, 1]. 0.5 did best of 0.01, 0.1 and 0.5 over "
                                "6 seeds of 300 iterations (docs/algorithms.md); pyribs' 0.01 is "
                                "for far longer runs; 1 makes the archive CMA-ME's.", fraction,
-                          sweep=True, label=7, only_for=("cma_mae", "sep_cma_mae", "lm_ma_mae"),
-                          before=0.01),
-    "line_sigma": Flag(0.2, "line_map_elites only: the step along the line between two elites "
-                            "(pyribs' IsoLineEmitter line_sigma; its iso_sigma is --sigma0).",
-                       positive_float, sweep=True, label=10, only_for=("line_map_elites",)),
+                          sweep=True, label=7, before=0.01),
+    "line_sigma": Flag(0.2, "The iso+line rows (line_map_elites, me_map_elites, dns): the step along "
+                            "the line between two elites (pyribs' IsoLineEmitter line_sigma; its "
+                            "iso_sigma is --sigma0).", positive_float, sweep=True, label=10),
+    "novelty_threshold": Flag(0.037, "ns_cma, nslc: the novelty (mean distance to the 15 nearest "
+                                     "neighbours) a solution needs to enter the proximity archive, "
+                                     "as a fraction of the measures' mean span (pyribs' ns_cma: "
+                                     "0.037).", positive_float, sweep=True, label=11),
+    "bandwidth": Flag(0.05, "dds: the KDE's bandwidth, as a fraction of the measures' mean span "
+                            "(pyribs' dds: 25.6 of 512, 0.05).", positive_float, sweep=True, label=12),
     "log_every": Flag(25, "Log a line and refresh the run folder every this many iterations.",
                       positive_int),
     "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "

@@ -1,6 +1,5 @@
-"""Looking at a finished run: videos of chosen elites, the elite table, flight paths and robustness
-on other terrains (the explorer page is explorer.py's). None of these commands changes the run's
-archive.
+"""Looking at a finished run: videos of chosen elites, the elite table and flight paths (the
+explorer page is explorer.py's). None of these commands changes the run's archive.
 
 Map:
 - `load_run`: a run folder's archive and config, checked against each other;
@@ -8,8 +7,8 @@ Map:
   `select_elites`, `load_chosen_elites`, `shown_terrain`;
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
-  `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family);
-- `evaluate_robustness` (the `evaluate` command): the elites on other terrains, `robustness_table`.
+  `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family).
+(`evaluate`, the elites flown on other terrains or seeds, is evaluation.py's.)
 """
 
 from __future__ import annotations
@@ -27,14 +26,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.algorithms import ARCHIVES, kind_of, task_of
-from qdsearch.cluster import STOP, dask_client, scheduler_of
-from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_flights
-from qdsearch.flags import UsageError, check_flags, positive_int, seed_list, shown, takes
-from qdsearch.options import CLUSTER_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS, check_rollouts, checked
-from qdsearch.plots import save_heatmap
+from qdsearch.algorithms import ARCHIVES, kind_of
+from qdsearch.cluster import STOP
+from qdsearch.engine import averaged, per_terrain
+from qdsearch.flags import UsageError, check_flags, positive_int, shown, takes
+from qdsearch.options import SELECTION_FLAGS, TERRAIN_FLAGS
 from qdsearch.run_config import RunConfig, load_archive, load_checked_config
-from qdsearch.run_files import RunError, atomic_write, check_writable, console_log, fault_text, write_csv
+from qdsearch.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly, make_env, renderer_missing, rollout
 
 
@@ -404,67 +402,3 @@ def trajectories(run_dir: str, **flags: Any) -> None:
     for elite in chosen:
         print(f"{elite['name']}: {describe_elite(elite, config.measures)}")
     print(f"written to {path}")
-
-
-def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
-                     objectives: np.ndarray, solved: float):
-    """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
-    elites that generalise best first."""
-    import pandas as pd
-
-    table = pd.DataFrame({"cell_index": rows["index"], "objective": rows["objective"],
-                          **{name: rows["measures"][:, i] for i, name in enumerate(measures)},
-                          "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
-                          "std_objective": objectives.std(axis=1),
-                          "solved_share": (objectives >= solved).mean(axis=1)})
-    table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
-                      axis=1)
-    return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
-
-
-@takes(CLUSTER_FLAGS)
-def evaluate_robustness(run_dir: str, env_seeds: Any = "0-19", top: int | None = None,
-                        **flags: Any) -> None:
-    """Fly the run's elites on other terrains (on Dask) to see which landing styles generalise.
-
-    Writes RUN_DIR/robustness.csv (per elite: its objective in the run, i.e. its mean over the
-    run's terrains; mean, min and standard deviation of its objective over the new terrains, share
-    of terrains where it solves the task (a landing >= 200, a walk >= 300), and each terrain's
-    objective) and RUN_DIR/robustness_heatmap.png (the archive coloured by the mean objective on
-    the new terrains).
-
-    Args:
-        run_dir: A run folder written by this script.
-        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10.
-        top: Only the K elites with the highest objectives (default: all).
-    """
-
-    archive, config = load_run(run_dir)
-    seeds, workers = seed_list("env_seeds", env_seeds), checked("workers", flags["workers"])
-    rows = elite_rows(archive)
-    if top is not None:
-        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
-    check_rollouts(len(rows["solution"]), len(seeds), "to fly")
-    run = Path(str(run_dir))
-    check_writable(run)  # before any elite is flown
-    if seen := sorted(set(seeds) & set(config.env_seed)):
-        print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
-    scheduler_address = scheduler_of(flags)
-    with dask_client(workers, scheduler_address, console_log()) as client:
-        futures = submit_flights(client, rows["solution"], seeds, (), config.fast_env,
-                                 env_name=config.env)
-        objectives = per_terrain(gather_with_progress(client, futures), seeds)[:, :, 0]
-    solved = task_of(config).solved
-    table = robustness_table(rows, config.measures, seeds, objectives, solved)
-    write_csv(run / "robustness.csv", table)
-    means = ARCHIVES[config.archive]["empty_like"](archive)
-    means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
-    save_heatmap(means, [MEASURES[m] for m in config.measures], run / "robustness_heatmap.png",
-                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({env_seeds})",
-                 task_of(config).heat)
-    solves = table["solved_share"]
-    print(f"{len(table)} elites on {len(seeds)} terrains: "
-          f"mean objective {table['mean_objective'].mean():.1f}; "
-          f"{(solves == 1).sum()} solve it (>= {solved:g}) on every terrain, {(solves >= 0.5).sum()} on at "
-          f"least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
-    print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")

@@ -203,12 +203,12 @@ def load_checkpoint(path: Path) -> dict:
     checkpoint = read_pickle(path, "checkpoint")
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
-    from ribs.schedulers import Scheduler
+    from ribs.schedulers import BanditScheduler, Scheduler
 
     try:
         checkpoint["config"] = check_run_config(checkpoint["config"])
         metrics, iteration = checkpoint["metrics"], checkpoint["iteration"]
-        if not isinstance(checkpoint["scheduler"], Scheduler):
+        if not isinstance(checkpoint["scheduler"], (Scheduler, BanditScheduler)):
             raise UsageError(f"holds a {type(checkpoint['scheduler']).__name__}, not a Scheduler")
     except (KeyError, TypeError, UsageError) as error:
         raise UsageError(f"{path}: checkpoint of an incompatible config ({error})") from None
@@ -216,5 +216,5 @@ def load_checkpoint(path: Path) -> dict:
         check_metrics(metrics, path)
     if [row["iteration"] for row in metrics if row["iteration"] > 0] != list(range(1, iteration + 1)):
         raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
-    check_archive(checkpoint["scheduler"].archive, path, checkpoint["config"])
+    check_archive(checkpoint["scheduler"].result_archive, path, checkpoint["config"])
     return checkpoint

@@ -6,15 +6,19 @@ import json
 
 import numpy as np
 import pytest
-from ribs.archives import GridArchive
+from ribs.archives import DensityArchive, DNSArchive, GridArchive, ProximityArchive
 from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter, IsoLineEmitter
 from ribs.emitters.opt import LMMAEvolutionStrategy, SeparableCMAEvolutionStrategy
 from ribs.emitters.rankers import (
+    DensityRanker,
     ImprovementRanker,
+    NoveltyRanker,
+    NSLCRanker,
+    ObjectiveRanker,
     TwoStageImprovementRanker,
     TwoStageRandomDirectionRanker,
 )
-from ribs.schedulers import Scheduler
+from ribs.schedulers import BanditScheduler, Scheduler
 
 from qdsearch import algorithms, experiments, options, results, run, run_config, run_files, tasks
 from util import (
@@ -125,8 +129,47 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
         scalable = schedulers[name]
         assert scalable.archive.learning_rate == 0.01 and scalable.result_archive is not scalable.archive
         assert all(type(e._opt) is es and type(e._ranker) is ImprovementRanker for e in scalable.emitters)
+    bandit = schedulers["me_map_elites"]  # a pool of 4 kinds x 5, 5 of them active
+    assert isinstance(bandit, BanditScheduler) and len(bandit.emitter_pool) == 20
+    assert [type(e._ranker) for e in bandit.emitter_pool[:15:5]] == [
+        ObjectiveRanker, TwoStageRandomDirectionRanker, TwoStageImprovementRanker]
+    assert all(isinstance(e, IsoLineEmitter) and np.all(e.iso_sigma == 0.02) and np.all(e.line_sigma == 0.1)
+               for e in bandit.emitter_pool[15:])
+    span = 2.5  # the mean width of x in [-1, 1] and y-velocity in [-3, 0]
+    for name, ranker, competes in (("ns_cma", NoveltyRanker, False), ("nslc", NSLCRanker, True)):
+        novelty = schedulers[name]
+        assert isinstance(novelty.archive, ProximityArchive) and novelty.archive.k_neighbors == 15
+        assert novelty.archive.novelty_threshold == pytest.approx(0.037 * span)
+        assert novelty.archive.local_competition is competes
+        assert isinstance(novelty.result_archive, GridArchive)
+        assert all(type(e._ranker) is ranker and e.archive is novelty.archive for e in novelty.emitters)
+    dns = schedulers["dns"]
+    assert isinstance(dns.archive, DNSArchive) and dns.archive.capacity == 2500
+    assert all(isinstance(e, IsoLineEmitter) and e.archive is dns.archive for e in dns.emitters)
+    dds = schedulers["dds"]
+    assert isinstance(dds.archive, DensityArchive) and dds.archive._bandwidth == pytest.approx(0.05 * span)
+    assert all(type(e._ranker) is DensityRanker and e.archive is dds.result_archive and e._sigma0 == 3.0
+               for e in dds.emitters)
     for scheduler in schedulers.values():
         assert scheduler.ask().shape == (5 * 30, 32)
+    assert sum(bandit.active) == 5
+
+
+@pytest.mark.parametrize("env", list(tasks.ENVIRONMENTS))
+def test_every_row_asks_and_tells_on_every_task(env):
+    """Each row's objects fit each task: its solution size, measures and archive kind."""
+    for name in ALGORITHMS:
+        cells = {"cells": 64} if tasks.ENVIRONMENTS[env].archive == "cvt" else {}  # k-means: quick
+        config = run_config.check_run_config(options.with_task(dict(
+            options.search_defaults(), algorithm=name, env=env, seed=3, n_emitters=2, batch_size=3, **cells)))
+        scheduler = algorithms.build_scheduler(config)
+        rng = np.random.default_rng(0)
+        for _ in range(2):
+            solutions = scheduler.ask()
+            assert solutions.shape == (6, tasks.ENVIRONMENTS[env].solution_dim)
+            lower, upper = np.array(algorithms.archive_shape(config)["ranges"]).T
+            scheduler.tell(rng.uniform(-100, 100, 6), rng.uniform(lower, upper, (6, len(lower))))
+        assert len(scheduler.result_archive) > 0
 
 
 @pytest.mark.parametrize("algorithm", EVERY_ROW)
@@ -159,10 +202,11 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 
 @pytest.mark.slow  # a resume or warm start per algorithm: the whole suite has them
 @pytest.mark.parametrize("algorithm", [name for name in ALGORITHMS if name != "cma_me"])
-def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, tiny_runs, algorithm):
+def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path, dask_cluster, tiny_runs,
+                                                                       algorithm):
     run_dir = tmp_path / "run"
     run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
-    experiments.resume(str(run_dir), iterations=2, scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(run_dir), iterations=2, workers=1)  # a cluster of its own, of 1 worker
 
     reference = tiny_runs[algorithm]
     assert run_archive(run_dir).equals(run_archive(reference))

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import engine, experiments, explorer, family, lander, results, run, tasks, walker
+from qdsearch import engine, evaluation, experiments, explorer, family, lander, results, run, tasks, walker
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -159,13 +159,6 @@ def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experimen
 
 
 @pytest.mark.slow
-def test_compare_keeps_tasks_apart(task_runs, tiny_run, run_cli, tmp_path):
-    result = run_cli("compare", str(tiny_run), str(task_runs[WALKER]), "--out", str(tmp_path / "c"))
-    assert_one_line_error(result, "different tasks", "LunarLander-v3", WALKER)
-    assert not list(tmp_path.glob("c*"))
-
-
-@pytest.mark.slow
 @pytest.mark.parametrize("env_name", OTHER_ROWS)
 def test_video_and_elites_of_every_row(env_name, task_runs, tmp_path, capsys):
     run_dir = tmp_path / "run"
@@ -243,7 +236,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
 def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[WALKER], run_dir)
-    results.evaluate_robustness(str(run_dir), env_seeds="3-4", top=2,
+    evaluation.evaluate(str(run_dir), env_seeds="3-4", top=2,
                                 scheduler_address=dask_cluster.scheduler_address)
     table = pd.read_csv(run_dir / "robustness.csv")
     env, rows = tasks.make_env(env_name=WALKER), results.elite_rows(results.load_run(run_dir)[0])

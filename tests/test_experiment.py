@@ -12,7 +12,7 @@ import pytest
 from scipy.stats import mannwhitneyu
 
 import lunar_lander as ll
-from qdsearch import comparison, experiments, loop, options, run
+from qdsearch import algorithms, comparison, experiments, loop, options, run
 from util import (
     Result,
     assert_one_line_error,
@@ -67,6 +67,37 @@ def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_clu
     run.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
     assert run_archive(experiment_dir / entry["name"]).equals(run_archive(tmp_path / "twin"))
     assert run_metrics(experiment_dir / entry["name"]) == run_metrics(tmp_path / "twin")
+
+
+def test_every_row_runs_and_sweeps_only_its_own_flags(tmp_path, dask_cluster):
+    folder = tmp_path / "rows"
+    experiments.experiment(algorithms=list(algorithms.ALGORITHMS), seeds="1-2", iterations=2,
+                           novelty_threshold=[0.02, 0.05], bandwidth=[0.1], outdir=str(folder),
+                           scheduler_address=dask_cluster.scheduler_address, n_emitters=2, batch_size=6,
+                           log_every=2)
+    runs = plan_of(folder)["runs"]
+    settings = list(dict.fromkeys(entry["setting"] for entry in runs))
+    assert len(settings) == len(algorithms.ALGORITHMS) + 2  # ns_cma and nslc at two thresholds each
+    assert "ns_cma n_emitters=2 batch_size=6 novelty_threshold=0.02" in settings
+    assert "dds n_emitters=2 batch_size=6 bandwidth=0.1" in settings
+    assert "dns n_emitters=2 batch_size=6 line_sigma=0.2" in settings
+    assert "cma_me n_emitters=2 batch_size=6" in settings  # no flag of another row in its label
+    assert all(entry["state"] == "done" for entry in runs) and len(runs) == 2 * len(settings)
+    entry = next(e for e in runs if e["setting"].startswith("nslc") and "0.05" in e["setting"])
+    flags = {k: v for k, v in entry["config"].items() if k in options.search_defaults()}
+    run.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
+    assert run_archive(folder / entry["name"]).equals(run_archive(tmp_path / "twin"))
+    assert run_metrics(folder / entry["name"]) == run_metrics(tmp_path / "twin")
+
+    comparison.compare(str(folder), out=str(tmp_path / "rows"), baseline="cma_me n_emitters=2 batch_size=6")
+    report = (tmp_path / "rows.md").read_text()
+    assert "IQM [95% stratified bootstrap interval]" in report
+    stats = pd.read_csv(tmp_path / "rows_settings.csv")
+    assert set(stats["setting"]) == set(settings) and stats["iqm"].notna().all()
+    tests = pd.read_csv(tmp_path / "rows_tests.csv")
+    assert (tests["setting_a"] == "cma_me n_emitters=2 batch_size=6").all()
+    assert len(tests) == (len(settings) - 1) * len(comparison.TESTED)
+    assert (tmp_path / "rows_scores.png").stat().st_size > 20_000
 
 
 def test_one_run_at_a_time_gives_the_same_runs(experiment_dir, tmp_path, dask_cluster):

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import explorer, fast_lander, lander, results, run_files, tasks
+from qdsearch import evaluation, explorer, fast_lander, lander, run_files, tasks
 from util import DATA_BLOCK, LANDER, folder_state, load_pickle, page_data, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
@@ -157,7 +157,7 @@ def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
         browser, explored, tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
     shutil.copytree(explored, run_dir)
-    results.evaluate_robustness(str(run_dir), env_seeds="3,4",
+    evaluation.evaluate(str(run_dir), env_seeds="3,4",
                                 scheduler_address=dask_cluster.scheduler_address)
     explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     robust = {int(r["cell_index"]): r for r in pd.read_csv(run_dir / "robustness.csv").to_dict("records")}

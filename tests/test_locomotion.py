@@ -108,14 +108,19 @@ def test_every_command_reads_a_cvt_run(cvt_run, tmp_path, run_cli, dask_cluster)
                  ["elites", str(run_dir), "--top", "3"],
                  ["trajectories", str(run_dir), "--top", "3"],
                  ["evaluate", str(run_dir), "--env_seeds", "3-4", "--top", "4", *address],
+                 ["evaluate", str(run_dir), "--corrected", "--repeats", "2", *address],
                  ["explore", str(run_dir), *address],
-                 ["compare", str(run_dir), "--out", str(tmp_path / "c")]):
+                 ["compare", str(run_dir), "--out", str(tmp_path / "c")],
+                 ["compare", str(run_dir), "--corrected", "--out", str(tmp_path / "fixed")]):
         result = run_cli(*args)
         assert result.returncode == 0, (args, result.stderr)
     assert len(list((run_dir / "videos").glob("*nearest*.mp4"))) == 1
-    for name in ("trajectories.png", "robustness_heatmap.png", "explorer.html", "heatmap.png"):
+    for name in ("trajectories.png", "robustness_heatmap.png", "corrected_heatmap.png", "explorer.html",
+                 "heatmap.png"):
         assert (run_dir / name).stat().st_size > 10_000, name
-    assert (tmp_path / "c.csv").is_file()
+    corrected = load_pickle(run_dir / "corrected_archive.pkl")
+    assert np.array_equal(corrected.centroids, archive.centroids)  # the run's cells, refilled
+    assert (tmp_path / "c.csv").is_file() and (tmp_path / "fixed_scores.png").is_file()
     assert run_archive(run_dir).equals(before)  # nothing changed the run's archive
 
 

@@ -1,5 +1,6 @@
 """Looking at a run: videos of chosen cells, the elite table, trajectories, robustness on new terrains."""
 
+import json
 import re
 import shutil
 
@@ -10,7 +11,7 @@ import pytest
 from matplotlib.image import imread
 
 import lunar_lander as ll
-from qdsearch import fast_lander, lander, results, tasks
+from qdsearch import evaluation, fast_lander, lander, results, tasks
 from qdsearch.flags import UsageError, seed_list
 from util import LANDER, assert_one_line_error, folder_state, load_pickle
 
@@ -161,7 +162,7 @@ def test_terrain_is_the_envs_ground():
 
 
 def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, dask_cluster, capsys):
-    results.evaluate_robustness(str(run_dir), env_seeds="3,4", top=4,
+    evaluation.evaluate(str(run_dir), env_seeds="3,4", top=4,
                            scheduler_address=dask_cluster.scheduler_address)
 
     table = read_csv(run_dir / "robustness.csv")
@@ -180,6 +181,41 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
     assert table["mean_objective"].is_monotonic_decreasing
     assert imread(run_dir / "robustness_heatmap.png").std() > 0.05
     assert "4 elites on 2 terrains" in capsys.readouterr().out
+
+
+def test_corrected_archive_equals_a_hand_recomputation(run_dir, archive, dask_cluster):
+    before = folder_state(run_dir)
+    evaluation.evaluate(str(run_dir), corrected=True, repeats=2,
+                        scheduler_address=dask_cluster.scheduler_address)
+
+    summary = json.loads((run_dir / "corrected.json").read_text())
+    seeds = [0, 1]  # the first two the run (terrain 52) did not search on
+    assert summary["env_seeds"] == seeds and summary["repeats"] == 2
+    # By hand: each elite flown on both seeds, placed by its mean measures; the best of a cell
+    # counts, less the task's QD offset.
+    env, data = tasks.make_env(fast=False, env_name=LANDER), archive.data()
+    best: dict[int, float] = {}
+    for solution in data["solution"]:
+        flights = np.array([tasks.rollout(solution, seed, env, env_name=LANDER) for seed in seeds])
+        objective, measures = flights.mean(axis=0)[0], flights.mean(axis=0)[1:]
+        # the grid cell, clipped to the edges as pyribs does for measures out of its ranges
+        scaled = (measures - archive.lower_bounds) / (archive.upper_bounds - archive.lower_bounds)
+        column, row = np.clip(np.floor(scaled * archive.dims).astype(int), 0, archive.dims - 1)
+        cell = int(column * archive.dims[1] + row)
+        best[cell] = max(best.get(cell, -np.inf), objective)
+    assert summary["elites_flown"] == len(data["solution"])
+    assert summary["num_elites"] == len(best)
+    assert summary["qd_score"] == pytest.approx(sum(v - tasks.ENVIRONMENTS[LANDER].qd_offset
+                                                    for v in best.values()), rel=1e-12)
+    assert summary["coverage"] == pytest.approx(len(best) / archive.cells)
+    assert summary["run"]["qd_score"] == pytest.approx(float(archive.stats.qd_score))
+    corrected = load_pickle(run_dir / "corrected_archive.pkl")
+    assert sorted(corrected.data()["index"].tolist()) == sorted(best)
+    assert read_csv(run_dir / "corrected_archive.csv")["objective"].max() == pytest.approx(max(best.values()))
+    assert imread(run_dir / "corrected_heatmap.png").std() > 0.05
+    after = folder_state(run_dir)  # the run's own files are as they were; four files are new
+    assert {name: after[name] for name in before} == before
+    assert set(after) - set(before) == set(evaluation.CORRECTED_FILES)
 
 
 @pytest.mark.parametrize("value, seeds", [
@@ -216,8 +252,13 @@ def test_bad_input_is_one_line_and_touches_nothing(run_cli, run_dir, tmp_path, a
     (results.trajectories, dict(best="maybe"), "--best"),
     (results.elites, dict(top=-2), "--top"),
     (results.elites, dict(min_objective="high"), "--min_objective"),
-    (results.evaluate_robustness, dict(env_seeds="5-2"), "--env_seeds"),
-    (results.evaluate_robustness, dict(workers=0), "--workers"),
+    (evaluation.evaluate, dict(env_seeds="5-2"), "--env_seeds"),
+    (evaluation.evaluate, dict(workers=0), "--workers"),
+    (evaluation.evaluate, dict(corrected=True, repeats=2, env_seeds="1-2"), "not both"),
+    (evaluation.evaluate, dict(corrected=True, repeats=0), "--repeats"),
+    (evaluation.evaluate, dict(corrected=True, top=3), "--top"),
+    (evaluation.evaluate, dict(repeats=3), "--repeats is for --corrected"),
+    (evaluation.evaluate, dict(corrected="perhaps"), "--corrected"),
 ])
 def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fragment):
     before = folder_state(run_dir)
@@ -228,7 +269,7 @@ def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fr
 
 def test_commands_and_their_flags_are_registered(tmp_path):
     assert {"video", "elites", "trajectories", "evaluate", "explore"} <= set(ll.COMMANDS)
-    assert ll.command("evaluate") is results.evaluate_robustness
+    assert ll.command("evaluate") is evaluation.evaluate
     with pytest.raises(UsageError, match="--cell;"):
         ll.reject_unknown_flags(ll.command("video"), ["--cell", "[(0, 0)]"])
     (tmp_path / "run").mkdir()

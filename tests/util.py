@@ -41,7 +41,10 @@ def load_pickle(path):
 
 
 def archive_table(archive) -> pd.DataFrame:
-    """An archive's contents in a fixed row order, for exact comparisons."""
+    """An archive's contents in a fixed row order, for exact comparisons. (DDS's density archive
+    keeps no elites: its contents are the reservoir of measures its KDE is built on.)"""
+    if hasattr(archive, "buffer"):
+        return pd.DataFrame(archive.buffer)
     return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
 
 

@@ -1,0 +1,192 @@
+"""Flying a finished run's elites again (`evaluate`): on other terrains, to see which styles
+generalise, or on new seeds, to correct the archive for noisy evaluation. Neither changes any of
+the run's own files: each writes files of its own beside them.
+
+A search scores each solution once per terrain of the run, so an elite may hold its cell by
+luck: a landing that works on terrain 52 may crash on the next. The corrected archive (Flageat &
+Cully 2023, "Uncertain Quality-Diversity"; QDax's corrected metrics) flies every elite again on
+N new seeds and inserts it, by its mean measures and mean objective there, into an empty archive
+of the same cells; its QD score and coverage are the run's corrected metrics.
+
+Map:
+- `new_seeds` (the first seeds the run did not search on), `fly_elites` (every elite on every
+  seed, on Dask: objectives and measures per seed);
+- robustness: `robustness_table`, `write_robustness`;
+- the corrected archive: `corrected_archive`, `corrected_summary`, `write_corrected`;
+- `evaluate`: the command.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from qdsearch.algorithms import ARCHIVES, task_of
+from qdsearch.cluster import dask_client, scheduler_of
+from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_flights
+from qdsearch.flags import UsageError, boolean, positive_int, seed_list, takes, whole_number_up_to
+from qdsearch.metrics import iteration_metrics, load_metrics
+from qdsearch.options import CLUSTER_FLAGS, check_rollouts, checked
+from qdsearch.plots import save_heatmap
+from qdsearch.results import elite_rows, load_run
+from qdsearch.run_config import RunConfig
+from qdsearch.run_files import check_writable, console_log, write_csv, write_json, write_pickle
+from qdsearch.tasks import MEASURES
+
+ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default
+DEFAULT_REPEATS = 10  # seeds of a corrected archive (QDax's examples re-evaluate 10 to 100 times)
+MAX_REPEATS = 1_000
+CORRECTED_FILES = ("corrected.json", "corrected_archive.pkl", "corrected_archive.csv",
+                   "corrected_heatmap.png")
+
+
+def new_seeds(config: RunConfig, count: int) -> list[int]:
+    """The first `count` whole numbers the run did not search on: seeds new to its elites, the
+    same for every run of a terrain, so that corrected metrics of two runs compare."""
+    seen = set(config.env_seed)
+    return [seed for seed in range(count + len(seen)) if seed not in seen][:count]
+
+
+def fly_elites(solutions: np.ndarray, seeds: list[int], measures: tuple[str, ...], config: RunConfig,
+               flags: dict[str, Any]) -> np.ndarray:
+    """Every solution flown on every seed, on the Dask cluster the flags name (or a local one):
+    (solutions, seeds, 1 + measures), the objective first."""
+    workers = checked("workers", flags["workers"])
+    with dask_client(workers, scheduler_of(flags), console_log()) as client:
+        futures = submit_flights(client, solutions, seeds, measures, config.fast_env, env_name=config.env)
+        return per_terrain(gather_with_progress(client, futures), seeds)
+
+
+def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
+                     objectives: np.ndarray, solved: float):
+    """Per elite (rows), its objectives on each seed (columns of `objectives`) summed up; the
+    elites that generalise best first."""
+    import pandas as pd
+
+    table = pd.DataFrame({"cell_index": rows["index"], "objective": rows["objective"],
+                          **{name: rows["measures"][:, i] for i, name in enumerate(measures)},
+                          "mean_objective": objectives.mean(axis=1), "min_objective": objectives.min(axis=1),
+                          "std_objective": objectives.std(axis=1),
+                          "solved_share": (objectives >= solved).mean(axis=1)})
+    table = pd.concat([table, pd.DataFrame(objectives, columns=[f"objective_seed{s}" for s in seeds])],
+                      axis=1)
+    return table.sort_values(["mean_objective", "cell_index"], ascending=[False, True], ignore_index=True)
+
+
+def write_robustness(run: Path, archive: Any, config: RunConfig, rows: dict[str, np.ndarray],
+                     seeds: list[int], objectives: np.ndarray, seeds_text: str) -> None:
+    """robustness.csv and robustness_heatmap.png (the elites where they were, coloured by their
+    mean objective on the new terrains), and a summary line."""
+    task = task_of(config)
+    table = robustness_table(rows, config.measures, seeds, objectives, task.solved)
+    write_csv(run / "robustness.csv", table)
+    means = ARCHIVES[config.archive]["empty_like"](archive)
+    means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
+    save_heatmap(means, [MEASURES[m] for m in config.measures], run / "robustness_heatmap.png",
+                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({seeds_text})",
+                 task.heat)
+    solves = table["solved_share"]
+    print(f"{len(table)} elites on {len(seeds)} terrains: "
+          f"mean objective {table['mean_objective'].mean():.1f}; "
+          f"{(solves == 1).sum()} solve it (>= {task.solved:g}) on every terrain, {(solves >= 0.5).sum()} "
+          f"on at least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
+    print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")
+
+
+def corrected_archive(archive: Any, config: RunConfig, solutions: np.ndarray, flights: np.ndarray) -> Any:
+    """An empty archive of the run's cells (and QD offset) holding each elite by its mean
+    objective and mean measures over the new seeds; of elites landing in one cell, the best."""
+    objectives, measures = averaged(flights)
+    corrected = ARCHIVES[config.archive]["empty_like"](archive)
+    corrected.add(solutions, objectives, measures)
+    return corrected
+
+
+def corrected_summary(corrected: Any, run_metrics: dict, seeds: list[int], elites: int) -> dict:
+    """corrected.json: the corrected archive's metrics (the fields of a metrics.json row), the
+    run's own beside them, and what was flown."""
+    fields = iteration_metrics(corrected, run_metrics["iteration"], run_metrics["evaluations"], 0.0)
+    del fields["elapsed_s"]
+    return {**fields, "repeats": len(seeds), "env_seeds": seeds, "elites_flown": elites,
+            "run": {key: run_metrics[key] for key in ("qd_score", "coverage", "num_elites",
+                                                      "best_objective", "mean_objective")}}
+
+
+def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig) -> None:
+    """The corrected archive beside the run's own: pickle, CSV, heatmap, and corrected.json."""
+    write_pickle(run / "corrected_archive.pkl", corrected)
+    write_csv(run / "corrected_archive.csv", corrected.data(return_type="pandas"))
+    save_heatmap(corrected, [MEASURES[m] for m in config.measures], run / "corrected_heatmap.png",
+                 f"Corrected archive: {summary['elites_flown']} elites, mean of {summary['repeats']} "
+                 f"new seeds", task_of(config).heat)
+    write_json(run / "corrected.json", summary)
+    own = summary["run"]
+    print(f"corrected archive of {summary['elites_flown']} elites on {summary['repeats']} new seeds: "
+          f"QD score {summary['qd_score']:,.0f} (the run's {own['qd_score']:,.0f}), coverage "
+          f"{summary['coverage']:.4f} ({own['coverage']:.4f}), {summary['num_elites']} cells "
+          f"({own['num_elites']})")
+    print(f"written to {', '.join(str(run / name) for name in CORRECTED_FILES)}")
+
+
+def corrected_seeds(config: RunConfig, env_seeds: Any, repeats: Any) -> list[int]:
+    """The seeds a corrected archive is flown on: --env_seeds, or --repeats new ones."""
+    if env_seeds is not None and repeats is not None:
+        raise UsageError("give --env_seeds or --repeats, not both")
+    if env_seeds is not None:
+        return seed_list("env_seeds", env_seeds)
+    return new_seeds(config, whole_number_up_to(MAX_REPEATS)(
+        "repeats", DEFAULT_REPEATS if repeats is None else repeats))
+
+
+@takes(CLUSTER_FLAGS)
+def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, corrected: Any = False,
+             repeats: int | None = None, **flags: Any) -> None:
+    """Fly the run's elites again (on Dask): on other terrains, or (--corrected) on new seeds.
+
+    Robustness (the default) writes RUN_DIR/robustness.csv (per elite: its objective in the run,
+    i.e. its mean over the run's terrains; mean, min and standard deviation of its objective over
+    the new terrains, share of terrains where it solves the task (a landing >= 200, a walk >=
+    300), and each terrain's objective) and RUN_DIR/robustness_heatmap.png (the archive coloured
+    by the mean objective on the new terrains).
+
+    --corrected builds the corrected archive: every elite flown on --repeats new seeds and
+    inserted by its mean measures and mean objective into an empty archive of the run's cells.
+    Writes corrected.json (its QD score, coverage, cells, best and mean objective, beside the
+    run's), corrected_archive.pkl, corrected_archive.csv and corrected_heatmap.png; `compare
+    --corrected` reads them.
+
+    Args:
+        run_dir: A run folder written by this script.
+        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10 (default: 0-19;
+            with --corrected, the first --repeats seeds the run did not search on).
+        top: Robustness only: the K elites with the highest objectives (default: all).
+        corrected: Build the corrected archive instead of the robustness table.
+        repeats: With --corrected: new seeds to fly every elite on (default 10).
+    """
+    archive, config = load_run(run_dir)
+    corrected = boolean("corrected", corrected)
+    if not corrected and repeats is not None:
+        raise UsageError("--repeats is for --corrected (the robustness table takes --env_seeds)")
+    if corrected and top is not None:
+        raise UsageError("--top is for the robustness table: a corrected archive flies every elite")
+    seeds = (corrected_seeds(config, env_seeds, repeats) if corrected
+             else seed_list("env_seeds", ROBUSTNESS_SEEDS if env_seeds is None else env_seeds))
+    checked("workers", flags["workers"])
+    rows = elite_rows(archive)
+    if top is not None:
+        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
+    check_rollouts(len(rows["solution"]), len(seeds), "to fly")
+    run = Path(str(run_dir))
+    check_writable(run)  # before any elite is flown
+    if seen := sorted(set(seeds) & set(config.env_seed)):
+        print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
+    if not corrected:
+        objectives = fly_elites(rows["solution"], seeds, (), config, flags)[:, :, 0]
+        write_robustness(run, archive, config, rows, seeds, objectives, str(env_seeds or ROBUSTNESS_SEEDS))
+        return
+    flights = fly_elites(rows["solution"], seeds, tuple(config.measures), config, flags)
+    fixed = corrected_archive(archive, config, rows["solution"], flights)
+    summary = corrected_summary(fixed, load_metrics(run)[-1], seeds, len(rows["solution"]))
+    write_corrected(run, fixed, summary, config)
