@@ -20,6 +20,8 @@ Map, a module per role, imports going down the list only:
   the checkpoint read back;
 - loop: the one run loop (`Run`, `Driver`);
 - run: `search` and `resume` of a run folder;
+- parts: an experiment split into parts, each its own process: the plan written once, a state
+  file per part;
 - experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
 - results: `video`, `elites`, `trajectories`, and choosing elites;
 - evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);

@@ -10,7 +10,8 @@ Map:
 - `run_experiment` and `Experiment`: the cluster, the log, and the runs driven through the one
   run loop (loop.py's Driver), their states recorded in experiment.json;
 - `resume`: the command, for a run folder (run.resume_run) or an experiment folder
-  (`resume_experiment`); `read_experiment` reads experiment.json.
+  (`resume_experiment`); `read_experiment` reads experiment.json (and its parts' states).
+An experiment may be split into parts (--part I/K), each driven by its own process: parts.py.
 """
 
 from __future__ import annotations
@@ -42,10 +43,12 @@ from qdsearch.options import (
     search_defaults,
     with_task,
 )
+from qdsearch.parts import claim_plan, merge_part_states, parse_part, part_folder, part_of, write_part_state
 from qdsearch.run import resume_run
 from qdsearch.run_config import check_run_config, load_run_state, upgrade, write_config
 from qdsearch.run_files import (
     RunError,
+    check_parent_folder,
     close_logger,
     fault_text,
     folder_lock,
@@ -69,7 +72,7 @@ def passed_on() -> list[str]:
 
 
 def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | None = None,
-               max_in_flight: int | None = None, **search_flags: Any) -> None:
+               max_in_flight: int | None = None, part: str | None = None, **search_flags: Any) -> None:
     """Run every combination of the listed settings with every seed, interleaved on one cluster.
 
     Each run is an ordinary run folder inside the experiment folder (every command works on it),
@@ -86,6 +89,11 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
         outdir: Experiment folder; default outputs/<timestamp>_experiment. Must be new or empty.
         max_in_flight: Runs evaluated at once (default: all); the others wait their turn. Bounds
             memory with hundreds of runs.
+        part: I/K: drive only part I of the experiment split in K parts (run i belongs to part
+            i mod K + 1), each part its own process, on its own cluster if wanted (a SLURM job
+            array: docs/clusters.md). Every part is given the same flags and --outdir; the first
+            writes the plan, each keeps its runs' states in parts/I_of_K/. Run again, a part
+            continues where it stopped.
         search_flags: Any flag of search that it passes to every run (see: lunar_lander.py --help):
             {passed_on}. A list of values of {sweeps}, e.g. --learning_rate "[0.01, 0.1]", is one
             more axis of the grid.
@@ -95,11 +103,26 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
     workers = checked("workers", cluster["workers"])
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
     scheduler_address = scheduler_of(cluster)
-    with new_folder(outdir, "experiment") as folder:
-        plan = {"format": EXPERIMENT_FORMAT, "created": datetime.datetime.now().isoformat(),
+    split = None if part is None else parse_part(part)
+
+    def plan_of(parts: int | None) -> dict:
+        return {"format": EXPERIMENT_FORMAT, "created": datetime.datetime.now().isoformat(),
                 "command": sys.argv, "axes": axes, "seeds": seeds, "common": common,
                 "workers": workers, "max_in_flight": limit, "versions": library_versions(),
-                "runs": experiment_runs(axes, common, seeds)}
+                **({} if parts is None else {"parts": parts}), "runs": experiment_runs(axes, common, seeds)}
+
+    if split is not None:
+        if outdir is None:
+            raise UsageError("--part needs --outdir: every part of an experiment names the same folder")
+        folder = Path(str(outdir))
+        check_parent_folder(folder)
+        if folder.exists() and not folder.is_dir():
+            raise UsageError(f"{folder} exists and is not a folder; choose another --outdir")
+        folder.mkdir(parents=True, exist_ok=True)
+        claim_plan(folder, plan_of(split[1]))
+        return resume_experiment(folder, None, workers, cluster, split)
+    with new_folder(outdir, "experiment") as folder:
+        plan = plan_of(None)
         write_json(folder / "experiment.json", plan)
         run_experiment(folder, plan, workers, scheduler_address)
 
@@ -186,27 +209,33 @@ def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
     return runs
 
 
-def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: str | None) -> None:
-    """The cluster and the log of an experiment, shut down however it ends."""
+def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: str | None,
+                   part: int | None = None) -> None:
+    """The cluster and the log of an experiment (or of one part of it), shut down however it
+    ends."""
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    log = make_logger(folder / "experiment.log")
+    where = folder if part is None else part_folder(folder, part, plan["parts"])
+    log = make_logger(where / ("experiment.log" if part is None else "part.log"))
+    again = f"python lunar_lander.py resume {folder}" + (
+        "" if part is None else f" --part {part}/{plan['parts']}")
     with logging_redirect_tqdm(loggers=[log]):
+        owned = sum(1 for index in range(len(plan["runs"])) if part in (None, part_of(plan, index)))
         log.info(f"Experiment folder: {folder}: {len(plan['runs'])} runs "
-                 f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)")
+                 f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
+                 + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
         try:
             with dask_client(workers, scheduler_address, log) as client:
-                Experiment(folder, plan, client, log).drive()
+                Experiment(folder, plan, client, log, part).drive()
         except KeyboardInterrupt:
-            log.info(f"Stopped; every run keeps its last completed iteration; continue with: "
-                     f"python lunar_lander.py resume {folder}")
+            log.info(f"Stopped; every run keeps its last completed iteration; continue with: {again}")
             raise
         except RunsFailed:
             raise
         except (RunError, OSError) as error:  # of the experiment itself (experiment.json, cluster)
             new = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
             raise RunError(f"{fault_text(error)}; every run keeps its last checkpoint; continue "
-                           f"with: python lunar_lander.py resume {folder}{new}") from None
+                           f"with: {again}{new}") from None
 
 
 class RunsFailed(RunError):
@@ -217,28 +246,44 @@ class Experiment(Driver):
     """The runs of an experiment folder, driven on one client through the one run loop (loop.py):
     each opened from its checkpoint or its config, its state recorded in experiment.json at each
     change, a run's fault its own (recorded; the others go on), a line per setting every
-    log_every iterations of every run."""
+    log_every iterations of every run. With `part`, only the runs of that part, their states in
+    its own state file (parts.py)."""
 
     desc, isolated = "experiment", True
 
-    def __init__(self, folder: Path, plan: dict, client, log: logging.Logger) -> None:
-        runs = plan["runs"]
+    def __init__(self, folder: Path, plan: dict, client, log: logging.Logger,
+                 part: int | None = None) -> None:
+        self.parts = {entry["name"]: part_of(plan, index) for index, entry in enumerate(plan["runs"])}
+        runs = [entry for entry in plan["runs"] if part in (None, self.parts[entry["name"]])]
         super().__init__(
             client, log, [entry for entry in runs if entry["state"] != "done"],
             total=sum(entry["config"]["iterations"] for entry in runs),
             done=sum(entry["config"]["iterations"] for entry in runs if entry["state"] == "done"),
             limit=plan.get("max_in_flight"), every=plan["common"]["log_every"] * len(runs))
-        self.folder, self.plan = folder, plan
+        self.folder, self.plan, self.part, self.runs = folder, plan, part, runs
+
+    def save_states(self, parts: set[int | None]) -> None:
+        """The states of these parts' runs where they are kept: experiment.json, or (a split
+        experiment) each part's own state file."""
+        for part in parts:
+            if part is None:
+                write_json(self.folder / "experiment.json", self.plan)
+            else:
+                write_part_state(self.folder, self.plan, part)
 
     def drive(self) -> None:
-        runs = self.plan["runs"]
+        runs = self.runs
         wall, cpu = time.perf_counter(), time.process_time()
         super().drive()
         # The driving loop's own cost: how much of a core the main process took while it ran.
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        self.plan["timing"] = {"drive_s": round(wall, 3), "main_cpu_s": round(cpu, 3),
-                               "iterations": self.told}
-        write_json(self.folder / "experiment.json", self.plan)
+        timing = {"drive_s": round(wall, 3), "main_cpu_s": round(cpu, 3), "iterations": self.told}
+        parts = {self.parts[entry["name"]] for entry in runs}
+        for part in parts:
+            record = self.plan if part is None else self.plan.setdefault("part_records", {}).setdefault(
+                str(part), {})
+            record["timing"] = timing
+        self.save_states(parts)
         failed = [e["name"] for e in runs if e["state"] == "failed"]
         self.log.info(f"Done: {len(runs) - len(failed)} of {len(runs)} runs finished in {self.folder} "
                       f"({wall:.1f} s, main process {cpu / max(wall, 1e-9):.0%} of a core)")
@@ -247,9 +292,12 @@ class Experiment(Driver):
                      if len(failed) < len(runs) else
                      "its only run failed" if len(runs) == 1 else f"all {len(runs)} runs failed")
             others = "" if len(failed) == len(runs) else "; the others finished"
-            raise RunsFailed(f"{which}: their causes are in {self.folder / 'experiment.json'}{others}. "
+            where = self.folder / ("experiment.json" if self.part is None else
+                                   part_folder(self.folder, self.part, self.plan["parts"]) / "state.json")
+            again = "" if self.part is None else f" --part {self.part}/{self.plan['parts']}"
+            raise RunsFailed(f"{which}: their causes are in {where}{others}. "
                              f"Mend the cause and retry them with: python lunar_lander.py resume "
-                             f"{self.folder}")
+                             f"{self.folder}{again}")
 
     def open(self, entry: dict) -> Run:
         """A run's folder (made on first use), locked, and its run from checkpoint or config."""
@@ -285,7 +333,7 @@ class Experiment(Driver):
                 f"{type(error).__name__}: {fault_text(error)}")
         else:
             entry.pop("error", None)
-        write_json(self.folder / "experiment.json", self.plan)
+        self.save_states({self.parts[entry["name"]]})
 
     def lines(self) -> list[str]:
         """A line per setting: its runs' progress, mean QD score and coverage, best objective."""
@@ -304,27 +352,52 @@ class Experiment(Driver):
 
 
 @takes(RESUME_FLAGS)
-def resume(run_dir: str, **flags: Any) -> None:
+def resume(run_dir: str, part: str | None = None, **flags: Any) -> None:
     """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped; or,
-    for an experiment folder, every unfinished run of the experiment.
+    for an experiment folder, every unfinished run of the experiment (of one part of it).
 
     Args:
         run_dir: A run folder (or an experiment folder) written by this script.
+        part: I/K: of an experiment split in K parts (experiment --part), only part I.
     """
     path = Path(str(run_dir))
     if (path / "experiment.json").is_file():
-        return resume_experiment(path, flags["iterations"], flags["workers"], flags)
+        split = None if part is None else parse_part(part)
+        return resume_experiment(path, flags["iterations"], flags["workers"], flags, split)
+    if part is not None:
+        raise UsageError(f"--part is for an experiment folder; {path} is a run")
     return resume_run(run_dir, **flags)
 
 
+def check_split(plan: dict, folder: Path, split: tuple[int, int] | None, iterations: int | None) -> None:
+    """--part names a part of the experiment's own split; a split plan, written once, is fixed."""
+    if split is not None and plan.get("parts") != split[1]:
+        raise UsageError(f"--part {split[0]}/{split[1]}: {folder} is " + (
+            f"split in {plan['parts']} parts" if plan.get("parts") else "not split in parts"))
+    if plan.get("parts") and iterations is not None:
+        raise UsageError(f"the plan of {folder}, split in parts, is fixed: --iterations cannot "
+                         f"extend it; start a new experiment")
+
+
 def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
-                      cluster: dict[str, Any]) -> None:
-    """Continue every unfinished run of an experiment (failed ones are tried again), on the
-    cluster the `cluster` flags name (by default a local one)."""
-    read_experiment(folder)  # refuse a bad folder before anything is written in it
+                      cluster: dict[str, Any], split: tuple[int, int] | None = None) -> None:
+    """Continue every unfinished run of an experiment, or of one part of it (failed ones are
+    tried again), on the cluster the `cluster` flags name (by default a local one). A part locks
+    its own folder; the whole of a split experiment locks every part's."""
+    check_split(read_experiment(folder), folder, split, iterations)  # before anything is written
     scheduler_address = scheduler_of(cluster)
-    with folder_lock(folder):
+    with contextlib.ExitStack() as locks:
         plan = read_experiment(folder)
+        parts = [split[0]] if split else list(range(1, plan["parts"] + 1)) if plan.get("parts") else []
+        for part in parts:
+            where = part_folder(folder, part, plan["parts"])
+            where.mkdir(parents=True, exist_ok=True)
+            locks.enter_context(folder_lock(where))
+        if not parts:
+            locks.enter_context(folder_lock(folder))
+        plan = read_experiment(folder)  # as it is now that no other process writes it
+        mine = [entry for index, entry in enumerate(plan["runs"])
+                if not split or part_of(plan, index) == split[0]]
         workers = checked("workers", plan["workers"] if workers is None else workers)
         planned = max(entry["config"]["iterations"] for entry in plan["runs"])
         if iterations is not None:
@@ -336,14 +409,20 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
                 if iterations > entry["config"]["iterations"]:
                     entry["config"]["iterations"] = iterations
                     entry["state"] = "pending"
-        if all(entry["state"] == "done" for entry in plan["runs"]):
-            print(f"nothing to do: all {len(plan['runs'])} runs of {folder} are done (iteration "
-                  f"{planned}); --iterations N extends them")
+        which = f"part {split[0]} of {split[1]} of {folder}" if split else str(folder)
+        if all(entry["state"] == "done" for entry in mine):
+            print(f"nothing to do: all {len(mine)} runs of {which} are done (iteration "
+                  f"{planned})" + ("" if plan.get("parts") else "; --iterations N extends them"))
             return
-        plan["resumed"] = [*plan.get("resumed", []), {"at": datetime.datetime.now().isoformat(),
-                                                      "iterations": iterations, "workers": workers}]
-        write_json(folder / "experiment.json", plan)
-        run_experiment(folder, plan, workers, scheduler_address)
+        resumed = {"at": datetime.datetime.now().isoformat(), "iterations": iterations, "workers": workers}
+        if not plan.get("parts"):
+            plan["resumed"] = [*plan.get("resumed", []), resumed]
+            write_json(folder / "experiment.json", plan)
+        for part in parts:
+            record = plan["part_records"].setdefault(str(part), {})
+            record["drives"] = [*record.get("drives", []), resumed]
+            write_part_state(folder, plan, part)
+        run_experiment(folder, plan, workers, scheduler_address, split[0] if split else None)
 
 
 RUN_STATES = ("pending", "running", "done", "stopped", "failed")
@@ -374,4 +453,8 @@ def read_experiment(folder: Path) -> dict:
             raise UsageError(f"{path}: run {i} is not a run of this experiment's plan{why}")
     if isinstance(plan.get("workers"), bool) or not isinstance(plan.get("workers"), int):
         raise UsageError(f"{path}: workers is {shown(plan.get('workers'))}, not a number of workers")
+    if "parts" in plan:
+        if isinstance(plan["parts"], bool) or not isinstance(plan["parts"], int) or not plan["parts"] >= 1:
+            raise UsageError(f"{path}: parts is {shown(plan['parts'])}, not a number of parts")
+        return merge_part_states(folder, plan, RUN_STATES)
     return plan

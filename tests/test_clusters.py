@@ -11,7 +11,7 @@ import time
 import pytest
 from dask.distributed import Client
 
-from qdsearch import run
+from qdsearch import experiments, run
 from util import (
     Result,
     assert_one_line_error,
@@ -43,7 +43,8 @@ def twins(tmp_path_factory, dask_cluster):
 
 
 def plan_of(folder):
-    return json.loads((folder / "experiment.json").read_text())
+    """The experiment's plan with its runs' states, as every command reads it."""
+    return experiments.read_experiment(folder)
 
 
 def assert_runs_equal_their_twins(folder, twins):
@@ -148,3 +149,51 @@ def test_scheduler_files_that_never_appear_are_stale_or_garbled(run_cli, tmp_pat
         for command in ([], ["experiment"]):
             assert_one_line_error(run_cli(*command, *args, "--outdir", tmp_path / "out"), *words)
     assert not (tmp_path / "out").exists()
+
+
+def part_state(folder, part, parts=2):
+    return json.loads((folder / "parts" / f"{part}_of_{parts}" / "state.json").read_text())
+
+
+def test_a_split_experiment_on_two_schedulers_ends_as_its_lone_twins_after_a_worker_and_a_scheduler_die(
+        tmp_path, twins, monkeypatch):
+    """Two parts, each its own process and `dask scheduler`, as two elements of a SLURM array:
+    part 1 loses its worker (a new one joins), part 2 its scheduler (resumed on a new one)."""
+    monkeypatch.setenv("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "5s")  # notice the loss sooner
+    folder, processes = tmp_path / "exp", []
+    try:
+        files = {}
+        for part in (1, 2):
+            scheduler, files[part] = start_scheduler(tmp_path / f"scheduler{part}")
+            processes += [scheduler, start_worker(files[part], tmp_path / f"w{part}")]
+        schedulers, first_worker = {1: processes[0], 2: processes[2]}, processes[1]
+        parts = {part: launch("experiment", **RUNS, outdir=folder, part=f"{part}/2",
+                              scheduler_file=files[part]) for part in (1, 2)}
+        processes += parts.values()
+        wait_for(lambda: (folder / "experiment.json").exists(), parts[1], "the plan")
+        names = {part: plan_of(folder)["runs"][part - 1]["name"] for part in (1, 2)}
+        for part in (1, 2):  # run i belongs to part i mod 2 + 1: one run each
+            wait_for(lambda name=names[part]: checkpoint_iteration(folder / name) >= 2, parts[part],
+                     f"part {part} under way")
+        os.killpg(first_worker.pid, signal.SIGKILL)  # part 1's worker dies; another joins
+        processes.append(start_worker(files[1], tmp_path / "w1b"))
+        os.killpg(schedulers[2].pid, signal.SIGKILL)  # part 2's scheduler dies
+        out, err = parts[2].communicate(timeout=180)
+        assert_one_line_error(Result(parts[2].returncode, out, err), "lost the Dask scheduler",
+                              f"resume {folder} --part 2/2 --scheduler_file", code=1)
+        assert part_state(folder, 2)["runs"] == {names[2]: {"state": "stopped"}}
+        new_scheduler, new_file = start_scheduler(tmp_path / "scheduler2b")
+        processes += [new_scheduler, start_worker(new_file, tmp_path / "w2b")]
+        resumed = launch("resume", folder, part="2/2", scheduler_file=new_file)
+        processes.append(resumed)
+        for process in (parts[1], resumed):
+            out, err = process.communicate(timeout=300)
+            assert process.returncode == 0, err
+        assert_runs_equal_their_twins(folder, twins)  # experiment.json's plan with the parts' states
+        assert [part_state(folder, part)["runs"] for part in (1, 2)] == [
+            {names[1]: {"state": "done"}}, {names[2]: {"state": "done"}}]
+        assert len(part_state(folder, 2)["drives"]) == 2
+        assert {entry["state"] for entry in json.loads((folder / "experiment.json").read_text())["runs"]} == {
+            "pending"}  # the plan, written once, by one part
+    finally:
+        stop_all(processes)

@@ -187,6 +187,10 @@ def test_a_failing_run_is_recorded_and_the_others_go_on(tmp_path, dask_cluster, 
     (["--learning_rate", "[0.1, 2]"], ["--learning_rate"]),
     (["--seed", "3"], ["--seed", "--seeds"]),
     (["--iteratons", "3"], ["--iteratons"]),
+    (["--part", "0/2"], ["--part 0/2", "from 1 to K"]),
+    (["--part", "3/2"], ["--part 3/2"]),
+    (["--part", "1/2/3"], ["--part must be I/K", "'1/2/3'"]),
+    (["--part", "half"], ["--part must be I/K"]),
 ])
 def test_bad_experiments_are_refused_before_writing(run_cli, tmp_path, args, fragments):
     assert_one_line_error(run_cli("experiment", *args, "--outdir", tmp_path / "exp"), *fragments)
@@ -199,6 +203,23 @@ def test_an_existing_folder_is_not_touched(run_cli, tmp_path):
     before = folder_state(tmp_path / "exp")
     assert_one_line_error(run_cli("experiment", "--outdir", tmp_path / "exp"), "not empty")
     assert folder_state(tmp_path / "exp") == before
+
+
+def test_parts_refuse_what_would_mix_two_experiments(run_cli, tmp_path, tiny_run):
+    assert_one_line_error(run_cli("experiment", "--part", "1/2"), "--part needs --outdir")
+    flags = ["--seeds", "1-2", "--iterations", "2", "--n_emitters", "2", "--batch_size", "6",
+             "--workers", "1", "--outdir", tmp_path / "exp"]
+    assert run_cli("experiment", *flags, "--part", "1/2").returncode == 0
+    before = folder_state(tmp_path / "exp")
+    other = [*flags[:3], "3", *flags[4:]]  # --iterations 3: another plan
+    assert_one_line_error(run_cli("experiment", *other, "--part", "2/2"), "holds another experiment",
+                          "the same flags")
+    assert_one_line_error(run_cli("resume", tmp_path / "exp", "--part", "1/3"), "is split in 2 parts")
+    assert_one_line_error(run_cli("resume", tmp_path / "exp", "--iterations", "5"), "is fixed")
+    assert_one_line_error(run_cli("resume", tiny_run, "--part", "1/2"), "--part is for an experiment")
+    assert folder_state(tmp_path / "exp") == before
+    result = run_cli("resume", tmp_path / "exp", "--part", "1/2")
+    assert result.returncode == 0 and "nothing to do: all 1 runs of part 1 of 2" in result.stdout
 
 
 def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
