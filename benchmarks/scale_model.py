@@ -1,0 +1,238 @@
+#!/usr/bin/env python
+"""A discrete-event model of an experiment on a Dask cluster: drivers, schedulers, workers, the
+hops between them, the workers' result delay and real episode lengths, fed measured service
+times. It predicts the efficiency bench_scale.py measures (the ideal makespan over the simulated
+one) and each run-iteration's cycle split, for designs and sizes no machine here can run.
+
+The model (every server serves one job at a time, first come first served):
+- a driver per part (`parts`; runs dealt to parts as experiments.py deals them, run i to part
+  i mod K): a run's iteration costs it `driver_iteration_s` (tell, ask, saving) plus
+  `client_task_s` per chunk it sends and per result it takes back;
+- a scheduler per `schedulers` (part p uses scheduler p mod S; the workers are shared out
+  evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
+  up to `slots` tasks on a worker (Dask's worker-saturation), handing them out in arrival order;
+- a worker runs its tasks one after another: `worker_task_s` plus the chunk's episodes
+  (steps x `step_s`); a result leaves `result_delay_s` after its task ends when the worker goes
+  straight on to another (the GIL-holding rollouts make its event loop wait), and every message
+  takes `hop_s`;
+- chunks per batch: engine.submit_flights' own rule, with the runs of the part as `sharing`.
+
+    python benchmarks/scale_model.py --workers "[16, 64, 256, 512]" --runs 60 --parts "[1, 4]"
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import itertools
+import math
+import sys
+from collections import deque
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from qdsearch import engine  # noqa: E402
+
+
+@dataclasses.dataclass(frozen=True)
+class Costs:
+    """Service times, in seconds (measured: docs/performance.md)."""
+
+    driver_iteration_s: float = 0.010
+    client_task_s: float = 0.0004
+    scheduler_task_s: float = 0.0005
+    worker_task_s: float = 0.0007
+    result_delay_s: float = 0.0
+    hop_s: float = 0.0001
+    step_s: float = 27e-6
+    slots: int = 2
+
+
+@dataclasses.dataclass
+class Workload:
+    """runs x iterations batches of `batch` episodes; iteration k's episode lengths are drawn
+    from lengths[k] (a real search's, iteration by iteration; the last for later ones)."""
+
+    runs: int
+    iterations: int
+    batch: int
+    lengths: list[np.ndarray]
+    seed: int = 0
+
+    def episodes(self) -> np.ndarray:
+        """(runs, iterations, batch) episode lengths, fixed by the seed."""
+        rng = np.random.default_rng(self.seed)
+        out = np.empty((self.runs, self.iterations, self.batch), dtype=np.int64)
+        for k in range(self.iterations):
+            pool = self.lengths[min(k, len(self.lengths) - 1)]
+            out[:, k, :] = rng.choice(pool, size=(self.runs, self.batch))
+        return out
+
+
+def chunk_sizes(batch: int, workers: int, sharing: int) -> list[int]:
+    """The engine's split of a batch (one terrain) into chunks: submit_flights' rule."""
+    wanted = max(-(-engine.CHUNKS_PER_WORKER * workers // max(1, sharing)), -(-batch // engine.MAX_CHUNK))
+    return [len(c) for c in np.array_split(np.arange(batch), min(wanted, max(1, batch // engine.MIN_CHUNK)))]
+
+
+class Server:
+    """One process that serves one job at a time, in arrival order."""
+
+    def __init__(self, sim: Simulation) -> None:
+        self.sim, self.free_at, self.busy = sim, 0.0, 0.0
+
+    def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> None:
+        start = max(arrival, self.free_at)
+        self.free_at = start + service
+        self.busy += service
+        self.sim.at(self.free_at, then)
+
+
+class Simulation:
+    """The event loop: callbacks at times, in time order (ties in scheduling order)."""
+
+    def __init__(self) -> None:
+        self.events: list = []
+        self.counter = itertools.count()
+
+    def at(self, time: float, callback: Callable[[float], None]) -> None:
+        heapq.heappush(self.events, (time, next(self.counter), callback))
+
+    def run(self) -> None:
+        while self.events:
+            time, _, callback = heapq.heappop(self.events)
+            callback(time)
+
+
+class Worker:
+    def __init__(self, sim: Simulation) -> None:
+        self.sim, self.queue, self.running, self.held = sim, deque(), False, 0
+
+
+def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, schedulers: int = 1) -> dict:
+    """One experiment on the model: its makespan, the ideal, the efficiency, each server's
+    utilisation and the mean split of a run-iteration's cycle."""
+    sim, episodes, c = Simulation(), workload.episodes(), costs
+    drivers = [Server(sim) for _ in range(parts)]
+    scheds = [Server(sim) for _ in range(schedulers)]
+    pools = [[Worker(sim) for _ in range(workers // schedulers + (i < workers % schedulers))]
+             for i in range(schedulers)]
+    waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
+    sharing = [sum(1 for r in range(workload.runs) if r % parts == p) for p in range(parts)]
+    split = {key: [] for key in ("driver", "to_start", "flying", "back")}
+    state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs)}
+
+    def start_iteration(run: int, k: int, ready: float) -> None:
+        part = run % parts
+        sizes = chunk_sizes(workload.batch, len(pools[part % schedulers]), sharing[part])
+        service = c.driver_iteration_s + c.client_task_s * len(sizes)
+        drivers[part].serve(ready, service, lambda t: send(run, k, sizes, ready, t))
+
+    def send(run: int, k: int, sizes: list[int], ready: float, sent: float) -> None:
+        state["first"] = min(state["first"], sent)
+        bounds = np.cumsum([0, *sizes])
+        durations = [float(episodes[run, k, a:b].sum()) * c.step_s for a, b in zip(bounds[:-1], bounds[1:])]
+        state["work"] += sum(durations)
+        state["paths"][run] += max(durations)
+        batch = {"run": run, "k": k, "left": len(sizes), "ready": ready, "sent": sent,
+                 "first_start": math.inf, "last_end": 0.0}
+        sched = run % parts % schedulers
+        for duration in durations:
+            task = {"batch": batch, "duration": duration}
+            scheds[sched].serve(sent + c.hop_s, c.scheduler_task_s / 2,
+                                lambda t, task=task: queue(sched, task, t))
+
+    def queue(sched: int, task: dict, now: float) -> None:
+        waiting[sched].append(task)
+        dispatch(sched, now)
+
+    def dispatch(sched: int, now: float) -> None:
+        for worker in pools[sched]:
+            while waiting[sched] and worker.held < c.slots:
+                task = waiting[sched].popleft()
+                worker.held += 1
+                sim.at(now + c.hop_s, lambda t, w=worker, task=task: arrive(sched, w, task, t))
+            if not waiting[sched]:
+                return
+
+    def arrive(sched: int, worker: Worker, task: dict, now: float) -> None:
+        worker.queue.append(task)
+        if not worker.running:
+            run_next(sched, worker, now)
+
+    def run_next(sched: int, worker: Worker, now: float) -> None:
+        task = worker.queue.popleft()
+        worker.running = True
+        batch = task["batch"]
+        batch["first_start"] = min(batch["first_start"], now)
+        sim.at(now + c.worker_task_s + task["duration"], lambda t: finish(sched, worker, task, t))
+
+    def finish(sched: int, worker: Worker, task: dict, now: float) -> None:
+        worker.running = False
+        state["last"] = max(state["last"], now)
+        task["batch"]["last_end"] = max(task["batch"]["last_end"], now)
+        delay = c.result_delay_s if worker.queue else 0.0
+        if worker.queue:
+            run_next(sched, worker, now)
+        sim.at(now + delay + c.hop_s, lambda t: scheds[sched].serve(
+            t, c.scheduler_task_s / 2, lambda t2: done(sched, worker, task, t2)))
+
+    def done(sched: int, worker: Worker, task: dict, now: float) -> None:
+        worker.held -= 1
+        dispatch(sched, now)
+        batch = task["batch"]
+        part = batch["run"] % parts
+        drivers[part].serve(now + c.hop_s, c.client_task_s, lambda t: taken(batch, t))
+
+    def taken(batch: dict, now: float) -> None:
+        batch["left"] -= 1
+        if batch["left"]:
+            return
+        split["driver"].append(batch["sent"] - batch["ready"])
+        split["to_start"].append(batch["first_start"] - batch["sent"])
+        split["flying"].append(batch["last_end"] - batch["first_start"])
+        split["back"].append(now - batch["last_end"])
+        if batch["k"] + 1 < workload.iterations:
+            start_iteration(batch["run"], batch["k"] + 1, now)
+
+    for run in range(workload.runs):
+        start_iteration(run, 0, 0.0)
+    sim.run()
+    search = state["last"] - state["first"]
+    ideal = max(state["work"] / workers, float(state["paths"].max()))
+    return {"workers": workers, "runs": workload.runs, "parts": parts, "schedulers": schedulers,
+            "search_s": search, "ideal_s": ideal, "efficiency": ideal / search,
+            "utilisation": state["work"] / (workers * search),
+            "driver_busy": max(d.busy for d in drivers) / search,
+            "scheduler_busy": max(s.busy for s in scheds) / search,
+            **{f"cycle_{key}_ms": 1000 * float(np.mean(values)) for key, values in split.items()}}
+
+
+def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20, batch: int = 150,
+         parts: tuple = (1,), lengths_file: str | None = None, mean_steps: float = 126.0,
+         **costs: float) -> None:
+    """Print the model's prediction for each size and design. Episode lengths come from
+    `lengths_file` (a JSON list of per-iteration lists of steps, bench_scale's record of a real
+    run) or, without it, an exponential distribution of `mean_steps`."""
+    import json
+
+    if lengths_file:
+        lengths = [np.asarray(k) for k in json.loads(Path(lengths_file).read_text())]
+    else:
+        lengths = [np.random.default_rng(1).exponential(mean_steps, 10_000).astype(int) + 60]
+    model = Costs(**costs)
+    for n, k in itertools.product(workers, parts):
+        row = simulate(Workload(runs, iterations, batch, lengths), int(n), model, parts=int(k),
+                       schedulers=int(k))
+        print(json.dumps({key: round(value, 4) if isinstance(value, float) else value
+                          for key, value in row.items()}))
+
+
+if __name__ == "__main__":
+    import fire
+
+    fire.Fire(main)

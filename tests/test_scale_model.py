@@ -1,0 +1,41 @@
+"""The scale model (benchmarks/scale_model.py) against cases worked out by hand."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import scale_model  # noqa: E402
+from scale_model import Costs, Workload, simulate  # noqa: E402
+
+FREE = Costs(driver_iteration_s=0.0, client_task_s=0.0, scheduler_task_s=0.0, worker_task_s=0.0,
+             result_delay_s=0.0, hop_s=0.0, step_s=1e-3)
+
+
+def test_one_run_on_one_worker_takes_its_work_plus_the_driver_between_iterations():
+    workload = Workload(runs=1, iterations=5, batch=8, lengths=[np.array([100, 300])])
+    work = workload.episodes().sum() * 1e-3
+    free = simulate(workload, 1, FREE)
+    assert free["search_s"] == pytest.approx(work) and free["efficiency"] == pytest.approx(1.0)
+    costly = simulate(workload, 1, Costs(**{**FREE.__dict__, "driver_iteration_s": 0.05}))
+    # the search phase runs from the first batch's sending: four more driver turns in it
+    assert costly["search_s"] == pytest.approx(work + 4 * 0.05)
+
+
+def test_a_batch_is_split_as_the_engine_splits_it():
+    assert scale_model.chunk_sizes(150, 2, 1) == [38, 38, 37, 37]  # 2 chunks per worker
+    assert sum(scale_model.chunk_sizes(150, 512, 1)) == 150
+    assert min(scale_model.chunk_sizes(150, 512, 1)) >= 4  # MIN_CHUNK rollouts at least
+    assert len(scale_model.chunk_sizes(150, 64, 60)) == 3  # 60 runs share the workers
+
+
+def test_a_busy_driver_is_the_limit_and_parts_lift_it():
+    workload = Workload(runs=40, iterations=4, batch=20, lengths=[np.array([50])])
+    costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.02})
+    one, four = simulate(workload, 200, costs), simulate(workload, 200, costs, parts=4, schedulers=4)
+    assert one["driver_busy"] > 0.85 and one["efficiency"] < 0.5
+    assert four["efficiency"] > 1.8 * one["efficiency"]  # each driver has a quarter of the runs
+    assert one["ideal_s"] == pytest.approx(four["ideal_s"])  # the same work, dealt otherwise
