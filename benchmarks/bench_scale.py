@@ -2,7 +2,8 @@
 """How far does one experiment scale? The real driver on clusters of up to 512 simulated workers.
 
     python benchmarks/bench_scale.py                          # 60 runs x 20 iterations; N = 16..512
-    python benchmarks/bench_scale.py --workers "[16, 256]" --runs 60 --iterations 40
+    python benchmarks/bench_scale.py --workers "[16, 64]" --parts "[1, 2, 4]" --repeats 3 \
+        --lengths benchmarks/episode_lengths_lander.npz      # a 300-iteration search's episodes
     python benchmarks/bench_scale.py --env BipedalWalker-v3 --measured 6 --iterations 10 \
         --workers "[64, 256, 512]" --out benchmarks/scale_results_walker.json   # long episodes
 
@@ -10,20 +11,25 @@ A real experiment (`experiments.experiment`: the real driver, real pyribs ask an
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
 cluster, and worker processes with many threads each. Each thread is a simulated worker: its task
 sleeps as long as the real chunk would take and returns made-up objectives and measures (a
-smooth function of each policy). How long a rollout takes comes from real ones: a real search of
---measured iterations in the task of --env, flown first in this process, gives each episode's
-steps and the cost of a step; each simulated policy is given one of those episode lengths (by a
-hash of its weights).
+smooth function of each policy). Each simulated policy is given an episode length (by a hash of
+its weights) from --lengths (every iteration of a real search, benchmarks/episode_lengths.py) or
+from a real search of --measured iterations flown first here, which also gives the cost of a step.
+With --parts K, the experiment is split in K parts (experiment --part), each driven by its own
+process on its own `dask scheduler`, the workers shared out among them.
 
-For each number of simulated workers N it prints, from one experiment:
-- the driver's main-process CPU per task and per iteration (everything the driving process did:
-  ask, tell, Dask's client side, saving);
-- the time from a batch's submission to its first task starting (median and 90th percentile);
+For each number of simulated workers N and of parts it prints, from one experiment:
 - the efficiency against an ideal cluster: the ideal makespan over the measured search phase (from
   the first batch's submission to the last chunk's end; the runs' first checkpoints and last
-  saves, which a real 300-iteration run spreads thin, are left out and the whole drive is
-  reported beside it). The ideal cluster has no overhead: it needs the total work divided by N,
-  and no run can be faster than the sum of its iterations' longest chunks.
+  saves, which a real 300-iteration run spreads thin, are left out). The ideal cluster has no
+  overhead: it needs the total work divided by N, and no run can be faster than the sum of its
+  iterations' longest chunks;
+- the utilisation (work / (N x search time)), over the whole search and over its steady state
+  (from the moment every run has sent its first batch to the first run's last tell);
+- the drivers' CPU per run-iteration, the schedulers' CPU per task (every second of the
+  scheduler processes while the drivers ran, over the tasks), when the last run opens, and each
+  run-iteration's cycle split: the driver (previous tell to submission), to the first chunk's
+  start, flying (first start to last end), back (last end to the tell);
+- the time from a batch's submission to its first task starting (median and 90th percentile).
 Writes benchmarks/scale_results.json. Run it on a quiet machine.
 """
 
@@ -92,18 +98,23 @@ def duration_of(chunk_solutions: np.ndarray, lengths: list[int], step_s: float) 
 
 
 class Recorder:
-    """Wraps submit_flights in the driving process: each batch's submission time, its tasks and
-    their simulated durations, and the run it belongs to."""
+    """In a driving process: each batch's submission (time, the process's CPU, its tasks and their
+    simulated durations, its run) and each batch's tell (time, CPU, run), by wrapping the run loop's
+    engine call and Run.tell."""
 
-    def __init__(self, lengths: list[int], step_s: float) -> None:
-        self.lengths, self.step_s, self.batches, self.run = lengths, step_s, [], ""
-        self.original, self.launch = engine.submit_flights, loop.Driver.send
+    def __init__(self, pool: list[int], step_s: float) -> None:
+        self.pool, self.step_s, self.batches, self.tells, self.run = pool, step_s, [], [], ""
+        self.original, self.launch, self.tell = engine.submit_flights, loop.Driver.send, loop.Run.tell
         recorder = self
 
         def launch(driver, run) -> None:  # which run the next batch is of
             recorder.run = run.name
             recorder.launch(driver, run)
-        self.patched_launch = launch
+
+        def tell(run, objectives, measures):
+            recorder.tells.append({"run": run.name, "at": time.time(), "cpu": time.process_time()})
+            return recorder.tell(run, objectives, measures)
+        self.patched_launch, self.patched_tell = launch, tell
 
     def __call__(self, client, solutions, env_seeds, measures, *args, **kwargs):
         submitted, cpu = time.time(), time.process_time()
@@ -112,14 +123,22 @@ class Recorder:
         sizes = [len(c) for c in np.array_split(np.arange(len(solutions)), len(futures))]
         bounds = np.cumsum([0, *sizes])
         self.batches.append({"submitted": submitted, "cpu": cpu, "keys": [f.key for f in futures],
-                             "durations": [duration_of(solutions[a:b], self.lengths, self.step_s)
+                             "durations": [duration_of(solutions[a:b], self.pool, self.step_s)
                                            for a, b in zip(bounds[:-1], bounds[1:])],
                              "run": self.run})
         return futures
 
+    def __enter__(self) -> Recorder:
+        loop.submit_flights, loop.Driver.send, loop.Run.tell = self, self.patched_launch, self.patched_tell
+        return self
+
+    def __exit__(self, *exc) -> None:
+        loop.submit_flights, loop.Driver.send, loop.Run.tell = self.original, self.launch, self.tell
+
 
 def start_cluster(folder: Path, workers: int, processes: int):
     """A `dask scheduler` process and `processes` worker processes of workers/processes threads."""
+    folder.mkdir(parents=True, exist_ok=True)
     scheduler_file = folder / "scheduler.json"
     # The code is importable everywhere, as on a cluster's shared filesystem: nothing is uploaded
     # (an upload would re-import the package on the workers and undo the simulation).
@@ -140,100 +159,191 @@ def start_cluster(folder: Path, workers: int, processes: int):
     return started, scheduler_file
 
 
-def one_size(workers: int, runs: int, iterations: int, processes: int, lengths: list[int],
+def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iterations: int, env: str,
+          part: str | None = None, record: str = "record.json") -> None:
+    """A driving process (a subcommand, run by one_size): the experiment (or its --part), its
+    batches and tells recorded, written to `record`."""
+    pool, step_s = json.loads(Path(simulation).read_text())
+    with Recorder(pool, step_s) as recorder:
+        experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
+                               log_every=iterations, outdir=folder, env=env, part=part,
+                               scheduler_file=scheduler_file)
+    run_files.write_json(Path(record), {"batches": recorder.batches, "tells": recorder.tells,
+                                        "cpu_s": time.process_time()})
+
+
+def process_cpu(pid: int) -> float:
+    """The CPU seconds a process has used (user and system)."""
+    import psutil
+
+    times = psutil.Process(pid).cpu_times()
+    return times.user + times.system
+
+
+def one_size(workers: int, runs: int, iterations: int, processes: int, parts: int, pool: list[int],
              step_s: float, env_name: str) -> dict:
+    """One experiment of `runs` runs on `workers` simulated workers: one driving process and one
+    `dask scheduler` per part, the workers shared out among the schedulers."""
     from dask.distributed import Client
 
     with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp)
-        started, scheduler_file = start_cluster(folder, workers, processes)
+        folder, started, clusters = Path(tmp), [], []
         try:
-            with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
-                client.wait_for_workers(processes, timeout=120)
-                client.run(install_simulation, lengths, step_s)
-                recorder = Recorder(lengths, step_s)
-                loop.submit_flights = recorder  # the driver's engine call, recorded
-                loop.Driver.send = recorder.patched_launch
-                try:
-                    experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
-                                           log_every=iterations, outdir=str(folder / "exp"), env=env_name,
-                                           scheduler_file=str(scheduler_file))
-                finally:
-                    loop.submit_flights = recorder.original
-                    loop.Driver.send = recorder.launch
-                log = {}
-                for worker_log in client.run(lambda: __import__("bench_scale").TASK_LOG).values():
-                    log.update(worker_log)
-                plan = json.loads((folder / "exp" / "experiment.json").read_text())
+            count = max(1, processes // parts)  # worker processes per part
+            for p in range(parts):
+                share = workers // parts + (p < workers % parts)
+                procs, scheduler_file = start_cluster(folder / f"cluster{p}", share, count)
+                started += procs
+                clusters.append((procs[0].pid, scheduler_file, count))
+            for _, scheduler_file, count in clusters:
+                with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
+                    client.wait_for_workers(count, timeout=120)
+                    client.run(install_simulation, pool, step_s)
+            simulation = folder / "simulation.json"
+            simulation.write_text(json.dumps([pool, step_s]))
+            before = [process_cpu(pid) for pid, _, _ in clusters]
+            drivers = [subprocess.Popen(
+                [sys.executable, __file__, "drive", str(folder / "exp"), str(scheduler_file), str(simulation),
+                 str(runs), str(iterations), env_name, *([f"--part={p + 1}/{parts}"] if parts > 1 else []),
+                 f"--record={folder / f'record{p}.json'}"], stdout=subprocess.DEVNULL)
+                for p, (_, scheduler_file, _) in enumerate(clusters)]
+            for process in drivers:
+                if process.wait() != 0:
+                    raise RuntimeError(f"a driving process failed ({process.args})")
+            scheduler_cpu = sum(process_cpu(pid) - cpu for (pid, _, _), cpu in zip(clusters, before))
+            log = {}
+            for _, scheduler_file, _ in clusters:
+                with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
+                    for worker_log in client.run(lambda: __import__("bench_scale").TASK_LOG).values():
+                        log.update(worker_log)
+            records = [json.loads((folder / f"record{p}.json").read_text()) for p in range(parts)]
         finally:
             for process in started:
                 process.kill()  # the cluster's work is done; its threads may still be asleep
             for process in started:
                 process.wait(timeout=60)
-    return summarise(workers, runs, iterations, recorder.batches, log, plan)
+    return summarise(workers, runs, iterations, parts, records, log, scheduler_cpu)
 
 
-def install_simulation(lengths: list[int], step_s: float) -> None:
+def install_simulation(pool: list[int], step_s: float) -> None:
     """On each worker process: the engine's fly_chunk becomes the simulated chunk."""
     import bench_scale
 
     from qdsearch import engine
 
-    engine.fly_chunk = bench_scale.simulated_chunk(lengths, step_s)
+    engine.fly_chunk = bench_scale.simulated_chunk(pool, step_s)
 
 
-def summarise(workers: int, runs: int, iterations: int, batches: list[dict], log: dict,
-              plan: dict) -> dict:
+def cycles(batches: list[dict], tells: list[dict], log: dict) -> dict[str, list[float]]:
+    """Each run-iteration's cycle, split: the driver (from the previous tell to this batch's
+    submission), to the first chunk's start, flying (first start to last end), back (last end to
+    the tell)."""
+    split: dict[str, list[float]] = {"driver": [], "to_start": [], "flying": [], "back": []}
+    told: dict[str, list[float]] = {}
+    for tell in tells:
+        told.setdefault(tell["run"], []).append(tell["at"])
+    seen: dict[str, int] = {}
+    for batch in batches:
+        k = seen[batch["run"]] = seen.get(batch["run"], -1) + 1
+        spans = [log[key] for key in batch["keys"] if key in log]
+        if not spans or k >= len(told.get(batch["run"], [])):
+            continue
+        if k > 0:
+            split["driver"].append(batch["submitted"] - told[batch["run"]][k - 1])
+        first, last = min(a for a, _ in spans), max(b for _, b in spans)
+        split["to_start"].append(first - batch["submitted"])
+        split["flying"].append(last - first)
+        split["back"].append(told[batch["run"]][k] - last)
+    return split
+
+
+def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
+              scheduler_cpu: float) -> dict:
     """The figures of one experiment. Its search phase runs from the first batch's submission to
     the last chunk's end: before it, each run's first checkpoint; after it, each run's last save
-    (plots, pickles: ~0.5 s a run, which a real 300-iteration run spreads over its iterations)."""
+    (plots, pickles: ~0.5 s a run, which a real 300-iteration run spreads over its iterations).
+    Its steady state runs from the moment every run has sent its first batch to the first run's
+    last tell: utilisation there is the work the workers did in it over workers x its length."""
+    batches = sorted((b for r in records for b in r["batches"]), key=lambda b: b["submitted"])
+    tells = [t for r in records for t in r["tells"]]
     tasks = sum(len(b["keys"]) for b in batches)
     latencies = [min(log[k][0] for k in b["keys"] if k in log) - b["submitted"]
                  for b in batches if any(k in log for k in b["keys"])]
     search_s = max(end for _, end in log.values()) - batches[0]["submitted"]
-    loop_cpu = batches[-1]["cpu"] - batches[0]["cpu"]  # the driver's CPU between first and last ask
-    loop_tasks = tasks - len(batches[-1]["keys"])
     work = sum(sum(b["durations"]) for b in batches)
     # no run can be faster than its iterations' longest chunks, one after another
     paths: dict[str, float] = {}
     for batch in batches:
         paths[batch["run"]] = paths.get(batch["run"], 0.0) + max(batch["durations"])
-    critical = max(paths.values())
-    ideal = max(work / workers, critical)
-    drive, cpu = plan["timing"]["drive_s"], plan["timing"]["main_cpu_s"]
-    return {"workers": workers, "runs": runs, "iterations": iterations, "tasks": tasks,
+    ideal = max(work / workers, max(paths.values()))
+    opened = {}
+    for batch in batches:
+        opened.setdefault(batch["run"], batch["submitted"])
+    last_tells: dict[str, float] = {}
+    for tell in tells:
+        last_tells[tell["run"]] = max(last_tells.get(tell["run"], 0.0), tell["at"])
+    steady = (max(opened.values()), min(last_tells.values()))
+    in_window = sum(max(0.0, min(b, steady[1]) - max(a, steady[0])) for a, b in log.values())
+    driver_cpu = [(r["batches"][-1]["cpu"] - r["batches"][0]["cpu"]) / max(1, len(r["batches"]) - 1)
+                  for r in records]
+    split = cycles(batches, tells, log)
+    return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
             "tasks_per_batch": round(tasks / len(batches), 2), "work_s": round(work, 2),
             "ideal_s": round(ideal, 3), "search_s": round(search_s, 3),
-            "efficiency": round(ideal / search_s, 3), "drive_s": drive, "main_cpu_s": cpu,
-            "main_cpu_ms_per_task": round(1000 * loop_cpu / loop_tasks, 3),
-            "main_cpu_ms_per_iteration": round(1000 * loop_cpu / (len(batches) - 1), 3),
+            "efficiency": round(ideal / search_s, 3),
+            "utilisation": round(work / (workers * search_s), 3),
+            "steady_utilisation": round(in_window / (workers * (steady[1] - steady[0])), 3)
+            if steady[1] > steady[0] else None,
+            "last_run_opens_s": round(steady[0] - batches[0]["submitted"], 3),
+            "driver_cpu_ms_per_iteration": round(1000 * float(np.mean(driver_cpu)), 3),
+            "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),
+            **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) for key, values in split.items()},
             "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),
             "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1)}
 
 
+def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int], float, str]:
+    """The episode lengths the simulated workers draw from, the cost of a step (from real
+    rollouts here, now), and where the lengths come from: a file of a real search's lengths
+    (benchmarks/episode_lengths.py: every iteration of it pooled), or the first `measured`
+    iterations of a search flown here."""
+    real, step_s = measure_rollouts(measured, env)
+    if lengths is None:
+        return real, step_s, f"the first {measured} iterations of a search"
+    with np.load(lengths) as data:
+        pool = np.concatenate([data[k] for k in sorted(data.files) if k.startswith("iteration_")])
+        iterations = sum(1 for k in data.files if k.startswith("iteration_"))
+    return [int(x) for x in pool], step_s, f"{lengths} ({iterations} iterations)"
+
+
 def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20,
-         processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20,
+         processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20, parts: tuple = (1,),
+         repeats: int = 1, lengths: str | None = None,
          out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
-    lengths, step_s = measure_rollouts(measured, env)
-    print(f"real rollouts: {len(lengths)} episodes, {np.mean(lengths):.0f} steps on average "
-          f"(median {np.median(lengths):.0f}, max {max(lengths)}), {1e6 * step_s:.1f} us a step")
+    pool, step_s, source = lengths_pool(lengths, measured, env)
+    print(f"episode lengths: {source}: {len(pool)} episodes, {np.mean(pool):.0f} steps on average "
+          f"(median {np.median(pool):.0f}, max {max(pool)}); {1e6 * step_s:.1f} us a step (measured now)")
     rows = []
-    for n in workers:
-        rows.append(one_size(int(n), runs, iterations, processes, lengths, step_s, env))
-        print(json.dumps(rows[-1]))
-    print("| simulated workers | tasks per batch | ideal s | search s | efficiency | main CPU ms "
-          "per task | per iteration | submission to first start, median (p90) ms |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for _ in range(repeats):
+        for n in workers:
+            for k in parts:
+                rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env))
+                print(json.dumps(rows[-1]))
+    print("| simulated workers | parts | tasks per batch | ideal s | search s | efficiency | utilisation "
+          "(steady) | driver CPU ms per iteration | scheduler CPU ms per task | cycle: driver, to start, "
+          "flying, back ms |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
-        print(f"| {r['workers']} | {r['tasks_per_batch']} | {r['ideal_s']} | {r['search_s']} | "
-              f"{r['efficiency']} | {r['main_cpu_ms_per_task']} | {r['main_cpu_ms_per_iteration']} | "
-              f"{r['first_start_ms_median']} ({r['first_start_ms_p90']}) |")
+        split = ", ".join(str(r[f"cycle_{key}_ms"]) for key in ("driver", "to_start", "flying", "back"))
+        print(f"| {r['workers']} | {r['parts']} | {r['tasks_per_batch']} | {r['ideal_s']} | "
+              f"{r['search_s']} | {r['efficiency']} | {r['utilisation']} ({r['steady_utilisation']}) | "
+              f"{r['driver_cpu_ms_per_iteration']} | {r['scheduler_cpu_ms_per_task']} | {split} |")
     run_files.write_json(Path(out), {
         "date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "env": env,
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
-        "episodes": {"count": len(lengths), "mean_steps": float(np.mean(lengths)),
+        "episodes": {"source": source, "count": len(pool), "mean_steps": float(np.mean(pool)),
                      "us_per_step": round(1e6 * step_s, 2)}, "rows": rows})
 
 
 if __name__ == "__main__":
-    fire.Fire(main)
+    fire.Fire({"main": main, "drive": drive} if len(sys.argv) > 1 and sys.argv[1] == "drive" else main)
