@@ -17,7 +17,7 @@ The model (every server serves one job at a time, first come first served):
   takes `hop_s`;
 - chunks per batch: engine.submit_flights' own rule, with the runs of the part as `sharing`.
 
-    python benchmarks/scale_model.py --workers "[16, 64, 256, 512]" --runs 60 --parts "[1, 4]"
+    python benchmarks/scale_model.py --workers "[256, 512]" --runs "[60, 400]" --parts "[1, 4, 16]"
 """
 
 from __future__ import annotations
@@ -212,21 +212,25 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
             **{f"cycle_{key}_ms": 1000 * float(np.mean(values)) for key, values in split.items()}}
 
 
-def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20, batch: int = 150,
-         parts: tuple = (1,), lengths_file: str | None = None, mean_steps: float = 126.0,
-         **costs: float) -> None:
-    """Print the model's prediction for each size and design. Episode lengths come from
-    `lengths_file` (a JSON list of per-iteration lists of steps, bench_scale's record of a real
-    run) or, without it, an exponential distribution of `mean_steps`."""
+def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
+    """Episode lengths per iteration and the cost of a step, as benchmarks/episode_lengths.py
+    wrote them."""
+    with np.load(path) as data:
+        keys = sorted(k for k in data.files if k.startswith("iteration_"))
+        return [data[k] for k in keys], float(data["us_per_step"]) * 1e-6
+
+
+def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,
+         parts: tuple = (1,), lengths: str = "benchmarks/episode_lengths_lander.npz", **costs: float) -> None:
+    """Print the model's prediction for each size, workload and design: `lengths` (a real
+    search's episodes, iteration by iteration: benchmarks/episode_lengths.py) and `costs` (the
+    fields of Costs; step_s defaults to the lengths file's own)."""
     import json
 
-    if lengths_file:
-        lengths = [np.asarray(k) for k in json.loads(Path(lengths_file).read_text())]
-    else:
-        lengths = [np.random.default_rng(1).exponential(mean_steps, 10_000).astype(int) + 60]
-    model = Costs(**costs)
-    for n, k in itertools.product(workers, parts):
-        row = simulate(Workload(runs, iterations, batch, lengths), int(n), model, parts=int(k),
+    per_iteration, step_s = load_lengths(lengths)
+    model = Costs(**{"step_s": step_s, **costs})
+    for n, r, k in itertools.product(workers, runs, parts):
+        row = simulate(Workload(int(r), iterations, batch, per_iteration), int(n), model, parts=int(k),
                        schedulers=int(k))
         print(json.dumps({key: round(value, 4) if isinstance(value, float) else value
                           for key, value in row.items()}))
