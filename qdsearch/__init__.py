@@ -5,6 +5,7 @@ Map, a module per role, imports going down the list only:
 - flags: the `Flag` entry, the checkers, UsageError;
 - run_files: locks, atomic writes, JSON and pickles, logs; RunError;
 - plots: heatmaps and progress curves;
+- trackers: TensorBoard, W&B and MLflow (--track), offline first, each iteration once;
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
   STOP (Ctrl-C and SIGTERM); the package shipped to workers that lack it;
 - family: what a task family declares (`Family`, `Environment`, `Measure`), the linear policy;

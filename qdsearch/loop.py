@@ -41,6 +41,7 @@ from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.run_files import RunError, atomic_write, fault_text, write_csv, write_json, write_pickle
 from qdsearch.tasks import ENVIRONMENTS, MEASURES
+from qdsearch.trackers import Tracking, wait_for_trackers
 
 
 class Run:
@@ -67,6 +68,7 @@ class Run:
         self.waiting = 0  # chunks of that batch not back yet
         self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
         self.target = config.iterations  # where this drive stops (resume may stop it sooner)
+        self.tracking = Tracking(run_dir, config, log)  # --track: used in the saver thread only
         self._asked_at = 0.0
 
     @classmethod
@@ -171,6 +173,7 @@ class Run:
         write_pickle(self.dir / "checkpoint.pkl", checkpoint)
         self.saved = checkpoint["iteration"]
         save_outputs(self.dir, checkpoint)
+        self.tracking.save(checkpoint["metrics"])
 
     def settle(self, wait: bool = True) -> None:
         """Wait for the save in the saver thread (without `wait`: only if it is over); raise its
@@ -287,6 +290,7 @@ class Driver:
         finally:
             self.saver.shutdown()
             self.bar.close()
+            wait_for_trackers(self.log)
 
     def next_chunk(self) -> tuple[Any, Any]:
         """The next chunk back, as as_completed hands it. A client that has given up on its
@@ -400,6 +404,7 @@ class Driver:
 
     def close(self, run: Run, state: str, error: BaseException | None = None) -> None:
         self.live.pop(run.name, None)
+        run.tracking.close()
         run.leaving.close()
         self.record(self.entries[run.name], state, error)
 

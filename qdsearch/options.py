@@ -31,6 +31,7 @@ from qdsearch.flags import (
     whole_number_up_to,
 )
 from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, FAMILIES, MEASURES, family_measures
+from qdsearch.trackers import TRACKERS, check_tracks
 
 # Every size a user gives is bounded before anything is allocated or written (check_sizes and the
 # flags' checks): each bound is far past what QD papers run (1,000s of solutions per iteration,
@@ -172,6 +173,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "from_archive": Flag(None, "Warm start: an archive.pkl of an earlier run whose elites are "
                                "re-evaluated in this run's setting to fill the archive first; the "
                                "emitters start from the best.", per_run=True),
+    "track": Flag([], "Trackers to log the run to, comma-separated, of " + ", ".join(TRACKERS) + ": every "
+                      "iteration's metrics and the pictures of every save, offline unless the "
+                      "tracker's own settings say otherwise (pip install -r requirements-trackers.txt).",
+                  check_tracks, before=[]),
     "fast_env": Flag(True, "Fly rollouts in the task's streamlined copy where it has one "
                            "(LunarLander-v3: bitwise identical results, about a third less time "
                            "per step); false uses gym.make's plain environment.", boolean),

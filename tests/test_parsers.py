@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ribs.archives import GridArchive
 
-from qdsearch import algorithms, experiments, flags, metrics, results, run_config, tasks
+from qdsearch import algorithms, experiments, flags, metrics, results, run_config, tasks, trackers
 from qdsearch.flags import (
     MAX_SEED,
     MAX_SEEDS,
@@ -28,6 +28,7 @@ from qdsearch.flags import (
     seed_list,
     seed_number,
 )
+from qdsearch.parts import MAX_PARTS, parse_part
 from qdsearch.run_files import read_pickle, read_run_json
 
 QUICK = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -58,8 +59,13 @@ def refused_in_one_line_or(check, *args):
         return UsageError
 
 
+def parse_part_check(name, value):
+    """--part I/K as a check of the same shape as the others."""
+    return parse_part(value)
+
+
 CHECKS = [positive_int, seed_number, positive_float, fraction, boolean, one_of(algorithms.ALGORITHMS),
-          seed_list, distinct_names(tasks.MEASURES, "measures", 3)]
+          seed_list, distinct_names(tasks.MEASURES, "measures", 3), trackers.check_tracks, parse_part_check]
 
 
 @pytest.mark.parametrize("check", CHECKS, ids=lambda check: getattr(check, "__name__", "check"))
@@ -74,6 +80,11 @@ def test_every_flag_check_gives_a_valid_value_or_one_line(check, value):
         assert checked >= 1 if check is positive_int else 0 <= checked <= MAX_SEED
     elif check in (positive_float, fraction):
         assert isinstance(checked, float) and math.isfinite(checked) and checked > 0
+    elif check is trackers.check_tracks:
+        assert isinstance(checked, list) and set(checked) <= set(trackers.TRACKERS)
+    elif check is parse_part_check:
+        part, parts = checked
+        assert 1 <= part <= parts <= MAX_PARTS
     elif check is seed_list:
         assert 1 <= len(checked) <= MAX_SEEDS and len(set(checked)) == len(checked)
         assert all(isinstance(seed, int) and 0 <= seed <= MAX_SEED for seed in checked)

@@ -201,3 +201,42 @@ def page_data(run_dir) -> dict:
     html = (run_dir / "explorer.html").read_text()
     start = html.index(DATA_BLOCK) + len(DATA_BLOCK)
     return json.loads(html[start:html.index("</script>", start)])
+
+
+def wandb_records(run_dir: Path, kind: str = "history") -> list:
+    """The records of one kind ("history", "run", ...) in a run folder's W&B offline run files
+    (run-ID.wandb, in W&B's LevelDB-style log: 32 KiB blocks of checksummed pieces, each record a
+    protobuf Record), read in the order they were written, file after file."""
+    import struct
+
+    from wandb.proto import wandb_internal_pb2
+
+    found = []
+    for path in sorted(Path(run_dir).glob("wandb/offline-run-*/run-*.wandb")):
+        data, pending = path.read_bytes(), b""
+        assert data[:4] == b":W&B", path
+        position = 7  # the file's header: ":W&B", a magic number and a version
+        while position + 7 <= len(data):
+            if 32768 - position % 32768 < 7:  # a block's tail too short for a piece's header
+                position += 32768 - position % 32768
+                continue
+            _, length, piece = struct.unpack("<IHB", data[position:position + 7])
+            if piece == 0 and length == 0:
+                break
+            chunk = data[position + 7:position + 7 + length]
+            position += 7 + length
+            pending = chunk if piece in (1, 2) else pending + chunk  # full, first; middle, last
+            if piece in (1, 4):
+                record = wandb_internal_pb2.Record()
+                record.ParseFromString(pending)
+                if record.WhichOneof("record_type") == kind:
+                    found.append(getattr(record, kind))
+    return found
+
+
+def wandb_history(run_dir: Path) -> list[dict]:
+    """Each logged step of a run folder's W&B runs: its items by key (nested keys joined by /)."""
+    import json as json_module
+
+    return [{(item.key or "/".join(item.nested_key)): json_module.loads(item.value_json)
+             for item in history.item} for history in wandb_records(run_dir)]

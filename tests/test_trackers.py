@@ -1,0 +1,176 @@
+"""--track: tiny searches with each tracker offline, read back with each tool's own reader
+(TensorBoard's EventAccumulator, W&B's offline run files, MLflow's client on its local store):
+every iteration's metrics once, as metrics.json has them, the pictures of every save, the
+config, an experiment's runs grouped, a resumed run going on, a failing tracker one line."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("tensorboardX", reason="the trackers: pip install -r requirements-trackers.txt")
+pytest.importorskip("wandb", reason="the trackers: pip install -r requirements-trackers.txt")
+pytest.importorskip("mlflow", reason="the trackers: pip install -r requirements-trackers.txt")
+
+from mlflow import MlflowClient  # noqa: E402
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
+
+from conftest import ROOT, SCRIPT  # noqa: E402
+from qdsearch import experiments, run, trackers  # noqa: E402
+from util import (  # noqa: E402
+    assert_one_line_error,
+    checkpoint_iteration,
+    launch,
+    run_archive,
+    tiny_flags,
+    wait_for,
+    wandb_history,
+    wandb_records,
+)
+
+ALL = "tensorboard,wandb,mlflow"
+TRACKED = dict(iterations=6, log_every=3)
+
+
+@pytest.fixture(autouse=True)
+def offline(monkeypatch):
+    """The trackers as on a node without network: W&B offline, MLflow's store in the folder."""
+    for name in ("WANDB_MODE", "WANDB_API_KEY", "MLFLOW_TRACKING_URI"):
+        monkeypatch.delenv(name, raising=False)
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory, dask_cluster):
+    """A tiny search tracked by all three, and its twin tracked by none."""
+    root = tmp_path_factory.mktemp("tracked")
+    run.search(**tiny_flags(dask_cluster, **TRACKED, track=ALL), outdir=str(root / "run"))
+    run.search(**tiny_flags(dask_cluster, **TRACKED), outdir=str(root / "plain"))
+    return root / "run", root / "plain"
+
+
+def metrics_of(run_dir):
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+def tensorboard_of(run_dir):
+    events = EventAccumulator(str(run_dir / "tensorboard"), size_guidance={"scalars": 0, "images": 0})
+    events.Reload()
+    return events
+
+
+def mlflow_of(run_dir, store=None):
+    notes = json.loads((run_dir / trackers.NOTES).read_text())
+    client = MlflowClient(tracking_uri=f"sqlite:///{(store or run_dir).resolve() / 'mlflow.db'}")
+    return client, notes["mlflow"]["id"]
+
+
+@pytest.mark.slow  # real tracked searches
+def test_every_tracker_holds_every_iterations_metrics_once(tracked):
+    run_dir, plain = tracked
+    rows = metrics_of(run_dir)
+    steps = [row["iteration"] for row in rows]
+    assert run_archive(run_dir).equals(run_archive(plain))  # tracking changes no result
+    events = tensorboard_of(run_dir)
+    history = [h for h in wandb_history(run_dir) if "qd/qd_score" in h]
+    client, run_id = mlflow_of(run_dir)
+    for name in trackers.SCALARS:
+        values = [row[name] for row in rows]
+        board = events.Scalars(f"qd/{name}")
+        assert [e.step for e in board] == steps
+        assert [e.value for e in board] == pytest.approx(values, rel=1e-6)  # TensorBoard's float32
+        assert [h["_step"] for h in history] == steps and [h[f"qd/{name}"] for h in history] == values
+        logged = client.get_metric_history(run_id, name)
+        assert [m.step for m in logged] == steps and [m.value for m in logged] == values
+
+
+@pytest.mark.slow  # real tracked searches
+def test_the_pictures_of_every_save_and_the_config_are_tracked(tracked):
+    run_dir, _ = tracked
+    saves = [3, 6]
+    events = tensorboard_of(run_dir)
+    for name in ("heatmap", "progress"):
+        assert [e.step for e in events.Images(name)] == saves
+    assert "config/text_summary" in events.Tags()["tensors"]
+    pictured = [h["_step"] for h in wandb_history(run_dir) if "heatmap/_type" in h]
+    assert pictured == saves
+    assert len(list(run_dir.glob("wandb/offline-run-*/files/media/images/heatmap*.png"))) == 2
+    [record] = wandb_records(run_dir, "run")
+    config = {item.key: json.loads(item.value_json) for item in record.config.update}
+    assert config["seed"] == 7 and config["algorithm"] == "cma_me" and config["track"] == ALL.split(",")
+    client, run_id = mlflow_of(run_dir)
+    logged = client.get_run(run_id)
+    assert logged.data.params["seed"] == "7" and logged.data.params["algorithm"] == '"cma_me"'
+    assert {a.path for a in client.list_artifacts(run_id)} >= {"images"}
+
+
+@pytest.mark.slow  # real tracked searches
+def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_cluster):
+    run_dir = tmp_path / "run"
+    flags = {**tiny_flags(dask_cluster, iterations=30, log_every=3, track=ALL), "outdir": run_dir}
+    process = launch(*[], **flags)
+    wait_for(lambda: checkpoint_iteration(run_dir) >= 9, process, "the run past iteration 9")
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+
+    steps = list(range(1, 31))
+    assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == steps
+    assert [h["_step"] for h in wandb_history(run_dir) if "qd/qd_score" in h] == steps
+    assert len(list(run_dir.glob("wandb/offline-run-*"))) == 2  # one W&B run, resumed by its id
+    client, run_id = mlflow_of(run_dir)
+    assert sorted(m.step for m in client.get_metric_history(run_id, "qd_score")) == steps
+    assert [m.value for m in client.get_metric_history(run_id, "qd_score")] == [
+        row["qd_score"] for row in metrics_of(run_dir)]
+
+
+@pytest.mark.slow  # real tracked searches
+def test_an_experiments_runs_are_grouped_by_it(tmp_path, dask_cluster):
+    folder = tmp_path / "exp"
+    experiments.experiment(algorithms="cma_me", seeds="1-2", iterations=2, n_emitters=2, batch_size=6,
+                           log_every=2, track="wandb,mlflow", outdir=str(folder),
+                           scheduler_address=dask_cluster.scheduler_address)
+    runs = [folder / entry["name"] for entry in experiments.read_experiment(folder)["runs"]]
+    client = MlflowClient(tracking_uri=f"sqlite:///{folder.resolve() / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("exp")
+    logged = client.search_runs([experiment.experiment_id])
+    assert sorted(r.info.run_name for r in logged) == sorted(r.name for r in runs)
+    for run_dir in runs:
+        [record] = wandb_records(run_dir, "run")
+        assert record.run_group == "exp" and record.display_name == run_dir.name
+
+
+@pytest.mark.slow  # real tracked searches
+def test_a_failing_tracker_is_one_line_and_the_search_goes_on(tmp_path, dask_cluster, tracked, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")  # nothing listens there
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "3")
+    run_dir = tmp_path / "run"
+    run.search(**tiny_flags(dask_cluster, **TRACKED, track="tensorboard,mlflow"), outdir=str(run_dir))
+    lines = [line for line in (run_dir / "run.log").read_text().splitlines() if "failed (" in line]
+    assert len(lines) == 1 and "tracker mlflow failed" in lines[0] and "goes on" in lines[0]
+    assert run_archive(run_dir).equals(run_archive(tracked[1]))
+    assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == list(range(1, 7))
+
+
+@pytest.mark.slow  # real tracked searches
+def test_a_missing_tracker_package_is_one_line_and_writes_nothing(tmp_path):
+    """A real process in which `import wandb` fails, as on a machine without it."""
+    code = ("import sys, runpy; sys.modules['wandb'] = None; sys.argv = sys.argv[1:]; "
+            "runpy.run_path(sys.argv[0], run_name='__main__')")
+    result = subprocess.run([sys.executable, "-c", code, str(SCRIPT), "--track", "wandb", "--iterations", "1",
+                             "--outdir", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,
+                            timeout=120, env={**os.environ})
+    assert_one_line_error(result, "--track wandb needs the wandb package",
+                          "pip install -r requirements-trackers.txt")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("value, fragment", [("tensorbord", "'tensorbord' is not a tracker"),
+                                             ("[1, 2]", "--track must name trackers")])
+def test_a_bad_track_is_one_line(run_cli, tmp_path, value, fragment):
+    assert_one_line_error(run_cli("--track", value, "--outdir", tmp_path / "run"), fragment)
+    assert not (tmp_path / "run").exists()
