@@ -68,7 +68,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("qdsearch.experiments", "experiment"), "video": ("qdsearch.results", "video"),
     "elites": ("qdsearch.results", "elites"), "trajectories": ("qdsearch.results", "trajectories"),
     "evaluate": ("qdsearch.evaluation", "evaluate"), "explore": ("qdsearch.explorer", "explore"),
-    "compare": ("qdsearch.comparison", "compare"),
+    "compare": ("qdsearch.comparison", "compare"), "watch": ("qdsearch.live", "watch"),
 }
 
 

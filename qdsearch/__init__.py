@@ -27,6 +27,7 @@ Map, a module per role, imports going down the list only:
 - results: `video`, `elites`, `trajectories`, and choosing elites;
 - evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);
 - explorer: `explore`, the page (explorer_page.html) and the poses it plays;
+- live: `watch`, a live page of a run (Bokeh), redrawn from its files;
 - stats: statistics across seeds (BCa, rliable's IQM and P(A>B) with stratified bootstrap, Holm);
 - comparison: `compare` and its statistics.
 """

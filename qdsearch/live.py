@@ -1,0 +1,129 @@
+"""`watch`: a live page of a run, served with Bokeh (installed with Dask for its dashboard) on a
+port of its own: the archive's elites coloured by objective and the QD score so far, redrawn as
+the run's folder is refreshed (every --log_every iterations). It reads the run's files only, so it
+watches a run of any machine whose folder it sees, and never slows or stops the search.
+
+Map:
+- `elite_columns`, `metric_columns`: the run's files as the page's data;
+- `live_document`: the page (a Bokeh document), refreshed every REFRESH_MS;
+- `watch`: the command.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+from qdsearch.algorithms import task_of
+from qdsearch.cluster import STOP
+from qdsearch.flags import UsageError, positive_int
+from qdsearch.metrics import load_metrics
+from qdsearch.run_config import RunConfig, load_checked_config
+from qdsearch.tasks import MEASURES
+
+REFRESH_MS = 2000  # how often the page looks at the folder's files
+
+
+def elite_columns(run_dir: Path, config: RunConfig) -> dict[str, list]:
+    """archive.csv as the page's elites: x and y (the first two measures; one measure: y = 0)
+    and the objective. An archive being replaced reads as the one before."""
+    import pandas as pd
+
+    try:
+        table = pd.read_csv(run_dir / "archive.csv")
+    except (OSError, ValueError):
+        return {"x": [], "y": [], "objective": []}
+    y = table["measures_1"] if len(config.measures) > 1 else 0.0 * table["measures_0"]
+    return {"x": table["measures_0"].tolist(), "y": list(y), "objective": table["objective"].tolist()}
+
+
+def metric_columns(run_dir: Path) -> dict[str, list]:
+    """metrics.json as the page's curve: QD score and coverage by iteration."""
+    try:
+        rows = load_metrics(run_dir)
+    except UsageError:
+        return {"iteration": [], "qd_score": [], "coverage": []}
+    return {key: [row[key] for row in rows] for key in ("iteration", "qd_score", "coverage")}
+
+
+def headline(run_dir: Path, config: RunConfig, metrics: dict[str, list], elites: int) -> str:
+    """The page's first line (HTML: the folder's name escaped, as any name a user gives)."""
+    name = f"<b>{html.escape(run_dir.name)}</b>"
+    if not metrics["iteration"]:
+        return f"{name}: no iteration yet"
+    return (f"{name}: iteration {metrics['iteration'][-1]} of {config.iterations}, {elites} elites, "
+            f"coverage {metrics['coverage'][-1]:.3f}, QD score {metrics['qd_score'][-1]:,.0f}")
+
+
+def live_document(run_dir: Path, config: RunConfig):
+    """The page's Bokeh document maker: elites on the measures' ranges, coloured on the task's
+    heat range, beside the QD-score curve; both refreshed from the files every REFRESH_MS."""
+    from bokeh.layouts import column, row
+    from bokeh.models import ColorBar, ColumnDataSource, Div, LinearColorMapper
+    from bokeh.palettes import Magma256
+    from bokeh.plotting import figure
+
+    task, axes = task_of(config), [MEASURES[name] for name in config.measures]
+    stamps: dict[str, float] = {}
+
+    def make(doc) -> None:
+        elites = ColumnDataSource(elite_columns(run_dir, config), name="elites")
+        curve = ColumnDataSource(metric_columns(run_dir), name="metrics")
+        title = Div(text=headline(run_dir, config, curve.data, len(elites.data["x"])), name="headline")
+        colours = LinearColorMapper(palette=Magma256, low=task.heat[0], high=task.heat[1])
+        x_range = axes[0].range
+        y_range = axes[1].range if len(axes) > 1 else (-1.0, 1.0)
+        archive = figure(title="Archive: elites by objective", width=560, height=460, x_range=x_range,
+                         y_range=y_range, x_axis_label=axes[0].label,
+                         y_axis_label=axes[1].label if len(axes) > 1 else "")
+        archive.scatter("x", "y", source=elites, marker="square", size=7,
+                        color={"field": "objective", "transform": colours})
+        archive.add_layout(ColorBar(color_mapper=colours, title="objective"), "right")
+        scores = figure(title="QD score", width=460, height=460, x_axis_label="iteration")
+        scores.line("iteration", "qd_score", source=curve, line_width=2)
+
+        def refresh() -> None:
+            changed = {name: (run_dir / name).stat().st_mtime for name in ("archive.csv", "metrics.json")
+                       if (run_dir / name).is_file()}
+            if changed == stamps:
+                return
+            stamps.update(changed)
+            elites.data = elite_columns(run_dir, config)
+            curve.data = metric_columns(run_dir)
+            title.text = headline(run_dir, config, curve.data, len(elites.data["x"]))
+
+        doc.add_root(column(title, row(archive, scores)))
+        doc.title = f"{run_dir.name}: live"
+        doc.add_periodic_callback(refresh, REFRESH_MS)
+    return make
+
+
+def watch(run_dir: str, port: int = 5006, host: str = "127.0.0.1") -> None:
+    """Serve a live page of a run (running or not): its archive and QD score, redrawn as its folder
+    is refreshed. Open the printed address in a browser; Ctrl-C ends it.
+
+    Args:
+        run_dir: A run folder written by this script.
+        port: The port to serve on.
+        host: The address to serve on (127.0.0.1: this machine only; the page shows the run to
+            whoever can reach it).
+    """
+    from bokeh.application import Application
+    from bokeh.application.handlers.function import FunctionHandler
+    from bokeh.server.server import Server
+
+    path = Path(str(run_dir))
+    config = load_checked_config(path)
+    port = positive_int("port", port)
+    if port > 65535:
+        raise UsageError(f"--port must be at most 65535, got {port}")
+    try:
+        server = Server({"/": Application(FunctionHandler(live_document(path, config)))}, port=port,
+                        address=str(host), allow_websocket_origin=[f"{host}:{port}", f"localhost:{port}"])
+    except OSError as error:
+        raise UsageError(f"cannot serve on {host}:{port}: {error.strerror or error}") from None
+    server.start()
+    print(f"watching {path}: http://{host}:{port}/ (Ctrl-C ends it)", flush=True)
+    with STOP.interruptible():  # Ctrl-C or SIGTERM ends the serving at once
+        server.io_loop.start()
+
