@@ -430,7 +430,8 @@ def markdown_report(stats, tests, aggregate, notes: list[str], used: str) -> str
 def save_score_distributions(table, objectives: list, archive_name: str, path: Path) -> None:
     """A panel per task, a line per setting: pyribs' aggregate_cdf of its runs' final archives,
     complementary (Vassiliades 2018): the mean number of cells holding at least each objective,
-    with a band of one standard deviation, on one objective range per task. Runs without a
+    with a band of one standard deviation, on one objective range per task (from its QD offset
+    up). Runs without a
     readable archive are left out, with a note."""
     import matplotlib.pyplot as plt
     from ribs.visualize import aggregate_cdf
@@ -444,7 +445,10 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
         found = [objs for row, objs in zip(table.to_dict("records"), objectives)
                  if objs is not None and row["task"] == task]
         values = np.concatenate(found) if found else np.empty(0)
-        vmin, vmax = (float(values.min()), float(values.max())) if len(values) else (None, None)
+        # from the task's QD offset up: below it lie crashes that count for nothing in the QD score
+        low = max(float(values.min()), ENVIRONMENTS[task].qd_offset) if len(values) else None
+        vmin, vmax = (low, max(float(values.max()), low + 1.0)) if len(values) else (None, None)
+        ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)  # up to 20 settings, each its colour
         for setting in dict.fromkeys(row["setting"] for row in runs if row["task"] == task):
             archives = [read_pickle(Path(row["folder"]) / archive_name, "archive pickle") for row in runs
                         if row["task"] == task and row["setting"] == setting]
@@ -456,7 +460,7 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
         ax.set_ylabel("Cells with at least that objective (mean, ±1 sd)")
         ax.grid(alpha=0.3)
         if found:
-            ax.legend(loc="upper right", fontsize="small")
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
     plt.close(fig)
 
