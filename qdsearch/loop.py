@@ -68,7 +68,7 @@ class Run:
         self.waiting = 0  # chunks of that batch not back yet
         self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
         self.target = config.iterations  # where this drive stops (resume may stop it sooner)
-        self.tracking = Tracking(run_dir, config, log)  # --track: used in the saver thread only
+        self.tracking = Tracking(run_dir, config, log)  # --track: fed after each save (trackers.py)
         self._asked_at = 0.0
 
     @classmethod
