@@ -35,11 +35,12 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 
 
-def one_search(script: Path, folder: Path) -> dict:
-    """Wall, search loop and fixed cost (seconds) of one 20-iteration search, start to exit."""
+def one_search(script: Path, folder: Path, iterations: int = 20, extra: tuple[str, ...] = ()) -> dict:
+    """Wall, search loop and fixed cost (seconds) of one search (`extra`: more flags), start to
+    exit."""
     tic = time.perf_counter()
-    subprocess.run([sys.executable, str(script), "--iterations", "20", "--workers", "2",
-                    "--seed", "1", "--log_every", "25", "--outdir", str(folder)],
+    subprocess.run([sys.executable, str(script), "--iterations", str(iterations), "--workers", "2",
+                    "--seed", "1", "--log_every", "25", "--outdir", str(folder), *extra],
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=script.parent)
     wall = time.perf_counter() - tic
     loop = json.loads((folder / "metrics.json").read_text())[-1]["elapsed_s"]

@@ -50,6 +50,8 @@ class Costs:
     hop_s: float = 0.0001
     step_s: float = 27e-6
     slots: int = 2
+    run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
+    cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
 
 
 @dataclasses.dataclass
@@ -80,13 +82,17 @@ def chunk_sizes(batch: int, workers: int, sharing: int) -> list[int]:
 
 
 class Server:
-    """One process that serves one job at a time, in arrival order."""
+    """One process that serves one job at a time, in arrival order; with `cores` (free times of
+    the CPUs it shares with other processes) a job also waits for a free CPU."""
 
-    def __init__(self, sim: Simulation) -> None:
-        self.sim, self.free_at, self.busy = sim, 0.0, 0.0
+    def __init__(self, sim: Simulation, cores: list[float] | None = None) -> None:
+        self.sim, self.free_at, self.busy, self.cores = sim, 0.0, 0.0, cores
 
     def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> None:
         start = max(arrival, self.free_at)
+        if self.cores is not None and service > 0:
+            start = max(start, heapq.heappop(self.cores))
+            heapq.heappush(self.cores, start + service)
         self.free_at = start + service
         self.busy += service
         self.sim.at(self.free_at, then)
@@ -117,8 +123,9 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     """One experiment on the model: its makespan, the ideal, the efficiency, each server's
     utilisation and the mean split of a run-iteration's cycle."""
     sim, episodes, c = Simulation(), workload.episodes(), costs
-    drivers = [Server(sim) for _ in range(parts)]
-    scheds = [Server(sim) for _ in range(schedulers)]
+    cores = [0.0] * c.cores if c.cores else None
+    drivers = [Server(sim, cores) for _ in range(parts)]
+    scheds = [Server(sim, cores) for _ in range(schedulers)]
     pools = [[Worker(sim) for _ in range(workers // schedulers + (i < workers % schedulers))]
              for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
@@ -128,8 +135,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
 
     def start_iteration(run: int, k: int, ready: float) -> None:
         part = run % parts
-        sizes = chunk_sizes(workload.batch, len(pools[part % schedulers]), sharing[part])
-        service = c.driver_iteration_s + c.client_task_s * len(sizes)
+        sizes = chunk_sizes(workload.batch, len(pools[part % schedulers]), sharing[part] * SHARE_MULT)
+        service = c.driver_iteration_s + c.client_task_s * len(sizes) + (c.run_open_s if k == 0 else 0.0)
         drivers[part].serve(ready, service, lambda t: send(run, k, sizes, ready, t))
 
     def send(run: int, k: int, sizes: list[int], ready: float, sent: float) -> None:
@@ -220,18 +227,69 @@ def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
         return [data[k] for k in keys], float(data["us_per_step"]) * 1e-6
 
 
+SHARE_MULT = 1
+SPLIT = ("driver", "to_start", "flying", "back")
+
+
+def cycle_shares(row: dict) -> dict[str, float]:
+    """A run-iteration's cycle split as shares of the whole cycle."""
+    total = sum(row[f"cycle_{key}_ms"] for key in SPLIT)
+    return {key: row[f"cycle_{key}_ms"] / total for key in SPLIT}
+
+
+def measured_costs(row: dict, step_s: float, cores: int, batch: int) -> Costs:
+    """The service times one bench_scale.py row measured, as the model's costs: the drivers' CPU
+    per run-iteration (less the client's share per task, which the model charges per chunk sent
+    and per result taken), the schedulers' CPU per task, and the opening of a run (the time the
+    last run took to open, over the runs each driver opened)."""
+    client = Costs.client_task_s
+    tasks = len(chunk_sizes(batch, row["workers"] // row["parts"], row["runs"] // row["parts"]))
+    return Costs(driver_iteration_s=max(0.0, row["driver_cpu_ms_per_iteration"] / 1000 - 2 * client * tasks),
+                 scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000, step_s=step_s, cores=cores,
+                 run_open_s=row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1))
+
+
+def validate(results: str = "benchmarks/scale_results.json", batch: int = 150) -> list[dict]:
+    """The model against bench_scale.py's measured rows: each row's own service times fed in,
+    the same episode lengths (pooled, as the benchmark draws them) on the same number of CPUs;
+    prints the measured and predicted efficiency and cycle shares, and their differences."""
+    import json
+
+    data = json.loads(Path(results).read_text())
+    if not data["episodes"].get("lengths"):
+        raise SystemExit(f"{results}: measured without --lengths; the model needs the same episodes")
+    per_iteration, _ = load_lengths(data["episodes"]["lengths"])
+    pool = [np.concatenate(per_iteration)]
+    step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]
+    out = []
+    for row in data["rows"]:
+        costs = measured_costs(row, step_s, cores, batch)
+        model = simulate(Workload(row["runs"], row["iterations"], batch, pool), row["workers"], costs,
+                         parts=row["parts"], schedulers=row["parts"])
+        measured, predicted = cycle_shares(row), cycle_shares(model)
+        out.append({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
+                    "model": round(model["efficiency"], 3),
+                    "error": round(model["efficiency"] - row["efficiency"], 3),
+                    "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
+                    **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT}})
+        print(json.dumps(out[-1]))
+    return out
+
+
 def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,
-         parts: tuple = (1,), lengths: str = "benchmarks/episode_lengths_lander.npz", **costs: float) -> None:
-    """Print the model's prediction for each size, workload and design: `lengths` (a real
+         parts: tuple = (1,), schedulers: tuple = (0,),
+         lengths: str = "benchmarks/episode_lengths_lander.npz", **costs: float) -> None:
+    """Print the model's prediction for each size, workload and design (`schedulers` 0: one per
+    part): `lengths` (a real
     search's episodes, iteration by iteration: benchmarks/episode_lengths.py) and `costs` (the
     fields of Costs; step_s defaults to the lengths file's own)."""
     import json
 
     per_iteration, step_s = load_lengths(lengths)
     model = Costs(**{"step_s": step_s, **costs})
-    for n, r, k in itertools.product(workers, runs, parts):
+    for n, r, k, s in itertools.product(workers, runs, parts, schedulers):
         row = simulate(Workload(int(r), iterations, batch, per_iteration), int(n), model, parts=int(k),
-                       schedulers=int(k))
+                       schedulers=int(s) or int(k))
         print(json.dumps({key: round(value, 4) if isinstance(value, float) else value
                           for key, value in row.items()}))
 
@@ -239,4 +297,5 @@ def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: i
 if __name__ == "__main__":
     import fire
 
-    fire.Fire(main)
+    commands = {"predict": main, "validate": validate}
+    fire.Fire(commands if sys.argv[1:2] and sys.argv[1] in commands else main)

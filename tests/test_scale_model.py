@@ -39,3 +39,13 @@ def test_a_busy_driver_is_the_limit_and_parts_lift_it():
     assert one["driver_busy"] > 0.85 and one["efficiency"] < 0.5
     assert four["efficiency"] > 1.8 * one["efficiency"]  # each driver has a quarter of the runs
     assert one["ideal_s"] == pytest.approx(four["ideal_s"])  # the same work, dealt otherwise
+
+
+def test_processes_sharing_one_core_wait_for_each_other():
+    workload = Workload(runs=2, iterations=3, batch=4, lengths=[np.array([10])])
+    costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.05})
+    apart = simulate(workload, 8, costs, parts=2, schedulers=2)
+    shared = simulate(workload, 8, Costs(**{**costs.__dict__, "cores": 1}), parts=2, schedulers=2)
+    # two drivers on two cores tell and ask at once; on one core, one after the other: the
+    # second run's first batch leaves a driver's turn later, and later turns collide again
+    assert apart["search_s"] + 0.05 <= shared["search_s"] <= apart["search_s"] + 3 * 0.05 + 1e-9
