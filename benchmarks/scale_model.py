@@ -15,7 +15,7 @@ The model (every server serves one job at a time, first come first served):
   (steps x `step_s`); a result leaves `result_delay_s` after its task ends when the worker goes
   straight on to another (the GIL-holding rollouts make its event loop wait), and every message
   takes `hop_s`;
-- chunks per batch: engine.submit_flights' own rule, with the runs of the part as `sharing`.
+- chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`.
 
     python benchmarks/scale_model.py --workers "[256, 512]" --runs "[60, 400]" --parts "[1, 4, 16]"
 """
@@ -52,6 +52,8 @@ class Costs:
     slots: int = 2
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
+    chunks_per_worker: int = engine.CHUNKS_PER_WORKER  # the engine's rule, or others to try
+    task_rate: float = engine.TASK_RATE
 
 
 @dataclasses.dataclass
@@ -75,10 +77,11 @@ class Workload:
         return out
 
 
-def chunk_sizes(batch: int, workers: int, sharing: int) -> list[int]:
-    """The engine's split of a batch (one terrain) into chunks: submit_flights' rule."""
-    wanted = max(-(-engine.CHUNKS_PER_WORKER * workers // max(1, sharing)), -(-batch // engine.MAX_CHUNK))
-    return [len(c) for c in np.array_split(np.arange(batch), min(wanted, max(1, batch // engine.MIN_CHUNK)))]
+def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = None,
+                per_worker: int = engine.CHUNKS_PER_WORKER, rate: float = engine.TASK_RATE) -> list[int]:
+    """The engine's split of a batch (one terrain) into chunks: its own chunk_count."""
+    count = engine.chunk_count(batch, workers, sharing, cycle_s, per_worker, rate)
+    return [len(c) for c in np.array_split(np.arange(batch), count)]
 
 
 class Server:
@@ -129,13 +132,19 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     pools = [[Worker(sim) for _ in range(workers // schedulers + (i < workers % schedulers))]
              for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
-    sharing = [sum(1 for r in range(workload.runs) if r % parts == p) for p in range(parts)]
+    # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
+    # driver sends it (cluster.ClusterShare)
+    sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
     split = {key: [] for key in ("driver", "to_start", "flying", "back")}
-    state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs)}
+    state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs),
+             "ready": np.zeros(workload.runs)}
 
     def start_iteration(run: int, k: int, ready: float) -> None:
         part = run % parts
-        sizes = chunk_sizes(workload.batch, len(pools[part % schedulers]), sharing[part] * SHARE_MULT)
+        cycle = ready - state["ready"][run] if k else None  # the run's last cycle, as loop.Run keeps it
+        state["ready"][run] = ready
+        sizes = chunk_sizes(workload.batch, len(pools[part % schedulers]), sharing[part % schedulers], cycle,
+                            c.chunks_per_worker, c.task_rate)
         service = c.driver_iteration_s + c.client_task_s * len(sizes) + (c.run_open_s if k == 0 else 0.0)
         drivers[part].serve(ready, service, lambda t: send(run, k, sizes, ready, t))
 
@@ -227,7 +236,6 @@ def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
         return [data[k] for k in keys], float(data["us_per_step"]) * 1e-6
 
 
-SHARE_MULT = 1
 SPLIT = ("driver", "to_start", "flying", "back")
 
 

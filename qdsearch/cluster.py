@@ -12,7 +12,9 @@ Map:
   the memory there is: `check_local_memory`), the code shipped to it (`ship_code`); a lost
   scheduler leaves it as a `SchedulerLost`;
 - the quiet: `quiet_dask_logs`, `not_dask_stop`, `QUIET_CLUSTER`; `preloading` imports what a run
-  needs while its cluster starts.
+  needs while its cluster starts;
+- `ClusterShare`: the cluster's worker threads, and the runs in flight on its scheduler from
+  every driver (parts of an experiment may share one), which size a batch's chunks.
 """
 
 from __future__ import annotations
@@ -445,3 +447,37 @@ def not_dask_stop(record: logging.LogRecord) -> bool:
 QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
                  "distributed.admin.system-monitor.interval": "2s",
                  "distributed.admin.tick.interval": "200ms"}
+
+
+class ClusterShare:
+    """What a driver's batches share: the cluster's worker threads and the runs in flight on its
+    scheduler, its own and other drivers' (the parts of an experiment that share a scheduler).
+
+    Each driver publishes its count of runs in the scheduler's metadata (Dask's own key-value
+    store, under SHARE_KEY and its client's id) and reads the others', at most every `every`
+    seconds rather than for every batch: workers and drivers come and go, and a stale count
+    only sizes the chunks, never changes a result. A driver that stopped publishing for
+    `stale_after` seconds (killed, say) is no longer counted.
+    """
+
+    SHARE_KEY = "qdsearch-runs-in-flight"
+
+    def __init__(self, client, every: float = 2.0, stale_after: float = 30.0) -> None:
+        self.client, self.every, self.stale_after = client, every, stale_after
+        self.asked_at, self.worker_threads, self.other_runs = -float("inf"), 1, 0
+
+    def refresh(self, own_runs: int) -> None:
+        """Count the threads, publish this driver's runs and add up the other drivers'."""
+        self.asked_at = time.monotonic()
+        self.worker_threads = sum(self.client.nthreads().values())
+        now = time.time()
+        self.client.set_metadata([self.SHARE_KEY, self.client.id], [now, own_runs])
+        published = self.client.get_metadata([self.SHARE_KEY], default={})
+        self.other_runs = sum(int(runs) for driver, (at, runs) in published.items()
+                              if driver != self.client.id and now - at < self.stale_after)
+
+    def __call__(self, own_runs: int) -> tuple[int, int]:
+        """(worker threads, runs sharing them), this driver's own runs counted as they are now."""
+        if time.monotonic() - self.asked_at > self.every:
+            self.refresh(own_runs)
+        return self.worker_threads, self.other_runs + own_runs

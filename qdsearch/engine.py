@@ -3,9 +3,10 @@
 Map:
 - on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a chunk of
   (solution, terrain) rollouts);
-- in the driver: `submit_flights` (the chunks, sized by CHUNKS_PER_WORKER, MIN_CHUNK and
-  MAX_CHUNK), `per_terrain` and `averaged` (results back in solution order, averaged over
-  terrains), `gather_with_progress`, and `evaluate_batch` (a run's batch, end to end).
+- in the driver: `submit_flights` (the chunks, as many as `chunk_count` says from
+  CHUNKS_PER_WORKER, TASK_RATE, MIN_CHUNK and MAX_CHUNK), `per_terrain` and `averaged`
+  (results back in solution order, averaged over terrains), `gather_with_progress`, and
+  `evaluate_batch` (a run's batch, end to end).
 """
 
 from __future__ import annotations
@@ -53,24 +54,41 @@ MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
 # few seconds of lander episodes (<= 1,000 steps of ~18-27 us), up to minutes of walker ones.
 MAX_CHUNK = 1000
+# What one scheduler is asked to sustain, all its runs' batches together, in tasks a second:
+# about half of what it can (~0.5 ms of its CPU a task, docs/performance.md), so that on a big
+# cluster it never becomes what the workers wait for.
+TASK_RATE = 1000
+
+
+def chunk_count(pairs: int, workers: int, sharing: int = 1, cycle_s: float | None = None,
+                per_worker: int = CHUNKS_PER_WORKER, rate: float = TASK_RATE) -> int:
+    """How many chunks a batch of `pairs` rollouts is split into: `per_worker` chunks for each
+    worker, shared among the `sharing` runs in flight on the scheduler (fewer, larger tasks when
+    runs outnumber workers); at most the run's share of `rate` over its last cycle
+    (`cycle_s`, from one batch to the next); never under MIN_CHUNK rollouts nor over MAX_CHUNK."""
+    fewest = -(-pairs // MAX_CHUNK)
+    wanted = -(-per_worker * workers // max(1, sharing))
+    if cycle_s is not None:
+        wanted = min(wanted, int(rate * cycle_s / max(1, sharing)))
+    return max(1, min(max(wanted, fewest), pairs // MIN_CHUNK))
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
                    fast_env: bool, sharing: int = 1, threads: int | None = None, *,
-                   env_name: str) -> list:
+                   env_name: str, cycle_s: float | None = None) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
 
     The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
     the number of terrains, so the workers stay evenly loaded. A batch alone on the cluster is
     split in CHUNKS_PER_WORKER chunks per worker; when `sharing` runs keep the workers busy
-    together, each batch needs only its share of that, and fewer tasks cost the scheduler less.
+    together, each batch needs only its share of that, and fewer tasks cost the scheduler less
+    (`chunk_count`; `cycle_s`, the run's last cycle, keeps the scheduler's load in bounds).
     The chunks go in one message (client.map); tasks of a dead worker are retried. `threads`, the
     cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
     """
     workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
     pairs = len(solutions) * len(env_seeds)
-    wanted = max(-(-CHUNKS_PER_WORKER * workers // max(1, sharing)), -(-pairs // MAX_CHUNK))
-    chunks = np.array_split(np.arange(pairs), min(wanted, max(1, pairs // MIN_CHUNK)))
+    chunks = np.array_split(np.arange(pairs), chunk_count(pairs, workers, sharing, cycle_s))
     seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
     return client.map(fly_chunk, [solutions[chunk // len(env_seeds)] for chunk in chunks],
                       [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),

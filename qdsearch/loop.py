@@ -23,7 +23,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
-import math
 import pickle
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -33,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 
 from qdsearch.algorithms import build_scheduler
-from qdsearch.cluster import STOP, SchedulerLost
+from qdsearch.cluster import STOP, ClusterShare, SchedulerLost
 from qdsearch.engine import averaged, evaluate_batch, per_terrain, submit_flights
 from qdsearch.flags import UsageError, clipped
 from qdsearch.metrics import describe_progress, iteration_metrics
@@ -69,7 +68,7 @@ class Run:
         self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
         self.target = config.iterations  # where this drive stops (resume may stop it sooner)
         self.tracking = Tracking(run_dir, config, log)  # --track: fed after each save (trackers.py)
-        self._asked_at = 0.0
+        self._asked_at, self.cycle_s = 0.0, None
 
     @classmethod
     def start(cls, run_dir: Path, config: RunConfig, client, log: logging.Logger,
@@ -106,7 +105,10 @@ class Run:
         return self.metrics[-1]["iteration"] if self.metrics else 0  # a warm start has iteration 0
 
     def ask(self) -> np.ndarray:
-        self._asked_at = time.perf_counter()
+        now = time.perf_counter()
+        # the run's cycle, from one batch to the next: it bounds the tasks its batches send
+        self.cycle_s = now - self._asked_at if self._asked_at else None
+        self._asked_at = now
         return self.scheduler.ask()
 
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
@@ -114,7 +116,7 @@ class Run:
         config = self.config
         futures = submit_flights(client, self.ask(), config.env_seed, config.measures,
                                  config.fast_env, sharing=sharing, threads=threads,
-                                 env_name=config.env)
+                                 env_name=config.env, cycle_s=self.cycle_s)
         self.chunks, self.waiting = [None] * len(futures), len(futures)
         return futures
 
@@ -207,9 +209,6 @@ def count_as_done_before(bar, iterations: int) -> None:
     bar.refresh()
 
 
-THREADS_EVERY = 2.0  # seconds between two counts of the cluster's worker threads
-
-
 class Driver:
     """Drives runs on one client until each reaches its target: the one loop of search, resume
     and experiment.
@@ -242,7 +241,7 @@ class Driver:
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
         self.finished = as_completed(with_results=True, raise_errors=False)
-        self.threads_asked = (-math.inf, 1)  # when the worker threads were last counted, and how many
+        self.share = ClusterShare(client)  # the worker threads and the runs sharing them
 
     # ---- what subclasses say ----
     def open(self, entry: dict) -> Run:
@@ -322,17 +321,10 @@ class Driver:
             else:
                 self.send(run)
 
-    def threads(self) -> int:
-        """The cluster's worker threads, asked of the scheduler at most every THREADS_EVERY seconds
-        rather than for every batch (workers come and go; a stale count only sizes the chunks,
-        never changes a result)."""
-        if time.monotonic() - self.threads_asked[0] > THREADS_EVERY:
-            self.threads_asked = (time.monotonic(), sum(self.client.nthreads().values()))
-        return self.threads_asked[1]
-
     def send(self, run: Run) -> None:
         """The run's next batch, to the cluster."""
-        for position, future in enumerate(run.send(self.client, len(self.live), self.threads())):
+        threads, sharing = self.share(len(self.live))
+        for position, future in enumerate(run.send(self.client, sharing, threads)):
             self.owner[future.key] = (run, position)
             self.finished.add(future)
 

@@ -123,3 +123,27 @@ def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
     sizes = [len(chunk) for chunk in dask_client.gather(futures)]
     assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 4  # 2 per worker
     assert math.isclose(sum(sizes) / len(sizes), 60)
+
+
+def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks(dask_cluster):
+    """Parts of an experiment that share a scheduler split their batches for all the runs in
+    flight on it, not just their own; a driver that stopped publishing drops out."""
+    from dask.distributed import Client
+
+    from qdsearch.cluster import ClusterShare
+
+    with Client(dask_cluster.scheduler_address) as one, Client(dask_cluster.scheduler_address) as two:
+        first, second = ClusterShare(one), ClusterShare(two)
+        assert first(3) == (2, 3)  # 2 worker threads; nobody else has published yet
+        assert second(5) == (2, 8)
+        first.refresh(3)
+        assert first(4) == (2, 9)  # its own runs as they are now, the other's as last published
+        assert ClusterShare(one, stale_after=0.0)(3) == (2, 3)
+        solutions = np.zeros((150, tasks.ENVIRONMENTS[LANDER].solution_dim))
+        threads, sharing = first(3)
+        alone = engine.submit_flights(one, solutions, [52], (), True, sharing=3, threads=threads,
+                                      env_name=LANDER)
+        shared = engine.submit_flights(one, solutions, [52], (), True, sharing=sharing, threads=threads,
+                                       env_name=LANDER)
+        assert len(alone) == 2 and len(shared) == 1  # ceil(2 x 2 / runs) chunks
+        assert np.array_equal(np.concatenate(one.gather(alone)), np.concatenate(one.gather(shared)))
