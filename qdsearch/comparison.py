@@ -448,8 +448,10 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
         # from the task's QD offset up: below it lie crashes that count for nothing in the QD score
         low = max(float(values.min()), ENVIRONMENTS[task].qd_offset) if len(values) else None
         vmin, vmax = (low, max(float(values.max()), low + 1.0)) if len(values) else (None, None)
-        ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)  # up to 20 settings, each its colour
-        for setting in dict.fromkeys(row["setting"] for row in runs if row["task"] == task):
+        settings = list(dict.fromkeys(row["setting"] for row in runs if row["task"] == task))
+        # each setting its colour: tab10's distinct ones, tab20's (pairs of shades) past ten
+        ax.set_prop_cycle(color=plt.get_cmap("tab10" if len(settings) <= 10 else "tab20").colors)
+        for setting in settings:
             archives = [read_pickle(Path(row["folder"]) / archive_name, "archive pickle") for row in runs
                         if row["task"] == task and row["setting"] == setting]
             line, _ = aggregate_cdf(archives, ax=ax, cumulative=-1, vmin=vmin, vmax=vmax)
@@ -495,9 +497,13 @@ def values_used(corrected: list[dict] | None) -> str:
 
 
 def check_baseline(baseline: Any, settings: list[str]) -> str | None:
-    """--baseline names one of the compared settings (as the tables label them)."""
+    """--baseline names one of the compared settings: as the tables label it, or by its
+    algorithm alone when one setting has it (`cma_me` for 'cma_me n_emitters=2')."""
     if baseline is None or str(baseline) in settings:
         return None if baseline is None else str(baseline)
+    by_algorithm = [setting for setting in settings if setting.split(" ")[0] == str(baseline)]
+    if len(by_algorithm) == 1:
+        return by_algorithm[0]
     raise UsageError(f"--baseline {shown(baseline)} is not a setting of these runs; they are: "
                      + ", ".join(repr(setting) for setting in settings))
 
@@ -536,8 +542,8 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
         corrected: Compare each run's corrected metrics and archive (corrected.json and
             corrected_archive.pkl, written by `evaluate RUN --corrected`) instead of its own.
         baseline: Test only this setting against each other one (its label as the tables show
-            it, e.g. cma_me), instead of every pair: with many settings, Holm's adjustment over
-            every pair leaves the tests little power.
+            it, or its algorithm if only one setting has it, e.g. cma_me), instead of every pair:
+            with many settings, Holm's adjustment over every pair leaves the tests little power.
     """
     if not run_dirs:
         raise UsageError("compare needs at least one run folder: "
