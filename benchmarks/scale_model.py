@@ -10,11 +10,14 @@ The model (every server serves one job at a time, first come first served):
   `client_task_s` per chunk it sends and per result it takes back;
 - a scheduler per `schedulers` (part p uses scheduler p mod S; the workers are shared out
   evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
-  up to `slots` tasks on a worker (Dask's worker-saturation), handing them out in arrival order;
-- a worker runs its tasks one after another: `worker_task_s` plus the chunk's episodes
-  (steps x `step_s`); a result leaves `result_delay_s` after its task ends when the worker goes
-  straight on to another (the GIL-holding rollouts make its event loop wait), and every message
-  takes `hop_s`;
+  up to ceil(`saturation` x threads) tasks on a worker process (Dask's worker-saturation),
+  handing them out in arrival order;
+- a worker process of `threads` threads runs a task on each free thread for the chunk's episodes
+  (steps x `step_s`); its event loop then spends `worker_task_s` on the result, which it starts
+  `result_delay_s` after the task's end when the thread goes straight on to another (GIL-holding
+  rollouts make the loop wait); every message takes `hop_s`;
+- with `cores`, the drivers, schedulers and worker event loops share that many CPUs (processor
+  sharing: a job is slowed by the processes busy when it starts), as on the benchmark's machine;
 - chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`.
 
     python benchmarks/scale_model.py --workers "[256, 512]" --runs "[60, 400]" --parts "[1, 4, 16]"
@@ -49,8 +52,9 @@ class Costs:
     result_delay_s: float = 0.0
     hop_s: float = 0.0001
     step_s: float = 27e-6
-    slots: int = 2
+    saturation: float = 1.1  # Dask's worker-saturation: tasks a worker process holds per thread
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
+    run_close_s: float = 0.0  # its saver thread's work after the run's last tell (plots, pickles)
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
     chunks_per_worker: int = engine.CHUNKS_PER_WORKER  # the engine's rule, or others to try
     task_rate: float = engine.TASK_RATE
@@ -84,21 +88,31 @@ def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = 
     return [len(c) for c in np.array_split(np.arange(batch), count)]
 
 
+SPLIT = ("driver", "to_start", "flying", "back")  # a run-iteration's cycle, in order
+
+
 class Server:
-    """One process that serves one job at a time, in arrival order; with `cores` (free times of
-    the CPUs it shares with other processes) a job also waits for a free CPU."""
+    """One process (or thread) that serves one job at a time, in arrival order. It may share
+    `machines`, each a list of servers and how many of them can run at once (a machine's CPUs, or
+    a process's GIL: 1); a job is slowed as processor sharing slows it: by the other servers busy
+    when it starts, over that number."""
 
-    def __init__(self, sim: Simulation, cores: list[float] | None = None) -> None:
-        self.sim, self.free_at, self.busy, self.cores = sim, 0.0, 0.0, cores
+    def __init__(self, sim: Simulation, *machines: tuple[list, int] | None) -> None:
+        self.sim, self.free_at, self.busy = sim, 0.0, 0.0
+        self.machines = [machine for machine in machines if machine is not None]
+        for machine in self.machines:
+            machine[0].append(self)
 
-    def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> None:
+    def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> float:
+        """Book the job; when it starts (its `then` is called when it ends)."""
         start = max(arrival, self.free_at)
-        if self.cores is not None and service > 0:
-            start = max(start, heapq.heappop(self.cores))
-            heapq.heappush(self.cores, start + service)
-        self.free_at = start + service
         self.busy += service
+        for servers, capacity in self.machines:
+            running = 1 + sum(1 for other in servers if other is not self and other.free_at > start)
+            service *= max(1.0, running / capacity)
+        self.free_at = start + service
         self.sim.at(self.free_at, then)
+        return start
 
 
 class Simulation:
@@ -118,43 +132,67 @@ class Simulation:
 
 
 class Worker:
-    def __init__(self, sim: Simulation) -> None:
-        self.sim, self.queue, self.running, self.held = sim, deque(), False, 0
+    """A worker process of `threads` threads, each flying one task at a time from its queue."""
+
+    def __init__(self, threads: int, saturation: float, loop: Server) -> None:
+        self.threads, self.queue, self.running, self.held = threads, deque(), 0, 0
+        self.slots = math.ceil(saturation * threads)  # Dask's worker-saturation
+        self.loop = loop  # its event loop, which takes tasks in and hands results back
 
 
-def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, schedulers: int = 1) -> dict:
+def worker_processes(workers: int, threads: int, saturation: float, sim: Simulation,
+                     machine: tuple[list, int] | None) -> list[Worker]:
+    """`workers` threads in processes of `threads` threads each (the last may have fewer)."""
+    sizes = [threads] * (workers // threads) + ([workers % threads] if workers % threads else [])
+    return [Worker(n, saturation, Server(sim, machine)) for n in sizes]
+
+
+def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, schedulers: int = 1,
+             threads: int = 1) -> dict:
     """One experiment on the model: its makespan, the ideal, the efficiency, each server's
-    utilisation and the mean split of a run-iteration's cycle."""
+    utilisation and the mean split of a run-iteration's cycle (as bench_scale.py splits it: the
+    driver from a tell to the next batch's sending, to the first chunk's start, flying, and back
+    from the last chunk's end to the tell). Workers are processes of `threads` threads."""
     sim, episodes, c = Simulation(), workload.episodes(), costs
-    cores = [0.0] * c.cores if c.cores else None
-    drivers = [Server(sim, cores) for _ in range(parts)]
-    scheds = [Server(sim, cores) for _ in range(schedulers)]
-    pools = [[Worker(sim) for _ in range(workers // schedulers + (i < workers % schedulers))]
-             for i in range(schedulers)]
+    machine = ([], c.cores) if c.cores else None
+    gils = [([], 1) for _ in range(parts)]  # a driver's loop and its saver thread share its GIL
+    drivers = [Server(sim, machine, gil) for gil in gils]
+    savers = [Server(sim, machine, gil) for gil in gils]
+    scheds = [Server(sim, machine) for _ in range(schedulers)]
+    pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c.saturation, sim,
+                              machine) for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
     # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
     # driver sends it (cluster.ClusterShare)
     sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
-    split = {key: [] for key in ("driver", "to_start", "flying", "back")}
+    split: dict[str, list[float]] = {key: [] for key in SPLIT}
     state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs),
-             "ready": np.zeros(workload.runs)}
+             "told": np.zeros(workload.runs)}
 
-    def start_iteration(run: int, k: int, ready: float) -> None:
-        part = run % parts
-        cycle = ready - state["ready"][run] if k else None  # the run's last cycle, as loop.Run keeps it
-        state["ready"][run] = ready
-        sizes = chunk_sizes(workload.batch, len(pools[part % schedulers]), sharing[part % schedulers], cycle,
-                            c.chunks_per_worker, c.task_rate)
+    def tell(run: int, done: dict | None, ready: float) -> None:
+        """The driver tells the run its batch `done` (None: opens it) and sends the next one."""
+        part, k = run % parts, (done["k"] + 1 if done else 0)
+        pool = pools[part % schedulers]
+        cycle = ready - state["told"][run] if k > 1 else None  # the run's last cycle, as loop.Run keeps it
+        sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), sharing[part % schedulers], cycle,
+                            c.chunks_per_worker, c.task_rate) if k < workload.iterations else []
         service = c.driver_iteration_s + c.client_task_s * len(sizes) + (c.run_open_s if k == 0 else 0.0)
-        drivers[part].serve(ready, service, lambda t: send(run, k, sizes, ready, t))
+        told = drivers[part].serve(ready, service, lambda t: send(run, k, sizes, told, t) if sizes else None)
+        if not sizes and c.run_close_s:  # its last save, in the saver thread
+            savers[part].serve(told + service, c.run_close_s, lambda t: None)
+        state["told"][run] = told
+        if done:
+            split["back"].append(told - done["last_end"])
 
-    def send(run: int, k: int, sizes: list[int], ready: float, sent: float) -> None:
+    def send(run: int, k: int, sizes: list[int], told: float, sent: float) -> None:
         state["first"] = min(state["first"], sent)
+        if k:
+            split["driver"].append(sent - told)
         bounds = np.cumsum([0, *sizes])
         durations = [float(episodes[run, k, a:b].sum()) * c.step_s for a, b in zip(bounds[:-1], bounds[1:])]
         state["work"] += sum(durations)
         state["paths"][run] += max(durations)
-        batch = {"run": run, "k": k, "left": len(sizes), "ready": ready, "sent": sent,
+        batch = {"run": run, "k": k, "left": len(sizes), "sent": sent,
                  "first_start": math.inf, "last_end": 0.0}
         sched = run % parts % schedulers
         for duration in durations:
@@ -168,7 +206,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
 
     def dispatch(sched: int, now: float) -> None:
         for worker in pools[sched]:
-            while waiting[sched] and worker.held < c.slots:
+            while waiting[sched] and worker.held < worker.slots:
                 task = waiting[sched].popleft()
                 worker.held += 1
                 sim.at(now + c.hop_s, lambda t, w=worker, task=task: arrive(sched, w, task, t))
@@ -177,46 +215,42 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
 
     def arrive(sched: int, worker: Worker, task: dict, now: float) -> None:
         worker.queue.append(task)
-        if not worker.running:
+        if worker.running < worker.threads:
             run_next(sched, worker, now)
 
     def run_next(sched: int, worker: Worker, now: float) -> None:
         task = worker.queue.popleft()
-        worker.running = True
+        worker.running += 1
         batch = task["batch"]
         batch["first_start"] = min(batch["first_start"], now)
-        sim.at(now + c.worker_task_s + task["duration"], lambda t: finish(sched, worker, task, t))
+        sim.at(now + task["duration"], lambda t: finish(sched, worker, task, t))
 
     def finish(sched: int, worker: Worker, task: dict, now: float) -> None:
-        worker.running = False
+        worker.running -= 1
         state["last"] = max(state["last"], now)
         task["batch"]["last_end"] = max(task["batch"]["last_end"], now)
         delay = c.result_delay_s if worker.queue else 0.0
         if worker.queue:
             run_next(sched, worker, now)
-        sim.at(now + delay + c.hop_s, lambda t: scheds[sched].serve(
-            t, c.scheduler_task_s / 2, lambda t2: done(sched, worker, task, t2)))
+        worker.loop.serve(now + delay, c.worker_task_s, lambda t: scheds[sched].serve(
+            t + c.hop_s, c.scheduler_task_s / 2, lambda t2: done(sched, worker, task, t2)))
 
     def done(sched: int, worker: Worker, task: dict, now: float) -> None:
         worker.held -= 1
         dispatch(sched, now)
         batch = task["batch"]
-        part = batch["run"] % parts
-        drivers[part].serve(now + c.hop_s, c.client_task_s, lambda t: taken(batch, t))
+        drivers[batch["run"] % parts].serve(now + c.hop_s, c.client_task_s, lambda t: taken(batch, t))
 
     def taken(batch: dict, now: float) -> None:
         batch["left"] -= 1
         if batch["left"]:
             return
-        split["driver"].append(batch["sent"] - batch["ready"])
         split["to_start"].append(batch["first_start"] - batch["sent"])
         split["flying"].append(batch["last_end"] - batch["first_start"])
-        split["back"].append(now - batch["last_end"])
-        if batch["k"] + 1 < workload.iterations:
-            start_iteration(batch["run"], batch["k"] + 1, now)
+        tell(batch["run"], batch, now)
 
     for run in range(workload.runs):
-        start_iteration(run, 0, 0.0)
+        tell(run, None, 0.0)
     sim.run()
     search = state["last"] - state["first"]
     ideal = max(state["work"] / workers, float(state["paths"].max()))
@@ -236,31 +270,29 @@ def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
         return [data[k] for k in keys], float(data["us_per_step"]) * 1e-6
 
 
-SPLIT = ("driver", "to_start", "flying", "back")
-
-
 def cycle_shares(row: dict) -> dict[str, float]:
     """A run-iteration's cycle split as shares of the whole cycle."""
     total = sum(row[f"cycle_{key}_ms"] for key in SPLIT)
     return {key: row[f"cycle_{key}_ms"] / total for key in SPLIT}
 
 
-def measured_costs(row: dict, step_s: float, cores: int, batch: int) -> Costs:
+def measured_costs(row: dict, step_s: float, cores: int) -> Costs:
     """The service times one bench_scale.py row measured, as the model's costs: the drivers' CPU
     per run-iteration (less the client's share per task, which the model charges per chunk sent
     and per result taken), the schedulers' CPU per task, and the opening of a run (the time the
     last run took to open, over the runs each driver opened)."""
     client = Costs.client_task_s
-    tasks = len(chunk_sizes(batch, row["workers"] // row["parts"], row["runs"] // row["parts"]))
-    return Costs(driver_iteration_s=max(0.0, row["driver_cpu_ms_per_iteration"] / 1000 - 2 * client * tasks),
-                 scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000, step_s=step_s, cores=cores,
-                 run_open_s=row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1))
+    per_iteration = row["driver_cpu_ms_per_iteration"] / 1000 - 2 * client * row["tasks_per_batch"]
+    opening = row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1)
+    return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
+                 scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000)
 
 
-def validate(results: str = "benchmarks/scale_results.json", batch: int = 150) -> list[dict]:
-    """The model against bench_scale.py's measured rows: each row's own service times fed in,
-    the same episode lengths (pooled, as the benchmark draws them) on the same number of CPUs;
-    prints the measured and predicted efficiency and cycle shares, and their differences."""
+def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:
+    """The model against bench_scale.py's measured rows: each row's own service times fed in, the
+    same episode lengths (pooled, as the benchmark draws them), the same worker processes (its
+    `processes`, shared out among the parts) on the same number of CPUs; prints the measured and
+    predicted efficiency and cycle shares, and their differences."""
     import json
 
     data = json.loads(Path(results).read_text())
@@ -269,19 +301,17 @@ def validate(results: str = "benchmarks/scale_results.json", batch: int = 150) -
     per_iteration, _ = load_lengths(data["episodes"]["lengths"])
     pool = [np.concatenate(per_iteration)]
     step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]
-    out = []
     for row in data["rows"]:
-        costs = measured_costs(row, step_s, cores, batch)
-        model = simulate(Workload(row["runs"], row["iterations"], batch, pool), row["workers"], costs,
-                         parts=row["parts"], schedulers=row["parts"])
+        threads = math.ceil(row["workers"] / row["parts"] / max(1, processes // row["parts"]))
+        model = simulate(Workload(row["runs"], row["iterations"], batch, pool), row["workers"],
+                         measured_costs(row, step_s, cores), parts=row["parts"], schedulers=row["parts"],
+                         threads=threads)
         measured, predicted = cycle_shares(row), cycle_shares(model)
-        out.append({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
-                    "model": round(model["efficiency"], 3),
-                    "error": round(model["efficiency"] - row["efficiency"], 3),
-                    "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
-                    **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT}})
-        print(json.dumps(out[-1]))
-    return out
+        print(json.dumps({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
+                          "model": round(model["efficiency"], 3),
+                          "error": round(model["efficiency"] - row["efficiency"], 3),
+                          "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
+                          **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT}}))
 
 
 def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,
