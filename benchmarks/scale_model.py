@@ -56,8 +56,8 @@ class Costs:
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
     run_close_s: float = 0.0  # its saver thread's work after the run's last tell (plots, pickles)
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
-    chunks_per_worker: int = engine.CHUNKS_PER_WORKER  # the engine's rule, or others to try
-    task_rate: float = engine.TASK_RATE
+    chunks_per_worker: int | None = None  # None: the engine's own (CHUNKS_PER_WORKER, TASK_RATE)
+    task_rate: float | None = None
 
 
 @dataclasses.dataclass
@@ -82,7 +82,7 @@ class Workload:
 
 
 def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = None,
-                per_worker: int = engine.CHUNKS_PER_WORKER, rate: float = engine.TASK_RATE) -> list[int]:
+                per_worker: int | None = None, rate: float | None = None) -> list[int]:
     """The engine's split of a batch (one terrain) into chunks: its own chunk_count."""
     count = engine.chunk_count(batch, workers, sharing, cycle_s, per_worker, rate)
     return [len(c) for c in np.array_split(np.arange(batch), count)]

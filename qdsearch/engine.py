@@ -44,12 +44,15 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
-# Two chunks per worker even out lander episodes (60 to 1,000 steps) across workers as well as
-# more do (measured: 1, 2, 3, 4, 8), while each task costs the main process ~0.6 ms of
-# scheduling. Walker episodes (60 to 1,600 steps) too: 1, 4 and 8 chunks per worker took 0.96,
-# 0.95 and 1.01 of the time of 2, within this machine's noise (benchmarks/bench_chunking.py,
-# 6 rounds of 150 policies on 2 workers, 2026-11-24).
-CHUNKS_PER_WORKER = 2
+# Three chunks per worker. On 2 workers any count evens out lander episodes (60 to 1,000 steps)
+# as well as another (measured: 1, 2, 3, 4, 8), and walker ones (60 to 1,600 steps: 1, 4 and 8
+# took 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150
+# policies, 2026-11-24); an experiment of 4 runs on 2 workers reached 0.760 with 3 and 0.757
+# with 2 (bench_experiment.py, paired, 2026-11-24). On big clusters 3 pays: the backlog of chunks
+# it leaves queued keeps workers busy while each run waits for its driver, and 60 runs in 15 parts
+# on 256 workers reach 0.985 of an ideal cluster with 3, 0.888 with 2 (benchmarks/scale_model.py,
+# docs/performance.md). Each task costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
+CHUNKS_PER_WORKER = 3
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
 # few seconds of lander episodes (<= 1,000 steps of ~18-27 us), up to minutes of walker ones.
@@ -61,11 +64,13 @@ TASK_RATE = 1000
 
 
 def chunk_count(pairs: int, workers: int, sharing: int = 1, cycle_s: float | None = None,
-                per_worker: int = CHUNKS_PER_WORKER, rate: float = TASK_RATE) -> int:
+                per_worker: int | None = None, rate: float | None = None) -> int:
     """How many chunks a batch of `pairs` rollouts is split into: `per_worker` chunks for each
     worker, shared among the `sharing` runs in flight on the scheduler (fewer, larger tasks when
     runs outnumber workers); at most the run's share of `rate` over its last cycle
     (`cycle_s`, from one batch to the next); never under MIN_CHUNK rollouts nor over MAX_CHUNK."""
+    per_worker = CHUNKS_PER_WORKER if per_worker is None else per_worker
+    rate = TASK_RATE if rate is None else rate
     fewest = -(-pairs // MAX_CHUNK)
     wanted = -(-per_worker * workers // max(1, sharing))
     if cycle_s is not None:

@@ -121,8 +121,8 @@ def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
     solutions = np.zeros((6, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
     futures = engine.submit_flights(dask_client, solutions, list(range(40)), (), True, env_name=LANDER)
     sizes = [len(chunk) for chunk in dask_client.gather(futures)]
-    assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 4  # 2 per worker
-    assert math.isclose(sum(sizes) / len(sizes), 60)
+    assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 6  # 3 per worker
+    assert math.isclose(sum(sizes) / len(sizes), 40)
 
 
 def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks(dask_cluster):
@@ -145,5 +145,5 @@ def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks(d
                                       env_name=LANDER)
         shared = engine.submit_flights(one, solutions, [52], (), True, sharing=sharing, threads=threads,
                                        env_name=LANDER)
-        assert len(alone) == 2 and len(shared) == 1  # ceil(2 x 2 / runs) chunks
+        assert len(alone) == 2 and len(shared) == 1  # ceil(3 x 2 / runs) chunks
         assert np.array_equal(np.concatenate(one.gather(alone)), np.concatenate(one.gather(shared)))
