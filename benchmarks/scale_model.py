@@ -276,7 +276,7 @@ def cycle_shares(row: dict) -> dict[str, float]:
     return {key: row[f"cycle_{key}_ms"] / total for key in SPLIT}
 
 
-def measured_costs(row: dict, step_s: float, cores: int) -> Costs:
+def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     """The service times one bench_scale.py row measured, as the model's costs: the drivers' CPU
     per run-iteration (less the client's share per task, which the model charges per chunk sent
     and per result taken), the schedulers' CPU per task, and the opening of a run (the time the
@@ -285,7 +285,8 @@ def measured_costs(row: dict, step_s: float, cores: int) -> Costs:
     per_iteration = row["driver_cpu_ms_per_iteration"] / 1000 - 2 * client * row["tasks_per_batch"]
     opening = row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1)
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
-                 scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000)
+                 scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
+                 chunks_per_worker=chunks["per_worker"], task_rate=chunks["task_rate"])
 
 
 def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:
@@ -301,11 +302,13 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
     per_iteration, _ = load_lengths(data["episodes"]["lengths"])
     pool = [np.concatenate(per_iteration)]
     step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]
+    # the engine's chunking when the rows were measured (before it was recorded: 2 per worker)
+    chunks = data.get("chunks", {"per_worker": 2, "task_rate": engine.TASK_RATE})
     for row in data["rows"]:
         threads = math.ceil(row["workers"] / row["parts"] / max(1, processes // row["parts"]))
         model = simulate(Workload(row["runs"], row["iterations"], batch, pool), row["workers"],
-                         measured_costs(row, step_s, cores), parts=row["parts"], schedulers=row["parts"],
-                         threads=threads)
+                         measured_costs(row, step_s, cores, chunks), parts=row["parts"],
+                         schedulers=row["parts"], threads=threads)
         measured, predicted = cycle_shares(row), cycle_shares(model)
         print(json.dumps({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
                           "model": round(model["efficiency"], 3),

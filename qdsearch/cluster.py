@@ -252,7 +252,8 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     import dask
     from dask.distributed import Client
 
-    logging.getLogger("asyncio").addFilter(not_dask_stop)  # once: the same filter is kept once
+    for name in ("asyncio", "tornado.application"):  # once: the same filter is kept once
+        logging.getLogger(name).addFilter(not_dask_stop)
     # A client that loses its scheduler logs each failed reconnection and closed comm with a
     # traceback; the loss is reported once, in one line (SchedulerLost).
     quiet_dask_logs()
@@ -437,8 +438,10 @@ def quiet_dask_logs() -> None:
 
 def not_dask_stop(record: logging.LogRecord) -> bool:
     """Ctrl-C during a gather leaves Dask's wait task with its AllExit, which asyncio would print
-    with a traceback when it is collected: the stop is ours, and is reported in one line."""
-    return not (record.exc_info and type(record.exc_info[1]).__name__ == "AllExit")
+    with a traceback when it is collected; a scheduler lost while results are being fetched leaves
+    as_completed's tasks with a closed comm, which tornado prints so. The stop and the loss are
+    ours to report, in one line."""
+    return not (record.exc_info and type(record.exc_info[1]).__name__ in ("AllExit", "CommClosedError"))
 
 
 # Dask's housekeeping runs in the main process (the scheduler, and the nannies of the local
@@ -475,6 +478,12 @@ class ClusterShare:
         published = self.client.get_metadata([self.SHARE_KEY], default={})
         self.other_runs = sum(int(runs) for driver, (at, runs) in published.items()
                               if driver != self.client.id and now - at < self.stale_after)
+
+    def close(self) -> None:
+        """This driver's runs are done: it publishes none, if its scheduler is still there."""
+        with contextlib.suppress(Exception):
+            if self.asked_at > -float("inf"):
+                self.client.set_metadata([self.SHARE_KEY, self.client.id], [time.time(), 0])
 
     def __call__(self, own_runs: int) -> tuple[int, int]:
         """(worker threads, runs sharing them), this driver's own runs counted as they are now."""

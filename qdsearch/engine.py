@@ -11,6 +11,7 @@ Map:
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import gymnasium as gym
@@ -19,13 +20,15 @@ import numpy as np
 from qdsearch.cluster import STOP
 from qdsearch.tasks import make_env, rollout
 
-_WORKER_ENVS: dict[tuple[str, bool], gym.Env] = {}  # per worker process, reused across tasks
+_WORKER_ENVS: dict[tuple[str, bool, int], gym.Env] = {}  # per worker thread, reused across tasks
 
 
 def worker_env(env_name: str, fast: bool = True) -> gym.Env:
-    """This process's environment of the task: reset(seed) gives the same episode bit for bit as
-    a fresh environment, without paying for gym.make each time."""
-    key = (env_name, fast)
+    """This thread's environment of the task: reset(seed) gives the same episode bit for bit as
+    a fresh environment, without paying for gym.make each time. One per thread: the threads of a
+    worker started with --nthreads above 1 fly at once, and an environment shared between two
+    would mix their episodes."""
+    key = (env_name, fast, threading.get_ident())
     if key not in _WORKER_ENVS:
         _WORKER_ENVS[key] = make_env(fast, env_name=env_name)
     return _WORKER_ENVS[key]

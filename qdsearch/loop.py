@@ -288,6 +288,7 @@ class Driver:
             raise
         finally:
             self.saver.shutdown()
+            self.share.close()
             self.bar.close()
             wait_for_trackers(self.log)
 

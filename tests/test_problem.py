@@ -125,14 +125,15 @@ def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
     assert math.isclose(sum(sizes) / len(sizes), 40)
 
 
-def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks(dask_cluster):
+def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks():
     """Parts of an experiment that share a scheduler split their batches for all the runs in
-    flight on it, not just their own; a driver that stopped publishing drops out."""
-    from dask.distributed import Client
+    flight on it, not just their own; a driver that stopped publishing, or closed, drops out."""
+    from dask.distributed import Client, LocalCluster
 
     from qdsearch.cluster import ClusterShare
 
-    with Client(dask_cluster.scheduler_address) as one, Client(dask_cluster.scheduler_address) as two:
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as one, Client(cluster) as two:
         first, second = ClusterShare(one), ClusterShare(two)
         assert first(3) == (2, 3)  # 2 worker threads; nobody else has published yet
         assert second(5) == (2, 8)
@@ -147,3 +148,19 @@ def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks(d
                                        env_name=LANDER)
         assert len(alone) == 2 and len(shared) == 1  # ceil(3 x 2 / runs) chunks
         assert np.array_equal(np.concatenate(one.gather(alone)), np.concatenate(one.gather(shared)))
+        second.close()
+        first.refresh(3)
+        assert first(3) == (2, 3)
+
+
+def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
+    """Each thread keeps its own environment: threads that shared one would mix their episodes."""
+    from dask.distributed import Client, LocalCluster
+
+    solutions = np.random.default_rng(0).normal(0, 1, (150, tasks.ENVIRONMENTS[LANDER].solution_dim))
+    serial = engine.fly_chunk(solutions, np.full(150, 52), (), True, LANDER)
+    with LocalCluster(n_workers=1, threads_per_worker=4, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as client:
+        futures = engine.submit_flights(client, solutions, [52], (), True, env_name=LANDER)
+        assert len(futures) == 12  # 3 chunks for each of the 4 threads, flown at once
+        assert np.array_equal(np.concatenate(client.gather(futures)), serial)
