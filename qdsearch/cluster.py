@@ -481,8 +481,8 @@ class ClusterShare:
 
     def close(self) -> None:
         """This driver's runs are done: it publishes none, if its scheduler is still there."""
-        with contextlib.suppress(Exception):
-            if self.asked_at > -float("inf"):
+        if self.asked_at > -float("inf") and self.client.status == "running":  # not a lost scheduler
+            with contextlib.suppress(Exception):
                 self.client.set_metadata([self.SHARE_KEY, self.client.id], [time.time(), 0])
 
     def __call__(self, own_runs: int) -> tuple[int, int]:

@@ -431,8 +431,7 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
     """A panel per task, a line per setting: pyribs' aggregate_cdf of its runs' final archives,
     complementary (Vassiliades 2018): the mean number of cells holding at least each objective,
     with a band of one standard deviation, on one objective range per task (from its QD offset
-    up). Runs without a
-    readable archive are left out, with a note."""
+    up). Runs without a readable archive are left out, with a note."""
     import matplotlib.pyplot as plt
     from ribs.visualize import aggregate_cdf
 

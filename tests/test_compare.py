@@ -143,6 +143,12 @@ def test_a_baseline_is_tested_against_each_other_setting_alone():
                                                  same.loc[("B", "D"), "p"]])
     with pytest.raises(UsageError, match="--baseline 'E' is not a setting of these runs"):
         comparison.check_baseline("E", ["A", "B"])
+    # an algorithm names its setting when one setting has it, and only then
+    labels = ["cma_me n_emitters=2", "cma_mae n_emitters=2 learning_rate=0.5",
+              "cma_mae n_emitters=2 learning_rate=0.1"]
+    assert comparison.check_baseline("cma_me", labels) == "cma_me n_emitters=2"
+    with pytest.raises(UsageError, match="is not a setting of these runs"):
+        comparison.check_baseline("cma_mae", labels)
 
 
 def test_every_metrics_interval_is_bootstrapped_from_its_own_values():
