@@ -54,7 +54,6 @@ class Costs:
     step_s: float = 27e-6
     saturation: float = 1.1  # Dask's worker-saturation: tasks a worker process holds per thread
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
-    run_close_s: float = 0.0  # its saver thread's work after the run's last tell (plots, pickles)
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
     chunks_per_worker: int | None = None  # None: the engine's own (CHUNKS_PER_WORKER, TASK_RATE)
     task_rate: float | None = None
@@ -92,24 +91,23 @@ SPLIT = ("driver", "to_start", "flying", "back")  # a run-iteration's cycle, in 
 
 
 class Server:
-    """One process (or thread) that serves one job at a time, in arrival order. It may share
-    `machines`, each a list of servers and how many of them can run at once (a machine's CPUs, or
-    a process's GIL: 1); a job is slowed as processor sharing slows it: by the other servers busy
-    when it starts, over that number."""
+    """One process that serves one job at a time, in arrival order. With `machine` (the servers
+    that share a machine's CPUs, and how many CPUs), a job is slowed as processor sharing slows
+    it: by the other servers busy when it starts, over the CPUs."""
 
-    def __init__(self, sim: Simulation, *machines: tuple[list, int] | None) -> None:
-        self.sim, self.free_at, self.busy = sim, 0.0, 0.0
-        self.machines = [machine for machine in machines if machine is not None]
-        for machine in self.machines:
+    def __init__(self, sim: Simulation, machine: tuple[list, int] | None = None) -> None:
+        self.sim, self.free_at, self.busy, self.machine = sim, 0.0, 0.0, machine
+        if machine is not None:
             machine[0].append(self)
 
     def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> float:
         """Book the job; when it starts (its `then` is called when it ends)."""
         start = max(arrival, self.free_at)
         self.busy += service
-        for servers, capacity in self.machines:
+        if self.machine is not None:
+            servers, cpus = self.machine
             running = 1 + sum(1 for other in servers if other is not self and other.free_at > start)
-            service *= max(1.0, running / capacity)
+            service *= max(1.0, running / cpus)
         self.free_at = start + service
         self.sim.at(self.free_at, then)
         return start
@@ -155,9 +153,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     from the last chunk's end to the tell). Workers are processes of `threads` threads."""
     sim, episodes, c = Simulation(), workload.episodes(), costs
     machine = ([], c.cores) if c.cores else None
-    gils = [([], 1) for _ in range(parts)]  # a driver's loop and its saver thread share its GIL
-    drivers = [Server(sim, machine, gil) for gil in gils]
-    savers = [Server(sim, machine, gil) for gil in gils]
+    drivers = [Server(sim, machine) for _ in range(parts)]
     scheds = [Server(sim, machine) for _ in range(schedulers)]
     pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c.saturation, sim,
                               machine) for i in range(schedulers)]
@@ -178,8 +174,6 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
                             c.chunks_per_worker, c.task_rate) if k < workload.iterations else []
         service = c.driver_iteration_s + c.client_task_s * len(sizes) + (c.run_open_s if k == 0 else 0.0)
         told = drivers[part].serve(ready, service, lambda t: send(run, k, sizes, told, t) if sizes else None)
-        if not sizes and c.run_close_s:  # its last save, in the saver thread
-            savers[part].serve(told + service, c.run_close_s, lambda t: None)
         state["told"][run] = told
         if done:
             split["back"].append(told - done["last_end"])
