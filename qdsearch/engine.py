@@ -47,15 +47,15 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
-# Three chunks per worker. On 2 workers any count evens out lander episodes (60 to 1,000 steps)
-# as well as another (measured: 1, 2, 3, 4, 8), and walker ones (60 to 1,600 steps: 1, 4 and 8
-# took 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150
-# policies, 2026-11-24); an experiment of 4 runs on 2 workers reached 0.760 with 3 and 0.757
-# with 2 (bench_experiment.py, paired, 2026-11-24). On big clusters 3 pays: the backlog of chunks
-# it leaves queued keeps workers busy while each run waits for its driver, and 60 runs in 15 parts
-# on 256 workers reach 0.985 of an ideal cluster with 3, 0.888 with 2 (benchmarks/scale_model.py,
-# docs/performance.md). Each task costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
-CHUNKS_PER_WORKER = 3
+# Two chunks per worker. On 2 workers any count evens out lander episodes (60 to 1,000 steps) as
+# well as another (measured: 1, 2, 3, 4, 8), and walker ones (60 to 1,600 steps: 1, 4 and 8 took
+# 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150 policies,
+# 2026-11-24). Three pay in the scale model at 256 workers (60 runs in 15 parts: 0.985 against
+# 0.888), but on the real benchmark at 64 simulated workers, paired, they cost: 0.825/0.815 with
+# 2 against 0.785 with 3 (one part), 0.895/0.901 against 0.867 (two parts), 2026-11-24: more
+# tasks for a scheduler and workers that share the driver's cores. Each task costs the scheduler
+# ~0.5-0.9 ms: TASK_RATE bounds them.
+CHUNKS_PER_WORKER = 2
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
 # few seconds of lander episodes (<= 1,000 steps of ~18-27 us), up to minutes of walker ones.

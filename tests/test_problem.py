@@ -121,8 +121,8 @@ def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
     solutions = np.zeros((6, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
     futures = engine.submit_flights(dask_client, solutions, list(range(40)), (), True, env_name=LANDER)
     sizes = [len(chunk) for chunk in dask_client.gather(futures)]
-    assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 6  # 3 per worker
-    assert math.isclose(sum(sizes) / len(sizes), 40)
+    assert sum(sizes) == 240 and max(sizes) - min(sizes) <= 1 and len(sizes) == 4  # 2 per worker
+    assert math.isclose(sum(sizes) / len(sizes), 60)
 
 
 def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks():
@@ -146,7 +146,7 @@ def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks()
                                       env_name=LANDER)
         shared = engine.submit_flights(one, solutions, [52], (), True, sharing=sharing, threads=threads,
                                        env_name=LANDER)
-        assert len(alone) == 2 and len(shared) == 1  # ceil(3 x 2 / runs) chunks
+        assert len(alone) == 2 and len(shared) == 1  # ceil(2 x 2 / runs) chunks
         assert np.array_equal(np.concatenate(one.gather(alone)), np.concatenate(one.gather(shared)))
         second.close()
         first.refresh(3)
@@ -162,5 +162,5 @@ def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
     with LocalCluster(n_workers=1, threads_per_worker=4, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         futures = engine.submit_flights(client, solutions, [52], (), True, env_name=LANDER)
-        assert len(futures) == 12  # 3 chunks for each of the 4 threads, flown at once
+        assert len(futures) == 8  # 2 chunks for each of the 4 threads, flown at once
         assert np.array_equal(np.concatenate(client.gather(futures)), serial)
