@@ -25,7 +25,8 @@ For each number of simulated workers N and of parts it prints, from one experime
   iterations' longest chunks;
 - the utilisation (work / (N x search time)), over the whole search and over its steady state
   (from the moment every run has sent its first batch to the first run's last tell);
-- the drivers' CPU per run-iteration, the schedulers' CPU per task (every second of the
+- the drivers' CPU and their main thread's wall time at work per run-iteration, the schedulers'
+  CPU per task (every second of the
   scheduler processes while the drivers ran, over the tasks), when the last run opens, and each
   run-iteration's cycle split: the driver (previous tell to submission), to the first chunk's
   start, flying (first start to last end), back (last end to the tell);
@@ -105,7 +106,15 @@ class Recorder:
     def __init__(self, pool: list[int], step_s: float) -> None:
         self.pool, self.step_s, self.batches, self.tells, self.run = pool, step_s, [], [], ""
         self.original, self.launch, self.tell = engine.submit_flights, loop.Driver.send, loop.Run.tell
+        self.next_chunk, self.waits = loop.Driver.next_chunk, []
         recorder = self
+
+        def next_chunk(driver):  # the main thread's waits for a chunk: it is idle then
+            start = time.time()
+            try:
+                return recorder.next_chunk(driver)
+            finally:
+                recorder.waits.append((start, time.time()))
 
         def launch(driver, run) -> None:  # which run the next batch is of
             recorder.run = run.name
@@ -114,7 +123,7 @@ class Recorder:
         def tell(run, objectives, measures):
             recorder.tells.append({"run": run.name, "at": time.time(), "cpu": time.process_time()})
             return recorder.tell(run, objectives, measures)
-        self.patched_launch, self.patched_tell = launch, tell
+        self.patched_launch, self.patched_tell, self.patched_next = launch, tell, next_chunk
 
     def __call__(self, client, solutions, env_seeds, measures, *args, **kwargs):
         submitted, cpu = time.time(), time.process_time()
@@ -130,10 +139,12 @@ class Recorder:
 
     def __enter__(self) -> Recorder:
         loop.submit_flights, loop.Driver.send, loop.Run.tell = self, self.patched_launch, self.patched_tell
+        loop.Driver.next_chunk = self.patched_next
         return self
 
     def __exit__(self, *exc) -> None:
         loop.submit_flights, loop.Driver.send, loop.Run.tell = self.original, self.launch, self.tell
+        loop.Driver.next_chunk = self.next_chunk
 
 
 def start_cluster(folder: Path, workers: int, processes: int):
@@ -169,7 +180,7 @@ def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iteratio
                                log_every=iterations, outdir=folder, env=env, part=part,
                                scheduler_file=scheduler_file)
     run_files.write_json(Path(record), {"batches": recorder.batches, "tells": recorder.tells,
-                                        "cpu_s": time.process_time()})
+                                        "cpu_s": time.process_time(), "waits": recorder.waits})
 
 
 def process_cpu(pid: int) -> float:
@@ -257,6 +268,15 @@ def cycles(batches: list[dict], tells: list[dict], log: dict) -> dict[str, list[
     return split
 
 
+def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> float:
+    """A driving process's main thread: its time at work in `window` (the window less its waits
+    for chunks) over the run-iterations it told in it."""
+    start, end = window
+    waited = sum(max(0.0, min(b, end) - max(a, start)) for a, b in record["waits"])
+    told = sum(1 for tell in record["tells"] if start <= tell["at"] < end)
+    return (end - start - waited) / max(1, told)
+
+
 def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
               scheduler_cpu: float) -> dict:
     """The figures of one experiment. Its search phase runs from the first batch's submission to
@@ -286,6 +306,10 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     in_window = sum(max(0.0, min(b, steady[1]) - max(a, steady[0])) for a, b in log.values())
     driver_cpu = [(r["batches"][-1]["cpu"] - r["batches"][0]["cpu"]) / max(1, len(r["batches"]) - 1)
                   for r in records]
+    # the main thread's wall time at work (not waiting for a chunk) per run-iteration told in the
+    # steady state: on a shared machine it exceeds the CPU the process is given (before it, the
+    # runs open; after it, the runs' last saves take the driver's GIL)
+    driver_wall = [driver_wall_per_iteration(r, steady) for r in records]
     split = cycles(batches, tells, log)
     return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
             "tasks_per_batch": round(tasks / len(batches), 2), "work_s": round(work, 2),
@@ -296,6 +320,7 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             if steady[1] > steady[0] else None,
             "last_run_opens_s": round(steady[0] - batches[0]["submitted"], 3),
             "driver_cpu_ms_per_iteration": round(1000 * float(np.mean(driver_cpu)), 3),
+            "driver_wall_ms_per_iteration": round(1000 * float(np.mean(driver_wall)), 3),
             "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),
             **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) for key, values in split.items()},
             "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),

@@ -11,7 +11,8 @@ The model (every server serves one job at a time, first come first served):
 - a scheduler per `schedulers` (part p uses scheduler p mod S; the workers are shared out
   evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
   up to ceil(`saturation` x threads) tasks on a worker process (Dask's worker-saturation),
-  handing them out in arrival order;
+  handing them out in arrival order (the engine sends each batch as a generation of its own:
+  engine.FIFO_TIMEOUT);
 - a worker process of `threads` threads runs a task on each free thread for the chunk's episodes
   (steps x `step_s`); its event loop then spends `worker_task_s` on the result, which it starts
   `result_delay_s` after the task's end when the thread goes straight on to another (GIL-holding
@@ -55,6 +56,9 @@ class Costs:
     saturation: float = 1.1  # Dask's worker-saturation: tasks a worker process holds per thread
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
+    # the driver's times are its main thread's wall times measured on those shared CPUs: they are
+    # not slowed by processor sharing again
+    driver_wall: bool = False
     chunks_per_worker: int | None = None  # None: the engine's own (CHUNKS_PER_WORKER, TASK_RATE)
     task_rate: float | None = None
 
@@ -93,10 +97,13 @@ SPLIT = ("driver", "to_start", "flying", "back")  # a run-iteration's cycle, in 
 class Server:
     """One process that serves one job at a time, in arrival order. With `machine` (the servers
     that share a machine's CPUs, and how many CPUs), a job is slowed as processor sharing slows
-    it: by the other servers busy when it starts, over the CPUs."""
+    it: by the other servers busy when it starts, over the CPUs. A server whose service times
+    were measured as wall times on that machine (`slowed` False) is not slowed again, but still
+    takes its share of the CPUs from the others."""
 
-    def __init__(self, sim: Simulation, machine: tuple[list, int] | None = None) -> None:
-        self.sim, self.free_at, self.busy, self.machine = sim, 0.0, 0.0, machine
+    def __init__(self, sim: Simulation, machine: tuple[list, int] | None = None, slowed: bool = True) -> None:
+        self.sim, self.free_at, self.busy = sim, 0.0, 0.0
+        self.machine = machine if slowed else None
         if machine is not None:
             machine[0].append(self)
 
@@ -153,7 +160,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     from the last chunk's end to the tell). Workers are processes of `threads` threads."""
     sim, episodes, c = Simulation(), workload.episodes(), costs
     machine = ([], c.cores) if c.cores else None
-    drivers = [Server(sim, machine) for _ in range(parts)]
+    drivers = [Server(sim, machine, slowed=not c.driver_wall) for _ in range(parts)]
     scheds = [Server(sim, machine) for _ in range(schedulers)]
     pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c.saturation, sim,
                               machine) for i in range(schedulers)]
@@ -271,14 +278,20 @@ def cycle_shares(row: dict) -> dict[str, float]:
 
 
 def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
-    """The service times one bench_scale.py row measured, as the model's costs: the drivers' CPU
+    """The service times one bench_scale.py row measured, as the model's costs: the drivers' time
     per run-iteration (less the client's share per task, which the model charges per chunk sent
     and per result taken), the schedulers' CPU per task, and the opening of a run (the time the
-    last run took to open, over the runs each driver opened)."""
+    last run took to open, over the runs each driver opened). The drivers' time is their main
+    thread's wall time at work where the row has it: on the benchmark's 2 shared cores a driver
+    is given less than a core, and by how much the model's processor sharing can't tell well
+    enough (at 64 workers and one part the driver is ~95% busy, where a few percent of its speed
+    decide whether batches wait at the scheduler or at the driver); else its CPU time."""
     client = Costs.client_task_s
-    per_iteration = row["driver_cpu_ms_per_iteration"] / 1000 - 2 * client * row["tasks_per_batch"]
+    wall = row.get("driver_wall_ms_per_iteration")
+    per_iteration = (wall or row["driver_cpu_ms_per_iteration"]) / 1000 - 2 * client * row["tasks_per_batch"]
     opening = row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1)
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
+                 driver_wall=wall is not None,
                  scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
                  chunks_per_worker=chunks["per_worker"], task_rate=chunks["task_rate"])
 

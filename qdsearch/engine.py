@@ -51,10 +51,11 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
 # well as another (measured: 1, 2, 3, 4, 8), and walker ones (60 to 1,600 steps: 1, 4 and 8 took
 # 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150 policies,
 # 2026-11-24). Three pay in the scale model at 256 workers (60 runs in 15 parts: 0.985 against
-# 0.888), but on the real benchmark at 64 simulated workers, paired, they cost: 0.825/0.815 with
-# 2 against 0.785 with 3 (one part), 0.895/0.901 against 0.867 (two parts), 2026-11-24: more
-# tasks for a scheduler and workers that share the driver's cores. Each task costs the scheduler
-# ~0.5-0.9 ms: TASK_RATE bounds them.
+# 0.888), but on the real benchmark at 64 simulated workers, paired, they cost, even with batches
+# flown first come first served (FIFO_TIMEOUT): 0.857 with 2 against 0.834/0.840 with 3 (one
+# part), 0.891/0.902 against 0.865/0.855 (two), 0.872/0.854 against 0.788/0.808 (four),
+# 2026-11-25: more tasks for a scheduler and workers that share the driver's cores. Each task
+# costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
 CHUNKS_PER_WORKER = 2
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
@@ -64,6 +65,13 @@ MAX_CHUNK = 1000
 # about half of what it can (~0.5 ms of its CPU a task, docs/performance.md), so that on a big
 # cluster it never becomes what the workers wait for.
 TASK_RATE = 1000
+# Batches are flown first come, first served. Dask ranks the tasks of graphs sent within its
+# fifo_timeout (100 ms by default) as one generation, by their index in their own graph: every
+# batch's first chunk before any batch's second, so a batch's last chunk waits behind the other
+# batches' first ones and its run tells late. Each batch its own generation took 60 runs on 64
+# simulated workers from 0.794/0.817 to 0.883/0.887 with one part, paired (bench_scale.py,
+# 2026-11-25).
+FIFO_TIMEOUT = "0ms"
 
 
 def chunk_count(pairs: int, workers: int, sharing: int = 1, cycle_s: float | None = None,
@@ -100,7 +108,8 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures
     seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
     return client.map(fly_chunk, [solutions[chunk // len(env_seeds)] for chunk in chunks],
                       [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
-                      [fast_env] * len(chunks), [env_name] * len(chunks), pure=False, retries=3)
+                      [fast_env] * len(chunks), [env_name] * len(chunks), pure=False, retries=3,
+                      fifo_timeout=FIFO_TIMEOUT)
 
 
 def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int]) -> np.ndarray:

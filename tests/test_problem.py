@@ -164,3 +164,20 @@ def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
         futures = engine.submit_flights(client, solutions, [52], (), True, env_name=LANDER)
         assert len(futures) == 8  # 2 chunks for each of the 4 threads, flown at once
         assert np.array_equal(np.concatenate(client.gather(futures)), serial)
+
+
+def test_batches_are_flown_first_come_first_served(dask_client):
+    """Each batch is its own generation on the scheduler, so every chunk of an earlier batch ranks
+    before any of a later one. With Dask's default fifo_timeout (100 ms), batches sent together
+    rank chunk by chunk across batches: a run's last chunk waits behind the others' first."""
+    solutions = np.random.default_rng(0).normal(0, 1, (16, tasks.ENVIRONMENTS[LANDER].solution_dim))
+    first, second = (engine.submit_flights(dask_client, solutions, [52], (), True, threads=2,
+                                           env_name=LANDER) for _ in range(2))
+    assert len(first) == len(second) == 4
+    dask_client.gather(first + second)  # the scheduler keeps the tasks while their futures live
+
+    def priorities(keys, dask_scheduler=None):
+        return [dask_scheduler.tasks[key].priority for key in keys]
+    earlier, later = (dask_client.run_on_scheduler(priorities, [f.key for f in batch])
+                      for batch in (first, second))
+    assert max(earlier) < min(later)
