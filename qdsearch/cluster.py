@@ -447,9 +447,15 @@ def not_dask_stop(record: logging.LogRecord) -> bool:
 # Dask's housekeeping runs in the main process (the scheduler, and the nannies of the local
 # workers): at its default pace (memory checks every 100 ms per worker, system monitor every
 # 500 ms, event-loop ticks every 20 ms) it took ~6% of a core here, from the workers' 2 cores.
+# And each worker's statistical profiler (the dashboard's Profile page) samples the running
+# task's stack every 10 ms, taking the GIL from rollouts that hold it: switched off, the
+# 2-worker, 4-run experiment drove its runs ~5% faster (13.5-14.0 s against 14.3-14.7 s in 7 of
+# 8 pairs, 2026-11-25). Workers started by hand take it from the environment
+# (DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False: docs/slurm.sbatch).
 QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
                  "distributed.admin.system-monitor.interval": "2s",
-                 "distributed.admin.tick.interval": "200ms"}
+                 "distributed.admin.tick.interval": "200ms",
+                 "distributed.worker.profile.enabled": False}
 
 
 class ClusterShare:

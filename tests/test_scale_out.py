@@ -91,3 +91,16 @@ def test_unreachable_scheduler_is_a_one_line_error(run_cli, tmp_path):
                      "--outdir", tmp_path / "run")
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and "127.0.0.1:9" in result.stderr
+
+
+def test_local_workers_fly_without_dasks_profiler():
+    """The local cluster a search starts switches off each worker's statistical profiler, which
+    would take the GIL from the rollouts every 10 ms (cluster.QUIET_CLUSTER)."""
+    import logging
+
+    from qdsearch import cluster
+
+    with cluster.dask_client(2, None, logging.getLogger("test")) as client:
+        callbacks = client.run(lambda dask_worker: sorted(dask_worker.periodic_callbacks))
+    assert len(callbacks) == 2
+    assert all("heartbeat" in names and "profile" not in names for names in callbacks.values())
