@@ -153,7 +153,9 @@ def start_cluster(folder: Path, workers: int, processes: int):
     scheduler_file = folder / "scheduler.json"
     # The code is importable everywhere, as on a cluster's shared filesystem: nothing is uploaded
     # (an upload would re-import the package on the workers and undo the simulation).
-    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}"}
+    # Workers as docs/slurm.sbatch starts them: without Dask's statistical profiler.
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}",
+           "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
     started = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1",
                                  "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
                                 cwd=folder, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
