@@ -4,7 +4,8 @@ Map:
 - on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a chunk of
   (solution, terrain) rollouts);
 - in the driver: `submit_flights` (the chunks, as many as `chunk_count` says from
-  CHUNKS_PER_WORKER, TASK_RATE, MIN_CHUNK and MAX_CHUNK), `per_terrain` and `averaged`
+  CHUNKS_PER_WORKER, TASK_RATE, MIN_CHUNK and MAX_CHUNK; batches flown first come, first served:
+  FIFO_TIMEOUT), `per_terrain` and `averaged`
   (results back in solution order, averaged over terrains), `gather_with_progress`, and
   `evaluate_batch` (a run's batch, end to end).
 """
@@ -99,8 +100,9 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures
     split in CHUNKS_PER_WORKER chunks per worker; when `sharing` runs keep the workers busy
     together, each batch needs only its share of that, and fewer tasks cost the scheduler less
     (`chunk_count`; `cycle_s`, the run's last cycle, keeps the scheduler's load in bounds).
-    The chunks go in one message (client.map); tasks of a dead worker are retried. `threads`, the
-    cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
+    The chunks go in one message (client.map), ranked after every batch sent before them
+    (FIFO_TIMEOUT); tasks of a dead worker are retried. `threads`, the cluster's worker threads
+    if the caller knows them, saves asking the scheduler (a round trip).
     """
     workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
     pairs = len(solutions) * len(env_seeds)
