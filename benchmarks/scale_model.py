@@ -309,8 +309,7 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
     per_iteration, _ = load_lengths(data["episodes"]["lengths"])
     pool = [np.concatenate(per_iteration)]
     step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]
-    # the engine's chunking when the rows were measured (before it was recorded: 2 per worker)
-    chunks = data.get("chunks", {"per_worker": 2, "task_rate": engine.TASK_RATE})
+    chunks = data["chunks"]  # the engine's chunking when the rows were measured
     for row in data["rows"]:
         threads = math.ceil(row["workers"] / row["parts"] / max(1, processes // row["parts"]))
         model = simulate(Workload(row["runs"], row["iterations"], batch, pool), row["workers"],

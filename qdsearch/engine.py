@@ -53,10 +53,10 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
 # 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150 policies,
 # 2026-11-24). Three pay in the scale model at 256 workers (60 runs in 15 parts: 0.985 against
 # 0.888), but on the real benchmark at 64 simulated workers, paired, they cost, even with batches
-# flown first come first served (FIFO_TIMEOUT): 0.857 with 2 against 0.834/0.840 with 3 (one
-# part), 0.891/0.902 against 0.865/0.855 (two), 0.872/0.854 against 0.788/0.808 (four),
-# 2026-11-25: more tasks for a scheduler and workers that share the driver's cores. Each task
-# costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
+# flown first come first served (FIFO_TIMEOUT): 0.814/0.857 with 2 against 0.834/0.840 with 3
+# (one part: a draw), 0.891/0.902 against 0.865/0.855 (two), 0.872/0.854 against 0.788/0.808
+# (four), 2026-11-25: more tasks for a scheduler and workers that share the driver's cores. Each
+# task costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
 CHUNKS_PER_WORKER = 2
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
