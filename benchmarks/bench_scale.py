@@ -25,12 +25,13 @@ For each number of simulated workers N and of parts it prints, from one experime
   iterations' longest chunks;
 - the utilisation (work / (N x search time)), over the whole search and over its steady state
   (from the moment every run has sent its first batch to the first run's last tell);
-- the drivers' CPU and their main thread's wall time at work per run-iteration, the schedulers'
-  CPU per task (every second of the
-  scheduler processes while the drivers ran, over the tasks), when the last run opens, and each
-  run-iteration's cycle split: the driver (previous tell to submission), to the first chunk's
-  start, flying (first start to last end), back (last end to the tell);
-- the time from a batch's submission to its first task starting (median and 90th percentile).
+- the drivers' CPU and their main thread's wall time at work (not blocked waiting for a chunk)
+  per run-iteration, the schedulers' CPU per task (every second of the scheduler processes while
+  the drivers ran, over the tasks), when the last run opens, and each run-iteration's cycle
+  split: the driver (previous tell to submission), to the first chunk's start, flying (first
+  start to last end), back (last end to the tell);
+- the time from a batch's submission to its first task starting (median and 90th percentile), and
+  a result's landing: from its task's end to the result in its driver's process (mean, median).
 Writes benchmarks/scale_results.json. Run it on a quiet machine.
 """
 
@@ -39,9 +40,11 @@ from __future__ import annotations
 import json
 import os
 import platform
+import queue
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import zlib
 from pathlib import Path
@@ -98,6 +101,37 @@ def duration_of(chunk_solutions: np.ndarray, lengths: list[int], step_s: float) 
                for s in chunk_solutions) * step_s
 
 
+class TimedCondition(threading.Condition):
+    """as_completed's condition with its waits recorded: the driver's main thread blocked, no
+    chunk ready (it is idle then). Time spent taking a ready chunk (as_completed's lock, the GIL
+    its client's event loop holds while it hands results over) is work, as the model counts it."""
+
+    def __init__(self, waits: list) -> None:
+        super().__init__()
+        self.waits = waits
+
+    def wait(self, timeout: float | None = None) -> bool:
+        start = time.time()
+        try:
+            return super().wait(timeout)
+        finally:
+            self.waits.append((start, time.time()))
+
+
+class LandingQueue(queue.Queue):
+    """as_completed's queue of results with the time each lands in it (its key's): the driver's
+    process has it then, and its main thread takes it when it gets to it."""
+
+    def __init__(self, landed: dict) -> None:
+        super().__init__()
+        self.landed = landed
+
+    def put_nowait(self, item) -> None:
+        future = item[0] if isinstance(item, tuple) else item
+        self.landed[future.key] = time.time()
+        super().put_nowait(item)
+
+
 class Recorder:
     """In a driving process: each batch's submission (time, the process's CPU, its tasks and their
     simulated durations, its run) and each batch's tell (time, CPU, run), by wrapping the run loop's
@@ -106,17 +140,17 @@ class Recorder:
     def __init__(self, pool: list[int], step_s: float) -> None:
         self.pool, self.step_s, self.batches, self.tells, self.run = pool, step_s, [], [], ""
         self.original, self.launch, self.tell = engine.submit_flights, loop.Driver.send, loop.Run.tell
-        self.next_chunk, self.waits = loop.Driver.next_chunk, []
+        self.next_chunk, self.waits, self.landed = loop.Driver.next_chunk, [], {}
         recorder = self
 
-        def next_chunk(driver):  # the main thread's waits for a chunk: it is idle then
-            start = time.time()
-            try:
-                return recorder.next_chunk(driver)
-            finally:
-                recorder.waits.append((start, time.time()))
+        def next_chunk(driver):  # the main thread's waits for a chunk, when none is ready
+            if not isinstance(driver.finished.thread_condition, TimedCondition):
+                driver.finished.thread_condition = TimedCondition(recorder.waits)
+            return recorder.next_chunk(driver)
 
         def launch(driver, run) -> None:  # which run the next batch is of
+            if not isinstance(driver.finished.queue, LandingQueue):  # before its first result
+                driver.finished.queue = LandingQueue(recorder.landed)
             recorder.run = run.name
             recorder.launch(driver, run)
 
@@ -182,7 +216,8 @@ def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iteratio
                                log_every=iterations, outdir=folder, env=env, part=part,
                                scheduler_file=scheduler_file)
     run_files.write_json(Path(record), {"batches": recorder.batches, "tells": recorder.tells,
-                                        "cpu_s": time.process_time(), "waits": recorder.waits})
+                                        "cpu_s": time.process_time(), "waits": recorder.waits,
+                                        "landed": recorder.landed})
 
 
 def process_cpu(pid: int) -> float:
@@ -313,6 +348,9 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     # runs open; after it, the runs' last saves take the driver's GIL)
     driver_wall = [driver_wall_per_iteration(r, steady) for r in records]
     split = cycles(batches, tells, log)
+    # from a chunk's end on its worker to its result in the driver's process (as_completed's queue)
+    landed = {key: at for r in records for key, at in r["landed"].items()}
+    landing = [at - log[key][1] for key, at in landed.items() if key in log]
     return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
             "tasks_per_batch": round(tasks / len(batches), 2), "work_s": round(work, 2),
             "ideal_s": round(ideal, 3), "search_s": round(search_s, 3),
@@ -325,6 +363,8 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "driver_wall_ms_per_iteration": round(1000 * float(np.mean(driver_wall)), 3),
             "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),
             **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) for key, values in split.items()},
+            "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
+            "result_lands_ms_median": round(1000 * float(np.median(landing)), 1),
             "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),
             "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1)}
 

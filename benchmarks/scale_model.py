@@ -16,7 +16,8 @@ The model (every server serves one job at a time, first come first served):
 - a worker process of `threads` threads runs a task on each free thread for the chunk's episodes
   (steps x `step_s`); its event loop then spends `worker_task_s` on the result, which it starts
   `result_delay_s` after the task's end when the thread goes straight on to another (GIL-holding
-  rollouts make the loop wait); every message takes `hop_s`;
+  rollouts make the loop wait); every message takes `hop_s`; a result reaches its driver no sooner
+  than `landing_s` after its task's end (the reports and the client's fetch, measured end to end);
 - with `cores`, the drivers, schedulers and worker event loops share that many CPUs (processor
   sharing: a job is slowed by the processes busy when it starts), as on the benchmark's machine;
 - chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`.
@@ -51,6 +52,10 @@ class Costs:
     scheduler_task_s: float = 0.0005
     worker_task_s: float = 0.0007
     result_delay_s: float = 0.0
+    # a result reaches its driver's process no sooner than this after its task's end (the worker's
+    # report, the scheduler's, the client's fetch of the result from the worker: measured end to
+    # end where a row has it; 0: only the hops and services modelled)
+    landing_s: float = 0.0
     hop_s: float = 0.0001
     step_s: float = 27e-6
     saturation: float = 1.1  # Dask's worker-saturation: tasks a worker process holds per thread
@@ -230,6 +235,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         worker.running -= 1
         state["last"] = max(state["last"], now)
         task["batch"]["last_end"] = max(task["batch"]["last_end"], now)
+        task["end"] = now
         delay = c.result_delay_s if worker.queue else 0.0
         if worker.queue:
             run_next(sched, worker, now)
@@ -240,7 +246,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         worker.held -= 1
         dispatch(sched, now)
         batch = task["batch"]
-        drivers[batch["run"] % parts].serve(now + c.hop_s, c.client_task_s, lambda t: taken(batch, t))
+        lands = max(now + c.hop_s, task["end"] + c.landing_s)
+        drivers[batch["run"] % parts].serve(lands, c.client_task_s, lambda t: taken(batch, t))
 
     def taken(batch: dict, now: float) -> None:
         batch["left"] -= 1
@@ -285,13 +292,14 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     thread's wall time at work where the row has it: on the benchmark's 2 shared cores a driver
     is given less than a core, and by how much the model's processor sharing can't tell well
     enough (at 64 workers and one part the driver is ~95% busy, where a few percent of its speed
-    decide whether batches wait at the scheduler or at the driver); else its CPU time."""
+    decide whether batches wait at the scheduler or at the driver); else its CPU time. And a
+    result's landing, as the row measured it."""
     client = Costs.client_task_s
     wall = row.get("driver_wall_ms_per_iteration")
     per_iteration = (wall or row["driver_cpu_ms_per_iteration"]) / 1000 - 2 * client * row["tasks_per_batch"]
     opening = row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1)
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
-                 driver_wall=wall is not None,
+                 driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
                  scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
                  chunks_per_worker=chunks["per_worker"], task_rate=chunks["task_rate"])
 

@@ -51,8 +51,8 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
 # Two chunks per worker. On 2 workers any count evens out lander episodes (60 to 1,000 steps) as
 # well as another (measured: 1, 2, 3, 4, 8), and walker ones (60 to 1,600 steps: 1, 4 and 8 took
 # 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150 policies,
-# 2026-11-24). Three pay in the scale model at 256 workers (60 runs in 15 parts: 0.985 against
-# 0.888), but on the real benchmark at 64 simulated workers, paired, they cost, even with batches
+# 2026-11-24). Three pay in the scale model at 256 workers (60 runs in 15 parts: 0.98 against
+# 0.86), but on the real benchmark at 64 simulated workers, paired, they cost, even with batches
 # flown first come first served (FIFO_TIMEOUT): 0.814/0.857 with 2 against 0.834/0.840 with 3
 # (one part: a draw), 0.891/0.902 against 0.865/0.855 (two), 0.872/0.854 against 0.788/0.808
 # (four), 2026-11-25: more tasks for a scheduler and workers that share the driver's cores. Each

@@ -54,3 +54,16 @@ def test_processes_sharing_one_core_wait_for_each_other():
     # two drivers on two cores tell and ask at once; on one core, one after the other: the
     # second run's first batch leaves a driver's turn later, and later turns collide again
     assert apart["search_s"] + 0.05 <= shared["search_s"] <= apart["search_s"] + 3 * 0.05 + 1e-9
+
+
+def test_a_result_lands_at_its_driver_no_sooner_than_its_landing_time():
+    workload = Workload(runs=1, iterations=5, batch=8, lengths=[np.array([100, 300])])
+    work = workload.episodes().sum() * 1e-3
+    landing = simulate(workload, 1, Costs(**{**FREE.__dict__, "landing_s": 0.04}))
+    # one worker, one run: each of the four batches after the first waits for its last result
+    assert landing["search_s"] == pytest.approx(work + 4 * 0.04)
+    assert landing["cycle_back_ms"] == pytest.approx(40.0)
+    # a landing shorter than the modelled hops changes nothing
+    hops = Costs(**{**FREE.__dict__, "hop_s": 0.01})
+    assert simulate(workload, 1, Costs(**{**hops.__dict__, "landing_s": 0.001}))["search_s"] == \
+        pytest.approx(simulate(workload, 1, hops)["search_s"])
