@@ -134,30 +134,28 @@ class LandingQueue(queue.Queue):
 
 class Recorder:
     """In a driving process: each batch's submission (time, the process's CPU, its tasks and their
-    simulated durations, its run) and each batch's tell (time, CPU, run), by wrapping the run loop's
-    engine call and Run.tell."""
+    simulated durations, its run), each batch's tell (time, CPU, run), the main thread's waits for
+    a chunk and when each result lands, by wrapping the run loop's engine call, Driver.send and
+    Run.tell."""
 
     def __init__(self, pool: list[int], step_s: float) -> None:
         self.pool, self.step_s, self.batches, self.tells, self.run = pool, step_s, [], [], ""
         self.original, self.launch, self.tell = engine.submit_flights, loop.Driver.send, loop.Run.tell
-        self.next_chunk, self.waits, self.landed = loop.Driver.next_chunk, [], {}
+        self.waits, self.landed = [], {}
         recorder = self
 
-        def next_chunk(driver):  # the main thread's waits for a chunk, when none is ready
-            if not isinstance(driver.finished.thread_condition, TimedCondition):
-                driver.finished.thread_condition = TimedCondition(recorder.waits)
-            return recorder.next_chunk(driver)
-
         def launch(driver, run) -> None:  # which run the next batch is of
-            if not isinstance(driver.finished.queue, LandingQueue):  # before its first result
-                driver.finished.queue = LandingQueue(recorder.landed)
+            finished = driver.finished  # before its first batch: its waits and results timed
+            if not isinstance(finished.queue, LandingQueue):
+                finished.queue, finished.thread_condition = (LandingQueue(recorder.landed),
+                                                             TimedCondition(recorder.waits))
             recorder.run = run.name
             recorder.launch(driver, run)
 
         def tell(run, objectives, measures):
             recorder.tells.append({"run": run.name, "at": time.time(), "cpu": time.process_time()})
             return recorder.tell(run, objectives, measures)
-        self.patched_launch, self.patched_tell, self.patched_next = launch, tell, next_chunk
+        self.patched_launch, self.patched_tell = launch, tell
 
     def __call__(self, client, solutions, env_seeds, measures, *args, **kwargs):
         submitted, cpu = time.time(), time.process_time()
@@ -173,12 +171,10 @@ class Recorder:
 
     def __enter__(self) -> Recorder:
         loop.submit_flights, loop.Driver.send, loop.Run.tell = self, self.patched_launch, self.patched_tell
-        loop.Driver.next_chunk = self.patched_next
         return self
 
     def __exit__(self, *exc) -> None:
         loop.submit_flights, loop.Driver.send, loop.Run.tell = self.original, self.launch, self.tell
-        loop.Driver.next_chunk = self.next_chunk
 
 
 def start_cluster(folder: Path, workers: int, processes: int):
