@@ -6,6 +6,8 @@
         --lengths benchmarks/episode_lengths_lander.npz      # a 300-iteration search's episodes
     python benchmarks/bench_scale.py --env BipedalWalker-v3 --measured 6 --iterations 10 \
         --workers "[64, 256, 512]" --out benchmarks/scale_results_walker.json   # long episodes
+    python benchmarks/bench_scale.py --workers "[16]" --log_every "[20, 10]" --savers "[0, 2]" \
+        --lengths benchmarks/episode_lengths_lander.npz --out benchmarks/scale_saves.json   # saves
 
 A real experiment (`experiments.experiment`: the real driver, real pyribs ask and tell, real run
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
@@ -37,6 +39,7 @@ Writes benchmarks/scale_results.json. Run it on a quiet machine.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import platform
@@ -203,13 +206,17 @@ def start_cluster(folder: Path, workers: int, processes: int):
 
 
 def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iterations: int, env: str,
-          part: str | None = None, record: str = "record.json") -> None:
+          part: str | None = None, record: str = "record.json", log_every: int | None = None,
+          savers: int | None = None) -> None:
     """A driving process (a subcommand, run by one_size): the experiment (or its --part), its
-    batches and tells recorded, written to `record`."""
+    batches and tells recorded, written to `record`; with `savers`, at most that many saver
+    processes (0: the saver thread draws, as with a local cluster)."""
     pool, step_s = json.loads(Path(simulation).read_text())
+    if savers is not None:
+        loop.SAVER_PROCESSES = savers
     with Recorder(pool, step_s) as recorder:
         experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
-                               log_every=iterations, outdir=folder, env=env, part=part,
+                               log_every=log_every or iterations, outdir=folder, env=env, part=part,
                                scheduler_file=scheduler_file)
     run_files.write_json(Path(record), {"batches": recorder.batches, "tells": recorder.tells,
                                         "cpu_s": time.process_time(), "waits": recorder.waits,
@@ -225,7 +232,7 @@ def process_cpu(pid: int) -> float:
 
 
 def one_size(workers: int, runs: int, iterations: int, processes: int, parts: int, pool: list[int],
-             step_s: float, env_name: str) -> dict:
+             step_s: float, env_name: str, saving: tuple[int | None, int | None] = (None, None)) -> dict:
     """One experiment of `runs` runs on `workers` simulated workers: one driving process and one
     `dask scheduler` per part, the workers shared out among the schedulers."""
     from dask.distributed import Client
@@ -249,7 +256,9 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
             drivers = [subprocess.Popen(
                 [sys.executable, __file__, "drive", str(folder / "exp"), str(scheduler_file), str(simulation),
                  str(runs), str(iterations), env_name, *([f"--part={p + 1}/{parts}"] if parts > 1 else []),
-                 f"--record={folder / f'record{p}.json'}"], stdout=subprocess.DEVNULL)
+                 f"--record={folder / f'record{p}.json'}",
+                 *[f"--{name}={value}" for name, value in zip(("log_every", "savers"), saving)
+                   if value is not None]], stdout=subprocess.DEVNULL)
                 for p, (_, scheduler_file, _) in enumerate(clusters)]
             for process in drivers:
                 if process.wait() != 0:
@@ -266,7 +275,8 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 process.kill()  # the cluster's work is done; its threads may still be asleep
             for process in started:
                 process.wait(timeout=60)
-    return summarise(workers, runs, iterations, parts, records, log, scheduler_cpu)
+    return {**summarise(workers, runs, iterations, parts, records, log, scheduler_cpu),
+            "log_every": saving[0] or iterations, "saver_processes": saving[1]}
 
 
 def install_simulation(pool: list[int], step_s: float) -> None:
@@ -381,16 +391,19 @@ def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int
 
 def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20,
          processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20, parts: tuple = (1,),
-         repeats: int = 1, lengths: str | None = None,
-         out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
+         repeats: int = 1, lengths: str | None = None, log_every: tuple = (None,),
+         savers: tuple = (None,), out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
+    """`log_every`: the runs' saves (None: at their end only); `savers`: at most that many saver
+    processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws)."""
     pool, step_s, source = lengths_pool(lengths, measured, env)
     print(f"episode lengths: {source}: {len(pool)} episodes, {np.mean(pool):.0f} steps on average "
           f"(median {np.median(pool):.0f}, max {max(pool)}); {1e6 * step_s:.1f} us a step (measured now)")
     rows = []
     for _ in range(repeats):
         for n in workers:
-            for k in parts:
-                rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env))
+            for k, saving in itertools.product(parts, itertools.product(log_every, savers)):
+                rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env,
+                                     saving))
                 print(json.dumps(rows[-1]))
     print("| simulated workers | parts | tasks per batch | ideal s | search s | efficiency | utilisation "
           "(steady) | driver CPU ms per iteration | scheduler CPU ms per task | cycle: driver, to start, "

@@ -20,7 +20,15 @@ The model (every server serves one job at a time, first come first served):
   than `landing_s` after its task's end (the reports and the client's fetch, measured end to end);
 - with `cores`, the drivers, schedulers and worker event loops share that many CPUs (processor
   sharing: a job is slowed by the processes busy when it starts), as on the benchmark's machine;
-- chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`.
+- chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`;
+- with `log_every`, a run saves after every log_every-th iteration (and its last): `save_s` of its
+  driver's time, booked after the next batch is sent (the saver thread takes the driver's GIL);
+  with `draw_s`, its CSV and pictures are a task on the cluster of that many seconds (a design
+  tried and dropped: docs/performance.md), `first_draw_s` on a worker process that has not drawn
+  before (its imports). The search ends with the last chunk, as bench_scale.py measures it: the
+  last saves are left out. With `saver_s`, the time a part's saver processes (saving.Savers, each
+  a core of its own) spend per save: reported as the processes it keeps busy (`saver_busy`),
+  not simulated.
 
     python benchmarks/scale_model.py --workers "[256, 512]" --runs "[60, 400]" --parts "[1, 4, 16]"
 """
@@ -66,6 +74,11 @@ class Costs:
     driver_wall: bool = False
     chunks_per_worker: int | None = None  # None: the engine's own (CHUNKS_PER_WORKER, TASK_RATE)
     task_rate: float | None = None
+    log_every: int = 0  # 0: no saves (bench_scale.py's runs save only at their end)
+    save_s: float = 0.0  # the driver's time per save
+    draw_s: float = 0.0  # 0: the CSV and pictures are drawn in the driver (part of save_s)
+    first_draw_s: float = 0.0
+    saver_s: float = 0.0
 
 
 @dataclasses.dataclass
@@ -146,6 +159,7 @@ class Worker:
 
     def __init__(self, threads: int, saturation: float, loop: Server) -> None:
         self.threads, self.queue, self.running, self.held = threads, deque(), 0, 0
+        self.has_drawn = False
         self.slots = math.ceil(saturation * threads)  # Dask's worker-saturation
         self.loop = loop  # its event loop, which takes tasks in and hands results back
 
@@ -175,7 +189,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
     split: dict[str, list[float]] = {key: [] for key in SPLIT}
     state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs),
-             "told": np.zeros(workload.runs)}
+             "told": np.zeros(workload.runs), "saves": np.zeros(parts)}
 
     def tell(run: int, done: dict | None, ready: float) -> None:
         """The driver tells the run its batch `done` (None: opens it) and sends the next one."""
@@ -189,6 +203,14 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         state["told"][run] = told
         if done:
             split["back"].append(told - done["last_end"])
+        if k and c.log_every and (k % c.log_every == 0 or k == workload.iterations):
+            state["saves"][part] += 1
+            drivers[part].serve(ready, c.save_s, lambda t: draw(part % schedulers, t) if c.draw_s else None)
+
+    def draw(sched: int, sent: float) -> None:
+        """A save's CSV and pictures, as a task of no batch."""
+        task = {"batch": None, "duration": c.draw_s}
+        scheds[sched].serve(sent + c.hop_s, c.scheduler_task_s / 2, lambda t: queue(sched, task, t))
 
     def send(run: int, k: int, sizes: list[int], told: float, sent: float) -> None:
         state["first"] = min(state["first"], sent)
@@ -227,14 +249,18 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     def run_next(sched: int, worker: Worker, now: float) -> None:
         task = worker.queue.popleft()
         worker.running += 1
-        batch = task["batch"]
-        batch["first_start"] = min(batch["first_start"], now)
-        sim.at(now + task["duration"], lambda t: finish(sched, worker, task, t))
+        duration, batch = task["duration"], task["batch"]
+        if batch:
+            batch["first_start"] = min(batch["first_start"], now)
+        elif not worker.has_drawn:
+            duration, worker.has_drawn = c.first_draw_s, True
+        sim.at(now + duration, lambda t: finish(sched, worker, task, t))
 
     def finish(sched: int, worker: Worker, task: dict, now: float) -> None:
         worker.running -= 1
-        state["last"] = max(state["last"], now)
-        task["batch"]["last_end"] = max(task["batch"]["last_end"], now)
+        if task["batch"]:
+            state["last"] = max(state["last"], now)
+            task["batch"]["last_end"] = max(task["batch"]["last_end"], now)
         task["end"] = now
         delay = c.result_delay_s if worker.queue else 0.0
         if worker.queue:
@@ -246,6 +272,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         worker.held -= 1
         dispatch(sched, now)
         batch = task["batch"]
+        if batch is None:  # a drawing: its files are written in the driver's saver thread
+            return
         lands = max(now + c.hop_s, task["end"] + c.landing_s)
         drivers[batch["run"] % parts].serve(lands, c.client_task_s, lambda t: taken(batch, t))
 
@@ -267,6 +295,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
             "utilisation": state["work"] / (workers * search),
             "driver_busy": max(d.busy for d in drivers) / search,
             "scheduler_busy": max(s.busy for s in scheds) / search,
+            "saver_busy": float(state["saves"].max()) * c.saver_s / search,
             **{f"cycle_{key}_ms": 1000 * float(np.mean(values)) for key, values in split.items()}}
 
 

@@ -17,6 +17,8 @@ Map, a module per role, imports going down the list only:
 - engine: chunks of rollouts on the workers, back in order;
 - options: every command's flags, declared once, and the bounds on sizes;
 - metrics: a run's metrics rows;
+- saving: a run folder's files, written while the loop goes on (saver threads; on a cluster
+  joined by its address, saver processes);
 - run_config: the typed RunConfig made from the flags, `upgrade` of old folders, config.json and
   the checkpoint read back;
 - loop: the one run loop (`Run`, `Driver`);

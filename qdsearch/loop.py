@@ -10,11 +10,12 @@ reaches the scheduler (the main one today; a worker, through distributed's worke
 Map:
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
   chunk back), `tell`, the checkpoint (built and written here only) and `save` (its folder's
-  files: `save_outputs`);
+  files: saving.py's `save_outputs`);
 - `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
   goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
   next batch or finishes. Its subclasses say how runs are opened and recorded (experiments.py's
-  `Experiment`; `OneRun` for search and resume), and whether a run's fault stops it alone;
+  `Experiment`; `OneRun` for search and resume), and whether a run's fault stops it alone. Its
+  saves are written by saving.py's `Savers`;
 - `count_as_done_before`: a resumed run's earlier iterations on the progress bar.
 """
 
@@ -25,7 +26,7 @@ import contextlib
 import logging
 import pickle
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, Callable
 
@@ -36,10 +37,9 @@ from qdsearch.cluster import STOP, ClusterShare, SchedulerLost
 from qdsearch.engine import averaged, evaluate_batch, per_terrain, submit_flights
 from qdsearch.flags import UsageError, clipped
 from qdsearch.metrics import describe_progress, iteration_metrics
-from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
-from qdsearch.run_files import RunError, atomic_write, fault_text, write_csv, write_json, write_pickle
-from qdsearch.tasks import ENVIRONMENTS, MEASURES
+from qdsearch.run_files import RunError, atomic_write, fault_text, write_pickle
+from qdsearch.saving import SAVER_PROCESSES, Savers
 from qdsearch.trackers import Tracking, wait_for_trackers
 
 
@@ -165,17 +165,19 @@ class Run:
                 write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
                 self.saved = self.iteration
 
-    def save(self, saver: ThreadPoolExecutor) -> None:
-        """Refresh every file of the run folder, the checkpoint first, in the saver's thread, so
-        the workers are fed meanwhile."""
+    def save(self, savers: Savers) -> None:
+        """Refresh every file of the run folder, the checkpoint first, in a saver thread (and
+        process), so the workers are fed meanwhile."""
         self.settle()
-        self.pending = saver.submit(self.write, self.checkpoint())
+        self.pending = savers.submit(self.write, self.checkpoint(), savers)
 
-    def write(self, checkpoint: dict) -> None:
+    def write(self, checkpoint: dict, savers: Savers) -> None:
         write_pickle(self.dir / "checkpoint.pkl", checkpoint)
         self.saved = checkpoint["iteration"]
-        save_outputs(self.dir, checkpoint)
-        self.tracking.save(checkpoint["metrics"])
+        savers.write_outputs(self.dir, checkpoint["scheduler"].result_archive, checkpoint["metrics"],
+                             checkpoint["config"], checkpoint["iteration"])
+        with savers.one_at_a_time:
+            self.tracking.save(checkpoint["metrics"])
 
     def settle(self, wait: bool = True) -> None:
         """Wait for the save in the saver thread (without `wait`: only if it is over); raise its
@@ -183,22 +185,6 @@ class Run:
         if self.pending is not None and (wait or self.pending.done()):
             pending, self.pending = self.pending, None
             pending.result()
-
-
-def save_outputs(run_dir: Path, checkpoint: dict) -> None:
-    """The run folder's files besides the checkpoint: metrics, archive, heatmaps, progress."""
-    write_json(run_dir / "metrics.json", checkpoint["metrics"])
-    archive = checkpoint["scheduler"].result_archive
-    iteration = checkpoint["iteration"]
-    write_pickle(run_dir / "archive.pkl", archive)
-    table = archive.data(return_type="pandas")
-    write_csv(run_dir / "archive.csv", table)
-    title = f"{checkpoint['config']['algorithm']} after {iteration} iterations"
-    snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
-    save_heatmap(archive, [MEASURES[m] for m in checkpoint["config"]["measures"]], snapshot, title,
-                 ENVIRONMENTS[checkpoint["config"]["env"]].heat)
-    atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
-    save_progress_plot(checkpoint["metrics"], run_dir / "progress.png")
 
 
 def count_as_done_before(bar, iterations: int) -> None:
@@ -235,9 +221,12 @@ class Driver:
         self.latest: dict[str, dict] = {}  # run name -> its last metrics row
         self.told = 0  # iterations told in this drive
         self.closing: list[Run] = []  # finished runs whose last save is being written
-        # Run folders are written in this thread while the runs go on (one thread: the plots'
-        # matplotlib is not thread-safe).
-        self.saver = ThreadPoolExecutor(1, thread_name_prefix="save")
+        # Run folders are written while the runs go on. A cluster joined by its address runs on
+        # cores of its own, and so may saver processes. On a cluster it starts itself
+        # (--workers), the driver shares the machine's cores with the workers: a saver process
+        # would gain nothing (measured on 2 cores: docs/performance.md) and cost its fork
+        # server's start (~1.7 s): one thread draws.
+        self.savers = Savers(min(SAVER_PROCESSES, self.limit) if client.cluster is None else 0)
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
         self.finished = as_completed(with_results=True, raise_errors=False)
@@ -287,7 +276,7 @@ class Driver:
                 self.reap(wait=True)
             raise
         finally:
-            self.saver.shutdown()
+            self.savers.close()
             self.share.close()
             self.bar.close()
             wait_for_trackers(self.log)
@@ -345,7 +334,7 @@ class Driver:
                 self.send(run)
                 if run.due(row):
                     run.log.info(describe_progress(row, run.target))
-                    run.save(self.saver)
+                    run.save(self.savers)
         except Exception as error:  # a task that failed, a write
             self.check_scheduler(error)
             self.fail(self.entries[run.name], run, error)
@@ -377,7 +366,7 @@ class Driver:
     def finish(self, run: Run) -> None:
         """The run is complete: its folder is written in the saver thread (reap() closes it)
         while another run takes its place."""
-        run.save(self.saver)
+        run.save(self.savers)
         self.live.pop(run.name, None)
         self.closing.append(run)
         self.start_more()

@@ -136,3 +136,48 @@ def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, ca
     assert ll.main(["resume", str(run_dir), "--iterations", str(held + 1),
                     "--scheduler_address", dask_cluster.scheduler_address]) == 0
     assert load_pickle(run_dir / "checkpoint.pkl")["iteration"] == held + 1
+
+
+def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny_run):
+    """A saver process killed (out of memory, say) between two saves: the saver thread writes
+    the folder itself, whole."""
+    from qdsearch import loop, run_config, saving
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny_run, run_dir)
+    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    run = loop.Run.from_checkpoint(run_dir, {**checkpoint, "config": run_config.check_run_config(
+        checkpoint["config"])}, loop.logging.getLogger("test"))
+    savers = saving.Savers(processes=1)
+    try:
+        run.save(savers)  # in the saver process it starts
+        run.settle()
+        (saver,) = savers.processes
+        for pid in saver._processes:
+            os.kill(pid, signal.SIGKILL)
+        for name in ("archive.csv", "heatmap.png", "progress.png"):
+            (run_dir / name).unlink()
+        run.save(savers)
+        run.settle()
+    finally:
+        savers.close()
+    assert all((run_dir / name).stat().st_size > 0 for name in ("archive.csv", "heatmap.png", "progress.png"))
+
+
+def test_a_driver_killed_with_sigkill_leaves_no_saver_process_behind(tmp_path, dask_cluster):
+    import psutil  # distributed's own dependency
+
+    run_dir = tmp_path / "run"
+    process = launch(**{**FLAGS, "iterations": 10_000, "log_every": 1}, outdir=run_dir,
+                     scheduler_address=dask_cluster.scheduler_address)
+    try:
+        wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "saves in its saver process")
+        savers = psutil.Process(process.pid).children(recursive=True)
+        assert savers  # the saver process, multiprocessing's fork server and resource tracker
+    finally:
+        os.kill(process.pid, signal.SIGKILL)  # the driver alone, not its group
+        process.wait(timeout=60)
+        process.stdout.close()  # a saver left behind would hold these open
+        process.stderr.close()
+    gone, alive = psutil.wait_procs(savers, timeout=10)
+    assert not alive, [saver.cmdline() for saver in alive]

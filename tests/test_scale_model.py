@@ -67,3 +67,24 @@ def test_a_result_lands_at_its_driver_no_sooner_than_its_landing_time():
     hops = Costs(**{**FREE.__dict__, "hop_s": 0.01})
     assert simulate(workload, 1, Costs(**{**hops.__dict__, "landing_s": 0.001}))["search_s"] == \
         pytest.approx(simulate(workload, 1, hops)["search_s"])
+
+
+def test_saves_take_the_drivers_time_and_drawings_a_workers():
+    """One run on one worker, saving after iterations 2 and 4 of 5 (and its last, after the
+    search), each save after the next batch is sent: in the driver, a save longer than that
+    batch's flight delays the one after; a drawing on the cluster queues behind that batch's
+    chunks and delays the next batch (the first drawing with its imports); a saver process
+    delays nothing, and is only counted."""
+    workload = Workload(runs=1, iterations=5, batch=8, lengths=[np.array([100, 300])])
+    flights = workload.episodes().sum(axis=2)[0] * 1e-3
+    work = flights.sum()
+    saving = {**FREE.__dict__, "log_every": 2}
+    short = simulate(workload, 1, Costs(**{**saving, "save_s": flights[2] / 2}))
+    assert short["search_s"] == pytest.approx(work)  # hidden behind iteration 3's flight
+    long = simulate(workload, 1, Costs(**{**saving, "save_s": 3.0}))
+    assert long["search_s"] == pytest.approx(work + 3.0 - flights[2])
+    on_worker = simulate(workload, 1, Costs(**{**saving, "draw_s": 0.25, "first_draw_s": 2.0}))
+    assert on_worker["search_s"] == pytest.approx(work + 2.0)
+    in_process = simulate(workload, 1, Costs(**{**saving, "saver_s": 0.3}))
+    assert in_process["search_s"] == pytest.approx(work)
+    assert in_process["saver_busy"] == pytest.approx(3 * 0.3 / work)

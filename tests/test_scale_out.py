@@ -73,6 +73,34 @@ def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_run, ru
     assert can_import_the_code(external_cluster) == [True, True]
 
 
+def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_draw_itself(
+        tmp_path, dask_cluster):
+    """The driver's process never draws (every run's tell needs its GIL): its saver process
+    writes the CSV and the pictures, the very bytes the driver would have written."""
+    import json
+
+    from conftest import ROOT
+    from qdsearch import saving
+    from util import load_pickle
+
+    flags = {**tiny_flags(dask_cluster), "outdir": str(tmp_path / "run")}
+    code = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
+            "print('driver imported matplotlib:', 'matplotlib' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", code, json.dumps(flags)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "driver imported matplotlib: False" in result.stdout
+
+    checkpoint = load_pickle(tmp_path / "run" / "checkpoint.pkl")
+    (tmp_path / "here").mkdir()
+    saving.save_outputs(tmp_path / "here", checkpoint["scheduler"].result_archive, checkpoint["metrics"],
+                      checkpoint["config"], checkpoint["iteration"])
+    names = ["archive.csv", "heatmap.png", "progress.png",
+             f"heatmaps/heatmap_{checkpoint['iteration']:05d}.png"]
+    assert all((tmp_path / "run" / name).read_bytes() == (tmp_path / "here" / name).read_bytes()
+               for name in names)
+
+
 def test_explore_on_an_existing_cluster_ships_the_package(tmp_path, tiny_run, run_process,
                                                           external_cluster):
     """The explorer's poses are recorded by explorer.record_poses, on workers that have never seen

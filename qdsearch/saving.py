@@ -1,0 +1,145 @@
+"""Where a run's folder is written while the loop goes on: a driver's saver threads, and on a
+cluster with cores of its own, the saver processes that draw the runs' CSVs and pictures.
+
+Map:
+- `save_outputs`: a run folder's files besides the checkpoint (metrics, archive and its CSV,
+  heatmaps, progress plot): what a save costs, nearly all of it;
+- `Savers`: the threads a driver's saves run in, and the processes (`saver_process`) they hand
+  `save_outputs` to (`write_outputs`), started as saves come, with Ctrl-C and SIGTERM ignored;
+  a dead one is replaced by the thread itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import multiprocessing.connection
+import os
+import queue
+import signal
+import threading
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from qdsearch.plots import save_heatmap, save_progress_plot
+from qdsearch.run_files import atomic_write, write_csv, write_json, write_pickle
+from qdsearch.tasks import ENVIRONMENTS, MEASURES
+
+# At most this many saver processes a driver. By the scale model (docs/performance.md), the saves
+# of 400 lander runs on 512 workers in 8 parts (64 workers a part) keep 1.1 processes busy at
+# --log_every 25.
+SAVER_PROCESSES = 2
+
+
+def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
+    """The run folder's files besides the checkpoint: metrics, archive, its CSV, the heatmaps and
+    the progress plot. At a full Lunar Lander archive (300 iterations) they take ~0.27 s of CPU,
+    the CSV and the pictures nearly all of it (benchmarks/bench_saves.py)."""
+    write_json(run_dir / "metrics.json", metrics)
+    write_pickle(run_dir / "archive.pkl", archive)
+    write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
+    title = f"{config['algorithm']} after {iteration} iterations"
+    snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
+    save_heatmap(archive, [MEASURES[m] for m in config["measures"]], snapshot, title,
+                 ENVIRONMENTS[config["env"]].heat)
+    atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
+    save_progress_plot(metrics, run_dir / "progress.png")
+
+
+class Savers:
+    """The threads a driver's saves run in, and with `processes`, the saver processes.
+
+    A driver's own thread holds the GIL its loop needs: on a big cluster a save's ~0.27 s there
+    delays every run's tell (a lander run saves every 25 iterations: ~11 ms of the driver per
+    run-iteration, against ~4-7 ms for the rest of its work). A saver process takes it to a core
+    of its own; each thread hands its save to a free one. Up to `processes` are started, each
+    when a save comes and the others are busy (a driving process's first in ~1.7 s, the fork
+    server's start and imports; later ones in ~30 ms). Without processes, one thread draws
+    (matplotlib is not thread-safe), as it does when a process has died.
+    """
+
+    def __init__(self, processes: int = 0) -> None:
+        self.most = processes
+        self.threads = ThreadPoolExecutor(max(1, processes), thread_name_prefix="save")
+        self.one_at_a_time = threading.Lock()  # drawing in a thread; the trackers' libraries
+        self.processes: list[ProcessPoolExecutor] = []
+        self.free: queue.SimpleQueue = queue.SimpleQueue()  # the processes no thread is using
+        self.writing: list[Future] = []
+
+    def submit(self, write: Callable[..., None], *args: Any) -> Future:
+        """`write` a save in a saver thread (called from the main thread, the only one that may
+        start a saver process with the stop signals ignored)."""
+        self.writing = [future for future in self.writing if not future.done()]
+        if len(self.processes) < self.most and len(self.writing) >= len(self.processes):
+            self.processes.append(saver_process())
+            self.free.put(self.processes[-1])
+        self.writing.append(self.threads.submit(write, *args))
+        return self.writing[-1]
+
+    def write_outputs(self, *outputs: Any) -> None:
+        """save_outputs in a free saver process, or in this thread if there is none (or it died:
+        killed, out of memory). Its faults (a full disk) are raised here."""
+        if self.processes:
+            process = self.free.get()
+            try:
+                return process.submit(save_outputs, *outputs).result()
+            except BrokenProcessPool:
+                pass
+            finally:
+                self.free.put(process)
+        with self.one_at_a_time:
+            save_outputs(*outputs)
+
+    def close(self) -> None:
+        """Once every save is written."""
+        self.threads.shutdown()
+        for process in self.processes:
+            process.shutdown()
+
+
+def saver_process() -> ProcessPoolExecutor:
+    """A process for save_outputs, started now with Ctrl-C and SIGTERM ignored: a stop never
+    cuts a save in it (nor prints its traceback); the driver closes it once its saves are
+    written. It is forked from multiprocessing's fork server, which this process starts once
+    (with those signals ignored, which its children keep) and which imports once what a save
+    needs (and the script, as a child of it would): the first saver process of a driving
+    process starts in ~1.7 s, every later one in ~30 ms."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():  # not on Windows
+        return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=start_saving)
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["__main__", "qdsearch.saving", "matplotlib.pyplot", "ribs.visualize"])
+    with stop_signals_ignored():
+        process = ProcessPoolExecutor(1, mp_context=context, initializer=start_saving)
+        process.submit(int)
+    return process
+
+
+@contextlib.contextmanager
+def stop_signals_ignored() -> Iterator[None]:
+    """Ctrl-C and SIGTERM ignored in this block, if in the main thread (only it may set them;
+    a driver in another thread has no terminal)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handlers = {signum: signal.signal(signum, signal.SIG_IGN) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+
+
+def start_saving() -> None:
+    """A saver process's start: it ends itself when its driver is gone (a driver killed with
+    SIGKILL leaves no saver behind)."""
+    driver = multiprocessing.parent_process()
+    if driver is not None:
+        threading.Thread(target=end_with, args=(driver.sentinel,), daemon=True).start()
+
+
+def end_with(sentinel: int) -> None:
+    multiprocessing.connection.wait([sentinel])
+    os._exit(0)
