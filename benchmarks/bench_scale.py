@@ -33,7 +33,9 @@ For each number of simulated workers N and of parts it prints, from one experime
   split: the driver (previous tell to submission), to the first chunk's start, flying (first
   start to last end), back (last end to the tell);
 - the time from a batch's submission to its first task starting (median and 90th percentile), and
-  a result's landing: from its task's end to the result in its driver's process (mean, median).
+  a result's landing: from its task's end to the result in its driver's process (mean, median);
+- the time from the first batch's submission to the end of the last driver, its runs' last saves
+  written (`all_saved_s`).
 Writes benchmarks/scale_results.json. Run it on a quiet machine.
 """
 
@@ -220,7 +222,7 @@ def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iteratio
                                scheduler_file=scheduler_file)
     run_files.write_json(Path(record), {"batches": recorder.batches, "tells": recorder.tells,
                                         "cpu_s": time.process_time(), "waits": recorder.waits,
-                                        "landed": recorder.landed})
+                                        "landed": recorder.landed, "ended": time.time()})
 
 
 def process_cpu(pid: int) -> float:
@@ -372,7 +374,9 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
             "result_lands_ms_median": round(1000 * float(np.median(landing)), 1),
             "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),
-            "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1)}
+            "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1),
+            # to the end of the drivers' last save: what a user waits for, last saves included
+            "all_saved_s": round(max(r["ended"] for r in records) - batches[0]["submitted"], 3)}
 
 
 def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int], float, str]:
