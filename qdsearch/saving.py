@@ -4,9 +4,9 @@ cluster with cores of its own, the saver processes that draw the runs' CSVs and 
 Map:
 - `save_outputs`: a run folder's files besides the checkpoint (metrics, archive and its CSV,
   heatmaps, progress plot): what a save costs, nearly all of it;
-- `Savers`: the threads a driver's saves run in, and the processes (`saver_process`) they hand
-  `save_outputs` to (`write_outputs`), started as saves come, with Ctrl-C and SIGTERM ignored;
-  a dead one is replaced by the thread itself.
+- `Savers`: the threads a driver's saves run in, and the processes (`saver_processes`) they
+  hand `save_outputs` to (`write_outputs`), started as saves come, with Ctrl-C and SIGTERM
+  ignored; if one dies, the threads write the saves themselves.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import contextlib
 import multiprocessing
 import multiprocessing.connection
 import os
-import queue
 import signal
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
@@ -54,67 +53,56 @@ class Savers:
     A driver's own thread holds the GIL its loop needs: on a big cluster a save's ~0.27 s there
     delays every run's tell (a lander run saves every 25 iterations: ~11 ms of the driver per
     run-iteration, against ~4-7 ms for the rest of its work). A saver process takes it to a core
-    of its own; each thread hands its save to a free one. Up to `processes` are started, each
-    when a save comes and the others are busy (a driving process's first in ~1.7 s, the fork
-    server's start and imports; later ones in ~30 ms). Without processes, one thread draws
-    (matplotlib is not thread-safe), as it does when a process has died.
+    of its own; each thread hands its save to one (`saver_processes`). Without processes, one
+    thread draws (matplotlib is not thread-safe), as the threads do once a process has died.
     """
 
     def __init__(self, processes: int = 0) -> None:
         self.most = processes
         self.threads = ThreadPoolExecutor(max(1, processes), thread_name_prefix="save")
         self.one_at_a_time = threading.Lock()  # drawing in a thread; the trackers' libraries
-        self.processes: list[ProcessPoolExecutor] = []
-        self.free: queue.SimpleQueue = queue.SimpleQueue()  # the processes no thread is using
-        self.writing: list[Future] = []
+        self.processes: ProcessPoolExecutor | None = None  # started with the first save
 
     def submit(self, write: Callable[..., None], *args: Any) -> Future:
         """`write` a save in a saver thread (called from the main thread, the only one that may
-        start a saver process with the stop signals ignored)."""
-        self.writing = [future for future in self.writing if not future.done()]
-        if len(self.processes) < self.most and len(self.writing) >= len(self.processes):
-            self.processes.append(saver_process())
-            self.free.put(self.processes[-1])
-        self.writing.append(self.threads.submit(write, *args))
-        return self.writing[-1]
+        start the fork server with the stop signals ignored)."""
+        if self.most and self.processes is None:
+            self.processes = saver_processes(self.most)
+        return self.threads.submit(write, *args)
 
     def write_outputs(self, *outputs: Any) -> None:
-        """save_outputs in a free saver process, or in this thread if there is none (or it died:
+        """save_outputs in a saver process, or in this thread if there is none (or one died:
         killed, out of memory). Its faults (a full disk) are raised here."""
-        if self.processes:
-            process = self.free.get()
-            try:
-                return process.submit(save_outputs, *outputs).result()
-            except BrokenProcessPool:
-                pass
-            finally:
-                self.free.put(process)
+        if self.processes is not None:
+            with contextlib.suppress(BrokenProcessPool):
+                return self.processes.submit(save_outputs, *outputs).result()
         with self.one_at_a_time:
             save_outputs(*outputs)
 
     def close(self) -> None:
         """Once every save is written."""
         self.threads.shutdown()
-        for process in self.processes:
-            process.shutdown()
+        if self.processes is not None:
+            self.processes.shutdown()
 
 
-def saver_process() -> ProcessPoolExecutor:
-    """A process for save_outputs, started now with Ctrl-C and SIGTERM ignored: a stop never
-    cuts a save in it (nor prints its traceback); the driver closes it once its saves are
-    written. It is forked from multiprocessing's fork server, which this process starts once
-    (with those signals ignored, which its children keep) and which imports once what a save
-    needs (and the script, as a child of it would): the first saver process of a driving
-    process starts in ~1.7 s, every later one in ~30 ms."""
+def saver_processes(most: int) -> ProcessPoolExecutor:
+    """Up to `most` processes for save_outputs, each started when a save finds the others busy,
+    with Ctrl-C and SIGTERM ignored: a stop never cuts a save in one (nor prints its traceback);
+    the driver closes them once its saves are written. They are forked from multiprocessing's
+    fork server, which the first is started with (here, in the main thread, those signals
+    ignored, a disposition its children keep) and which imports once what a save needs (and the
+    script, as a child of it would): a driving process's first saver process starts in ~1.7 s,
+    every later one in ~30 ms."""
     if "forkserver" not in multiprocessing.get_all_start_methods():  # not on Windows
-        return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+        return ProcessPoolExecutor(most, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=start_saving)
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["__main__", "qdsearch.saving", "matplotlib.pyplot", "ribs.visualize"])
     with stop_signals_ignored():
-        process = ProcessPoolExecutor(1, mp_context=context, initializer=start_saving)
-        process.submit(int)
-    return process
+        processes = ProcessPoolExecutor(most, mp_context=context, initializer=start_saving)
+        processes.submit(int)  # the fork server and the first process, started now
+    return processes
 
 
 @contextlib.contextmanager

@@ -152,8 +152,7 @@ def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny
     try:
         run.save(savers)  # in the saver process it starts
         run.settle()
-        (saver,) = savers.processes
-        for pid in saver._processes:
+        for pid in savers.processes._processes:
             os.kill(pid, signal.SIGKILL)
         for name in ("archive.csv", "heatmap.png", "progress.png"):
             (run_dir / name).unlink()
