@@ -125,8 +125,15 @@ class Server:
         if machine is not None:
             machine[0].append(self)
 
-    def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> float:
-        """Book the job; when it starts (its `then` is called when it ends)."""
+    def serve(self, arrival: float, service: float, then: Callable[[float], None]) -> float | None:
+        """Take the job in when it arrives; when it starts if it arrives now (`then` is called
+        when it ends). A job sent ahead of time (a result landing later, a message on its hop) is
+        taken in on arrival: booked at once, it held the server idle until then, ahead of jobs
+        that arrived sooner (a driver waited for a result still on its way instead of telling a
+        run whose result was there)."""
+        if arrival > self.sim.now:
+            self.sim.at(arrival, lambda t: self.serve(t, service, then))
+            return None
         start = max(arrival, self.free_at)
         self.busy += service
         if self.machine is not None:
@@ -144,14 +151,15 @@ class Simulation:
     def __init__(self) -> None:
         self.events: list = []
         self.counter = itertools.count()
+        self.now = 0.0
 
     def at(self, time: float, callback: Callable[[float], None]) -> None:
         heapq.heappush(self.events, (time, next(self.counter), callback))
 
     def run(self) -> None:
         while self.events:
-            time, _, callback = heapq.heappop(self.events)
-            callback(time)
+            self.now, _, callback = heapq.heappop(self.events)
+            callback(self.now)
 
 
 class Worker:

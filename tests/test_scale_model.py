@@ -69,6 +69,17 @@ def test_a_result_lands_at_its_driver_no_sooner_than_its_landing_time():
         pytest.approx(simulate(workload, 1, hops)["search_s"])
 
 
+def test_a_server_is_not_held_for_a_job_still_on_its_way():
+    """A result sent to a driver lands later; a tell that is there now goes first. (Booked at
+    once, the late job held the driver idle until it landed, and the tell waited behind it.)"""
+    sim, ends = scale_model.Simulation(), {}
+    driver = scale_model.Server(sim)
+    assert driver.serve(1.0, 0.1, lambda t: ends.setdefault("landed", t)) is None  # on its way
+    assert driver.serve(0.0, 0.2, lambda t: ends.setdefault("told", t)) == 0.0  # starts at once
+    sim.run()
+    assert ends == {"told": pytest.approx(0.2), "landed": pytest.approx(1.1)}
+
+
 def test_saves_take_the_drivers_time_and_drawings_a_workers():
     """One run on one worker, saving after iterations 2 and 4 of 5 (and its last, after the
     search), each save after the next batch is sent: in the driver, a save longer than that
