@@ -8,6 +8,8 @@
         --workers "[64, 256, 512]" --out benchmarks/scale_results_walker.json   # long episodes
     python benchmarks/bench_scale.py --workers "[16]" --log_every "[20, 10]" --savers "[0, 2]" \
         --lengths benchmarks/episode_lengths_lander.npz --out benchmarks/scale_saves.json   # saves
+    python benchmarks/bench_scale.py --workers "[17]" --runs 4 --processes 17 --chunks "[2, 3]" \
+        --lengths benchmarks/episode_lengths_lander.npz     # one of 15 parts of 256 workers
 
 A real experiment (`experiments.experiment`: the real driver, real pyribs ask and tell, real run
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
@@ -209,13 +211,16 @@ def start_cluster(folder: Path, workers: int, processes: int):
 
 def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iterations: int, env: str,
           part: str | None = None, record: str = "record.json", log_every: int | None = None,
-          savers: int | None = None) -> None:
+          savers: int | None = None, chunks: int | None = None) -> None:
     """A driving process (a subcommand, run by one_size): the experiment (or its --part), its
     batches and tells recorded, written to `record`; with `savers`, at most that many saver
-    processes (0: the saver thread draws, as with a local cluster)."""
+    processes (0: the saver thread draws, as with a local cluster); with `chunks`, that many
+    chunks per worker (engine.CHUNKS_PER_WORKER)."""
     pool, step_s = json.loads(Path(simulation).read_text())
     if savers is not None:
         loop.SAVER_PROCESSES = savers
+    if chunks is not None:
+        engine.CHUNKS_PER_WORKER = chunks
     with Recorder(pool, step_s) as recorder:
         experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
                                log_every=log_every or iterations, outdir=folder, env=env, part=part,
@@ -234,9 +239,10 @@ def process_cpu(pid: int) -> float:
 
 
 def one_size(workers: int, runs: int, iterations: int, processes: int, parts: int, pool: list[int],
-             step_s: float, env_name: str, saving: tuple[int | None, int | None] = (None, None)) -> dict:
+             step_s: float, env_name: str, variant: tuple[int | None, ...] = (None, None, None)) -> dict:
     """One experiment of `runs` runs on `workers` simulated workers: one driving process and one
-    `dask scheduler` per part, the workers shared out among the schedulers."""
+    `dask scheduler` per part, the workers shared out among the schedulers; `variant`: the drive
+    command's log_every, savers and chunks (None: its own)."""
     from dask.distributed import Client
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -259,7 +265,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 [sys.executable, __file__, "drive", str(folder / "exp"), str(scheduler_file), str(simulation),
                  str(runs), str(iterations), env_name, *([f"--part={p + 1}/{parts}"] if parts > 1 else []),
                  f"--record={folder / f'record{p}.json'}",
-                 *[f"--{name}={value}" for name, value in zip(("log_every", "savers"), saving)
+                 *[f"--{name}={value}" for name, value in zip(("log_every", "savers", "chunks"), variant)
                    if value is not None]], stdout=subprocess.DEVNULL)
                 for p, (_, scheduler_file, _) in enumerate(clusters)]
             for process in drivers:
@@ -278,7 +284,8 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
             for process in started:
                 process.wait(timeout=60)
     return {**summarise(workers, runs, iterations, parts, records, log, scheduler_cpu),
-            "log_every": saving[0] or iterations, "saver_processes": saving[1]}
+            "log_every": variant[0] or iterations, "saver_processes": variant[1],
+            "chunks_per_worker": variant[2] or engine.CHUNKS_PER_WORKER}
 
 
 def install_simulation(pool: list[int], step_s: float) -> None:
@@ -396,18 +403,20 @@ def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int
 def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20,
          processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20, parts: tuple = (1,),
          repeats: int = 1, lengths: str | None = None, log_every: tuple = (None,),
-         savers: tuple = (None,), out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
+         savers: tuple = (None,), chunks: tuple = (None,),
+         out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
     """`log_every`: the runs' saves (None: at their end only); `savers`: at most that many saver
-    processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws)."""
+    processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws);
+    `chunks`: chunks per worker (None: the engine's own, engine.CHUNKS_PER_WORKER)."""
     pool, step_s, source = lengths_pool(lengths, measured, env)
     print(f"episode lengths: {source}: {len(pool)} episodes, {np.mean(pool):.0f} steps on average "
           f"(median {np.median(pool):.0f}, max {max(pool)}); {1e6 * step_s:.1f} us a step (measured now)")
     rows = []
     for _ in range(repeats):
         for n in workers:
-            for k, saving in itertools.product(parts, itertools.product(log_every, savers)):
+            for k, variant in itertools.product(parts, itertools.product(log_every, savers, chunks)):
                 rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env,
-                                     saving))
+                                     variant))
                 print(json.dumps(rows[-1]))
     print("| simulated workers | parts | tasks per batch | ideal s | search s | efficiency | utilisation "
           "(steady) | driver CPU ms per iteration | scheduler CPU ms per task | cycle: driver, to start, "

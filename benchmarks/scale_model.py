@@ -338,7 +338,8 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
                  driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
                  scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
-                 chunks_per_worker=chunks["per_worker"], task_rate=chunks["task_rate"])
+                 chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]),
+                 task_rate=chunks["task_rate"])
 
 
 def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:

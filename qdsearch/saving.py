@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.forkserver
 import os
 import signal
 import threading
@@ -90,19 +91,20 @@ def saver_processes(most: int) -> ProcessPoolExecutor:
     """Up to `most` processes for save_outputs, each started when a save finds the others busy,
     with Ctrl-C and SIGTERM ignored: a stop never cuts a save in one (nor prints its traceback);
     the driver closes them once its saves are written. They are forked from multiprocessing's
-    fork server, which the first is started with (here, in the main thread, those signals
-    ignored, a disposition its children keep) and which imports once what a save needs (and the
-    script, as a child of it would): a driving process's first saver process starts in ~1.7 s,
-    every later one in ~30 ms."""
+    fork server, started here (in the main thread, those signals ignored, a disposition its
+    children keep), which imports once what a save needs (and the script, as a child of it
+    would). Starting it does not wait for those imports (~1.5 s): the first saver process, and
+    the saver thread that asks for it, do, while the driver's loop goes on. (Waited for here,
+    they held every run of the driver and its workers for ~1.5 s at its first save.) Later saver
+    processes start in ~30 ms."""
     if "forkserver" not in multiprocessing.get_all_start_methods():  # not on Windows
         return ProcessPoolExecutor(most, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=start_saving)
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(["__main__", "qdsearch.saving", "matplotlib.pyplot", "ribs.visualize"])
     with stop_signals_ignored():
-        processes = ProcessPoolExecutor(most, mp_context=context, initializer=start_saving)
-        processes.submit(int)  # the fork server and the first process, started now
-    return processes
+        multiprocessing.forkserver.ensure_running()
+    return ProcessPoolExecutor(most, mp_context=context, initializer=start_saving)
 
 
 @contextlib.contextmanager

@@ -9,10 +9,12 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 
 import pytest
 
 import lunar_lander as ll
+from conftest import ROOT
 from qdsearch import experiments
 from util import (
     REFERENCE_ITERATIONS,
@@ -161,6 +163,40 @@ def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny
     finally:
         savers.close()
     assert all((run_dir / name).stat().st_size > 0 for name in ("archive.csv", "heatmap.png", "progress.png"))
+
+
+# A fork server held at its start until the driver that starts it has gone on: Python runs
+# sitecustomize at every interpreter's start; only the fork server has QD_TEST_HOLD set.
+HOLD = """
+import os, pathlib, time
+if os.environ.get("QD_TEST_HOLD"):
+    while not pathlib.Path(os.environ["QD_TEST_HOLD"]).exists():
+        time.sleep(0.01)
+"""
+DRIVER = """
+import os, pathlib, sys
+from qdsearch import saving
+os.environ["QD_TEST_HOLD"] = sys.argv[1]  # for the fork server it starts
+processes = saving.saver_processes(2)  # as the driver's first save starts them
+pathlib.Path(sys.argv[1]).write_text("the driver went on")
+print(processes.submit(os.getppid).result() != os.getpid())  # forked by the fork server
+processes.shutdown()
+"""
+
+
+def test_a_drivers_first_save_does_not_wait_for_its_fork_servers_start(tmp_path):
+    """The fork server imports what a save needs (~1.5 s): the saver thread waits for it, the
+    driver's loop does not (it held every run of a driver, and its workers, at its first save)."""
+    (tmp_path / "sitecustomize.py").write_text(HOLD)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    try:
+        done = subprocess.run([sys.executable, "-c", DRIVER, str(tmp_path / "go")], env=env,
+                              capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        (tmp_path / "go").write_text("")  # the held fork server goes on, and ends without its driver
+        pytest.fail("the driver waited for its fork server, which waited for the driver")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True"]
 
 
 def test_a_driver_killed_with_sigkill_leaves_no_saver_process_behind(tmp_path, dask_cluster):
