@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""How many chunks per worker a batch is split into (CHUNKS_PER_WORKER in qdsearch/engine.py), for a
+"""How many chunks per worker a batch is split into (chunks_per_worker in qdsearch/engine.py), for a
 task's episodes: the seconds of one batch of the default search (5 emitters x 30 policies) on a
 local cluster of --workers processes, for each chunk count, in interleaved rounds (the same
 batches for every count), with the median and its ratio to today's count.
@@ -32,18 +32,19 @@ def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8
     task = tasks.ENVIRONMENTS[env]
     flags = {**options.search_defaults(), "env": env, "seed": 1}
     config = run_config.check_run_config(options.with_task(flags))
-    today = engine.CHUNKS_PER_WORKER
+    today = engine.chunks_per_worker(workers, 1)  # a lone batch's
+    rule = engine.CHUNKS_PER_WORKER, engine.CHUNKS_PER_WORKER_FEW_RUNS
     times: dict[int, list[float]] = {count: [] for count in counts}
     with dask_client(workers, None, logging.getLogger("bench")) as client:
         engine.evaluate_batch(client, np.zeros((workers * 4, task.solution_dim)), config)  # warm the workers
         for round_ in range(rounds):
             solutions = np.random.default_rng(round_).normal(0, sigma, (batch, task.solution_dim))
             for count in counts:
-                engine.CHUNKS_PER_WORKER = count
+                engine.CHUNKS_PER_WORKER = engine.CHUNKS_PER_WORKER_FEW_RUNS = count
                 start = time.perf_counter()
                 engine.evaluate_batch(client, solutions, config)
                 times[count].append(time.perf_counter() - start)
-    engine.CHUNKS_PER_WORKER = today
+    engine.CHUNKS_PER_WORKER, engine.CHUNKS_PER_WORKER_FEW_RUNS = rule
     base = statistics.median(times[today]) if today in times else None
     print(f"{env}, {batch} policies per batch, {workers} workers, {rounds} rounds")
     print(f"{'chunks/worker':>13} {'median s':>9} {'vs ' + str(today):>7}")

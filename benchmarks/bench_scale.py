@@ -215,12 +215,12 @@ def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iteratio
     """A driving process (a subcommand, run by one_size): the experiment (or its --part), its
     batches and tells recorded, written to `record`; with `savers`, at most that many saver
     processes (0: the saver thread draws, as with a local cluster); with `chunks`, that many
-    chunks per worker (engine.CHUNKS_PER_WORKER)."""
+    chunks per worker, whatever the runs (else engine.chunks_per_worker's)."""
     pool, step_s = json.loads(Path(simulation).read_text())
     if savers is not None:
         loop.SAVER_PROCESSES = savers
     if chunks is not None:
-        engine.CHUNKS_PER_WORKER = chunks
+        engine.CHUNKS_PER_WORKER = engine.CHUNKS_PER_WORKER_FEW_RUNS = chunks
     with Recorder(pool, step_s) as recorder:
         experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
                                log_every=log_every or iterations, outdir=folder, env=env, part=part,
@@ -285,7 +285,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 process.wait(timeout=60)
     return {**summarise(workers, runs, iterations, parts, records, log, scheduler_cpu),
             "log_every": variant[0] or iterations, "saver_processes": variant[1],
-            "chunks_per_worker": variant[2] or engine.CHUNKS_PER_WORKER}
+            "chunks_per_worker": variant[2]}  # None: engine.chunks_per_worker's
 
 
 def install_simulation(pool: list[int], step_s: float) -> None:
@@ -407,7 +407,7 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
          out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
     """`log_every`: the runs' saves (None: at their end only); `savers`: at most that many saver
     processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws);
-    `chunks`: chunks per worker (None: the engine's own, engine.CHUNKS_PER_WORKER)."""
+    `chunks`: chunks per worker (None: the engine's own, engine.chunks_per_worker)."""
     pool, step_s, source = lengths_pool(lengths, measured, env)
     print(f"episode lengths: {source}: {len(pool)} episodes, {np.mean(pool):.0f} steps on average "
           f"(median {np.median(pool):.0f}, max {max(pool)}); {1e6 * step_s:.1f} us a step (measured now)")
@@ -430,7 +430,7 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
     run_files.write_json(Path(out), {
         "date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "env": env,
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
-        "chunks": {"per_worker": engine.CHUNKS_PER_WORKER, "task_rate": engine.TASK_RATE},
+        "chunks": {"per_worker": None, "task_rate": engine.TASK_RATE},  # None: the engine's rule
         "episodes": {"source": source, "lengths": lengths, "count": len(pool),
                      "mean_steps": float(np.mean(pool)),
                      "us_per_step": round(1e6 * step_s, 2)}, "rows": rows})

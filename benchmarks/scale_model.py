@@ -18,6 +18,10 @@ The model (every server serves one job at a time, first come first served):
   `result_delay_s` after the task's end when the thread goes straight on to another (GIL-holding
   rollouts make the loop wait); every message takes `hop_s`; a result reaches its driver no sooner
   than `landing_s` after its task's end (the reports and the client's fetch, measured end to end);
+- Dask's batched streams (distributed's BatchedSend): a driver's messages to its scheduler (its
+  batches, and the release of each result it takes) and a scheduler's to each worker process
+  leave at once if the stream's last batch left `client_batch_s` / `scheduler_batch_s` ago, else
+  together at that interval after it (the way back is in the measured landing);
 - with `cores`, the drivers, schedulers and worker event loops share that many CPUs (processor
   sharing: a job is slowed by the processes busy when it starts), as on the benchmark's machine;
 - chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`;
@@ -65,6 +69,10 @@ class Costs:
     # end where a row has it; 0: only the hops and services modelled)
     landing_s: float = 0.0
     hop_s: float = 0.0001
+    # Dask's batched streams' intervals (distributed 2026.8.0: the client's to its scheduler,
+    # the scheduler's to each worker)
+    client_batch_s: float = 0.010
+    scheduler_batch_s: float = 0.005
     step_s: float = 27e-6
     saturation: float = 1.1  # Dask's worker-saturation: tasks a worker process holds per thread
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
@@ -162,21 +170,37 @@ class Simulation:
             callback(self.now)
 
 
+class Stream:
+    """A Dask batched stream (distributed's BatchedSend): a message leaves at once if the last
+    batch left `interval` ago or more, else with the next batch, `interval` after the last."""
+
+    def __init__(self, interval: float) -> None:
+        self.interval, self.last = interval, -math.inf
+
+    def depart(self, now: float) -> float:
+        """When a message sent now leaves."""
+        if now <= self.last:  # a batch is waiting to leave: it goes with it
+            return self.last
+        self.last = max(now, self.last + self.interval)
+        return self.last
+
+
 class Worker:
     """A worker process of `threads` threads, each flying one task at a time from its queue."""
 
-    def __init__(self, threads: int, saturation: float, loop: Server) -> None:
+    def __init__(self, threads: int, saturation: float, loop: Server, stream: Stream) -> None:
         self.threads, self.queue, self.running, self.held = threads, deque(), 0, 0
         self.has_drawn = False
         self.slots = math.ceil(saturation * threads)  # Dask's worker-saturation
         self.loop = loop  # its event loop, which takes tasks in and hands results back
+        self.stream = stream  # the scheduler's messages to it
 
 
-def worker_processes(workers: int, threads: int, saturation: float, sim: Simulation,
+def worker_processes(workers: int, threads: int, costs: Costs, sim: Simulation,
                      machine: tuple[list, int] | None) -> list[Worker]:
     """`workers` threads in processes of `threads` threads each (the last may have fewer)."""
     sizes = [threads] * (workers // threads) + ([workers % threads] if workers % threads else [])
-    return [Worker(n, saturation, Server(sim, machine)) for n in sizes]
+    return [Worker(n, costs.saturation, Server(sim, machine), Stream(costs.scheduler_batch_s)) for n in sizes]
 
 
 def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, schedulers: int = 1,
@@ -188,8 +212,9 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     sim, episodes, c = Simulation(), workload.episodes(), costs
     machine = ([], c.cores) if c.cores else None
     drivers = [Server(sim, machine, slowed=not c.driver_wall) for _ in range(parts)]
+    streams = [Stream(c.client_batch_s) for _ in range(parts)]  # each driver's to its scheduler
     scheds = [Server(sim, machine) for _ in range(schedulers)]
-    pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c.saturation, sim,
+    pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c, sim,
                               machine) for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
     # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
@@ -218,7 +243,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     def draw(sched: int, sent: float) -> None:
         """A save's CSV and pictures, as a task of no batch."""
         task = {"batch": None, "duration": c.draw_s}
-        scheds[sched].serve(sent + c.hop_s, c.scheduler_task_s / 2, lambda t: queue(sched, task, t))
+        scheds[sched].serve(sent + c.hop_s, c.scheduler_task_s / 2, lambda t: queue(sched, [task], t))
 
     def send(run: int, k: int, sizes: list[int], told: float, sent: float) -> None:
         state["first"] = min(state["first"], sent)
@@ -231,13 +256,13 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         batch = {"run": run, "k": k, "left": len(sizes), "sent": sent,
                  "first_start": math.inf, "last_end": 0.0}
         sched = run % parts % schedulers
-        for duration in durations:
-            task = {"batch": batch, "duration": duration}
-            scheds[sched].serve(sent + c.hop_s, c.scheduler_task_s / 2,
-                                lambda t, task=task: queue(sched, task, t))
+        tasks = [{"batch": batch, "duration": duration} for duration in durations]
+        # the scheduler takes the batch's graph in whole before it hands any of its tasks out
+        scheds[sched].serve(streams[run % parts].depart(sent) + c.hop_s, c.scheduler_task_s / 2 * len(tasks),
+                            lambda t: queue(sched, tasks, t))  # (the last batch's last release with it)
 
-    def queue(sched: int, task: dict, now: float) -> None:
-        waiting[sched].append(task)
+    def queue(sched: int, tasks: list[dict], now: float) -> None:
+        waiting[sched].extend(tasks)
         dispatch(sched, now)
 
     def dispatch(sched: int, now: float) -> None:
@@ -245,7 +270,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
             while waiting[sched] and worker.held < worker.slots:
                 task = waiting[sched].popleft()
                 worker.held += 1
-                sim.at(now + c.hop_s, lambda t, w=worker, task=task: arrive(sched, w, task, t))
+                leaves = worker.stream.depart(now)
+                sim.at(leaves + c.hop_s, lambda t, w=worker, task=task: arrive(sched, w, task, t))
             if not waiting[sched]:
                 return
 
@@ -287,6 +313,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
 
     def taken(batch: dict, now: float) -> None:
         batch["left"] -= 1
+        if batch["left"]:  # the client releases the result's key (the last one's after the next batch)
+            streams[batch["run"] % parts].depart(now)
         if batch["left"]:
             return
         split["to_start"].append(batch["first_start"] - batch["sent"])

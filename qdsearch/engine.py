@@ -4,7 +4,7 @@ Map:
 - on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a chunk of
   (solution, terrain) rollouts);
 - in the driver: `submit_flights` (the chunks, as many as `chunk_count` says from
-  CHUNKS_PER_WORKER, TASK_RATE, MIN_CHUNK and MAX_CHUNK; batches flown first come, first served:
+  `chunks_per_worker`, TASK_RATE, MIN_CHUNK and MAX_CHUNK; batches flown first come, first served:
   FIFO_TIMEOUT), `per_terrain` and `averaged`
   (results back in solution order, averaged over terrains), `gather_with_progress`, and
   `evaluate_batch` (a run's batch, end to end).
@@ -48,16 +48,22 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
-# Two chunks per worker. On 2 workers any count evens out lander episodes (60 to 1,000 steps) as
-# well as another (measured: 1, 2, 3, 4, 8), and walker ones (60 to 1,600 steps: 1, 4 and 8 took
-# 0.96, 0.95 and 1.01 of the time of 2; benchmarks/bench_chunking.py, 6 rounds of 150 policies,
-# 2026-11-24). Three pay in the scale model at 256 workers (60 runs in 15 parts: 0.98 against
-# 0.86), but on the real benchmark at 64 simulated workers, paired, they cost, even with batches
-# flown first come first served (FIFO_TIMEOUT): 0.814/0.857 with 2 against 0.834/0.840 with 3
-# (one part: a draw), 0.891/0.902 against 0.865/0.855 (two), 0.872/0.854 against 0.788/0.808
-# (four), 2026-11-25: more tasks for a scheduler and workers that share the driver's cores. Each
-# task costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
+# Two chunks per worker, three where several runs in flight each have two workers or more. A
+# run's turn between two batches (the driver's tell and ask, the batch's way to the workers, its
+# results' way back: ~25 ms) idles the workers its chunks would fill unless other runs' chunks
+# wait for them; with few runs on many workers, two a worker leave too few waiting. On real
+# schedulers, one-thread worker processes as on a cluster and tasks that sleep as long as real
+# chunks (bench_scale.py, 2026-11-25, 3 pairs, benchmarks/scale_chunks_*_runs.json): 4 runs on
+# 17 workers (one of 15 parts of 256 workers) 0.827-0.833 with 2 against 0.869-0.878 with 3 (4 a
+# worker: 0.80, 6: 0.61, one run each); 8 runs on 16 workers 0.923-0.932 against 0.961; 15 runs
+# on 16 workers 0.971-0.974 against 0.970-0.971. A lone run has no other run's chunks to fill its
+# turn: on 2 workers its lander batches took 0.96 and 0.99 of the time with 2 chunks a worker
+# that they took with 3 (benchmarks/bench_chunking.py, 30 rounds, 2026-11-25), and its walker
+# ones (60 to 1,600 steps) 0.96, 0.95 and 1.01 of the time of 2 with 1, 4 and 8 (6 rounds,
+# 2026-11-24).
+# Each task costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
 CHUNKS_PER_WORKER = 2
+CHUNKS_PER_WORKER_FEW_RUNS = 3
 MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
 # few seconds of lander episodes (<= 1,000 steps of ~18-27 us), up to minutes of walker ones.
@@ -75,13 +81,21 @@ TASK_RATE = 1000
 FIFO_TIMEOUT = "0ms"
 
 
+def chunks_per_worker(workers: int, sharing: int) -> int:
+    """CHUNKS_PER_WORKER, or CHUNKS_PER_WORKER_FEW_RUNS where each of the `sharing` runs in
+    flight (two or more: a lone run has no other run's chunks to wait for its workers) has two
+    of the `workers` or more."""
+    return CHUNKS_PER_WORKER_FEW_RUNS if 2 <= sharing <= workers / 2 else CHUNKS_PER_WORKER
+
+
 def chunk_count(pairs: int, workers: int, sharing: int = 1, cycle_s: float | None = None,
                 per_worker: int | None = None, rate: float | None = None) -> int:
     """How many chunks a batch of `pairs` rollouts is split into: `per_worker` chunks for each
-    worker, shared among the `sharing` runs in flight on the scheduler (fewer, larger tasks when
-    runs outnumber workers); at most the run's share of `rate` over its last cycle
-    (`cycle_s`, from one batch to the next); never under MIN_CHUNK rollouts nor over MAX_CHUNK."""
-    per_worker = CHUNKS_PER_WORKER if per_worker is None else per_worker
+    worker (by default `chunks_per_worker`'s), shared among the `sharing` runs in flight on the
+    scheduler (fewer, larger tasks when runs outnumber workers); at most the run's share of
+    `rate` over its last cycle (`cycle_s`, from one batch to the next); never under MIN_CHUNK
+    rollouts nor over MAX_CHUNK."""
+    per_worker = chunks_per_worker(workers, sharing) if per_worker is None else per_worker
     rate = TASK_RATE if rate is None else rate
     fewest = -(-pairs // MAX_CHUNK)
     wanted = -(-per_worker * workers // max(1, sharing))
@@ -97,7 +111,7 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures
 
     The work is the (solution, terrain) pairs, split into chunks of about equal count whatever
     the number of terrains, so the workers stay evenly loaded. A batch alone on the cluster is
-    split in CHUNKS_PER_WORKER chunks per worker; when `sharing` runs keep the workers busy
+    split in `chunks_per_worker` chunks per worker; when `sharing` runs keep the workers busy
     together, each batch needs only its share of that, and fewer tasks cost the scheduler less
     (`chunk_count`; `cycle_s`, the run's last cycle, keeps the scheduler's load in bounds).
     The chunks go in one message (client.map), ranked after every batch sent before them

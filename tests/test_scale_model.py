@@ -12,7 +12,7 @@ import scale_model  # noqa: E402
 from scale_model import Costs, Workload, simulate  # noqa: E402
 
 FREE = Costs(driver_iteration_s=0.0, client_task_s=0.0, scheduler_task_s=0.0, worker_task_s=0.0,
-             result_delay_s=0.0, hop_s=0.0, step_s=1e-3)
+             result_delay_s=0.0, hop_s=0.0, step_s=1e-3, client_batch_s=0.0, scheduler_batch_s=0.0)
 
 
 def test_one_run_on_one_worker_takes_its_work_plus_the_driver_between_iterations():
@@ -26,7 +26,11 @@ def test_one_run_on_one_worker_takes_its_work_plus_the_driver_between_iterations
 
 
 def test_a_batch_is_split_as_the_engine_splits_it():
-    assert scale_model.chunk_sizes(150, 2, 1) == [38, 38, 37, 37]  # 2 chunks per worker
+    assert scale_model.chunk_sizes(150, 2, 1) == [38, 38, 37, 37]  # a lone run: 2 chunks per worker
+    assert len(scale_model.chunk_sizes(150, 16, 1)) == 32  # whatever its workers
+    assert len(scale_model.chunk_sizes(150, 17, 4)) == 13  # 4 runs, 4.25 workers each: ceil(3 x 17 / 4)
+    assert len(scale_model.chunk_sizes(150, 16, 8)) == 6  # runs with two workers each: still 3
+    assert len(scale_model.chunk_sizes(150, 16, 9)) == 4  # fewer: 2, ceil(2 x 16 / 9)
     assert sum(scale_model.chunk_sizes(150, 512, 1)) == 150
     assert min(scale_model.chunk_sizes(150, 512, 1)) >= 4  # MIN_CHUNK rollouts at least
     assert len(scale_model.chunk_sizes(150, 64, 60)) == 3  # 60 runs share the workers: ceil(2 x 64 / 60)
@@ -34,7 +38,7 @@ def test_a_batch_is_split_as_the_engine_splits_it():
     rate = scale_model.engine.TASK_RATE
     assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=0.15)) == int(rate * 0.15 / 60)
     assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=0.01)) == 1  # one chunk at least
-    assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=10.0)) == 9  # a long cycle: no bound
+    assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=10.0)) == 13  # a long cycle: no bound
 
 
 def test_a_busy_driver_is_the_limit_and_parts_lift_it():
@@ -78,6 +82,22 @@ def test_a_server_is_not_held_for_a_job_still_on_its_way():
     assert driver.serve(0.0, 0.2, lambda t: ends.setdefault("told", t)) == 0.0  # starts at once
     sim.run()
     assert ends == {"told": pytest.approx(0.2), "landed": pytest.approx(1.1)}
+
+
+def test_a_batched_stream_sends_at_once_or_with_the_next_batch():
+    stream = scale_model.Stream(0.010)
+    assert stream.depart(1.0) == 1.0  # idle: at once
+    assert stream.depart(1.004) == pytest.approx(1.010)  # 10 ms after the last batch
+    assert stream.depart(1.006) == pytest.approx(1.010)  # with the batch waiting to leave
+    assert stream.depart(1.030) == 1.030  # the interval has passed: at once
+
+
+def test_batched_streams_idle_between_batches_delay_nothing():
+    """One run on one worker: every message finds its stream idle for longer than its interval."""
+    workload = Workload(runs=1, iterations=5, batch=8, lengths=[np.array([100, 300])])
+    batched = simulate(workload, 1, Costs(**{**FREE.__dict__, "client_batch_s": 0.010,
+                                             "scheduler_batch_s": 0.005}))
+    assert batched["search_s"] == pytest.approx(workload.episodes().sum() * 1e-3)
 
 
 def test_saves_take_the_drivers_time_and_drawings_a_workers():
