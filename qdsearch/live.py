@@ -12,6 +12,7 @@ Map:
 from __future__ import annotations
 
 import html
+import os
 from pathlib import Path
 
 from qdsearch.algorithms import task_of
@@ -44,6 +45,13 @@ def metric_columns(run_dir: Path) -> dict[str, list]:
     except UsageError:
         return {"iteration": [], "qd_score": [], "coverage": []}
     return {key: [row[key] for row in rows] for key in ("iteration", "qd_score", "coverage")}
+
+
+def file_stat(path: Path) -> os.stat_result | None:
+    try:
+        return path.stat()
+    except OSError:
+        return None
 
 
 def headline(run_dir: Path, config: RunConfig, metrics: dict[str, list], elites: int) -> str:
@@ -83,14 +91,17 @@ def live_document(run_dir: Path, config: RunConfig):
         scores.line("iteration", "qd_score", source=curve, line_width=2)
 
         def refresh() -> None:
-            changed = {name: (run_dir / name).stat().st_mtime for name in ("archive.csv", "metrics.json")
-                       if (run_dir / name).is_file()}
+            # A file is replaced whole (a new inode) at each save: two saves within one tick of
+            # the file system's clock share an mtime, never an inode.
+            changed = {name: (stat.st_ino, stat.st_mtime_ns, stat.st_size)
+                       for name in ("archive.csv", "metrics.json")
+                       if (stat := file_stat(run_dir / name)) is not None}
             if changed == stamps:
                 return
-            stamps.update(changed)
             elites.data = elite_columns(run_dir, config)
             curve.data = metric_columns(run_dir)
             title.text = headline(run_dir, config, curve.data, len(elites.data["x"]))
+            stamps.update(changed)  # only once shown: a refresh that failed is tried again
 
         doc.add_root(column(title, row(archive, scores)))
         doc.title = f"{run_dir.name}: live"
