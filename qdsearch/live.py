@@ -48,6 +48,7 @@ def metric_columns(run_dir: Path) -> dict[str, list]:
 
 
 def file_stat(path: Path) -> os.stat_result | None:
+    """The file's stat, or None if it is not there (yet, or any more)."""
     try:
         return path.stat()
     except OSError:

@@ -225,7 +225,7 @@ class Driver:
         # cores of its own, and so may saver processes. On a cluster it starts itself
         # (--workers), the driver shares the machine's cores with the workers: a saver process
         # would gain nothing (measured on 2 cores: docs/performance.md) and cost its fork
-        # server's start (~1.7 s): one thread draws.
+        # server's start (its imports: ~1.5 s of CPU): one thread draws.
         self.savers = Savers(min(SAVER_PROCESSES, self.limit) if client.cluster is None else 0)
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
