@@ -36,11 +36,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from qdsearch import algorithms, engine, fast_lander, run_config, run_files, tasks  # noqa: E402
-from qdsearch.options import search_defaults  # noqa: E402
+from qdsearch.options import search_defaults, with_task  # noqa: E402
 
-CONFIG = run_config.check_run_config(dict(
+CONFIG = run_config.check_run_config(with_task(dict(
     search_defaults(), algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
-    measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True, env=tasks.DEFAULT_ENV))
+    measures=list(tasks.TUTORIAL_MEASURES), grid=50, env_seed=[52], fast_env=True, env=tasks.DEFAULT_ENV)))
 
 
 def tutorial_simulate(model: np.ndarray, seed: int) -> tuple[float, float, float]:

@@ -406,6 +406,12 @@ def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: i
     fields of Costs; step_s defaults to the lengths file's own)."""
     import json
 
+    if costs.pop("help", None):  # fire hands --help on to a function that takes **costs
+        print(__doc__)
+        return
+    fields = [field.name for field in dataclasses.fields(Costs)]
+    if unknown := sorted(set(costs) - set(fields)):
+        raise SystemExit(f"not a cost: {', '.join(unknown)}; the costs are {', '.join(fields)}")
     per_iteration, step_s = load_lengths(lengths)
     model = Costs(**{"step_s": step_s, **costs})
     for n, r, k, s in itertools.product(workers, runs, parts, schedulers):

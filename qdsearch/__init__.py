@@ -6,6 +6,7 @@ Map, a module per role, imports going down the list only:
 - run_files: locks, atomic writes, JSON and pickles, logs; RunError;
 - plots: heatmaps and progress curves;
 - trackers: TensorBoard, W&B and MLflow (--track), offline first, each iteration once;
+- pinning: a local cluster's worker per core pinned to it (a Dask worker plugin);
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
   STOP (Ctrl-C and SIGTERM); the package shipped to workers that lack it;
 - family: what a task family declares (`Family`, `Environment`, `Measure`), the linear policy;

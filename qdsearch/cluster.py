@@ -9,8 +9,8 @@ Map:
   handshake that tells a Dask scheduler from a web server or a silent port) and
   `wait_for_workers` (the first worker, up to --worker_timeout);
 - `dask_client`: a client of that scheduler or of a new local cluster (`start_local_cluster`, in
-  the memory there is: `check_local_memory`), the code shipped to it (`ship_code`); a lost
-  scheduler leaves it as a `SchedulerLost`;
+  the memory there is: `check_local_memory`; a worker per core pinned to it: pinning.py), the
+  code shipped to it (`ship_code`); a lost scheduler leaves it as a `SchedulerLost`;
 - the quiet: `quiet_dask_logs`, `not_dask_stop`, `QUIET_CLUSTER`; `preloading` imports what a run
   needs while its cluster starts;
 - `ClusterShare`: the cluster's worker threads, and the runs in flight on its scheduler from
@@ -252,6 +252,8 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     import dask
     from dask.distributed import Client
 
+    from qdsearch.pinning import PinToCore, cores_to_pin
+
     for name in ("asyncio", "tornado.application"):  # once: the same filter is kept once
         logging.getLogger(name).addFilter(not_dask_stop)
     # A client that loses its scheduler logs each failed reconnection and closed comm with a
@@ -281,6 +283,8 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
         cluster = start_local_cluster(workers, log)
     quiet_dask_logs()  # LocalCluster's silence_logs set its own level
     with cluster, Client(cluster) as client, losing_the_scheduler(client, cluster.scheduler_address):
+        if cores := cores_to_pin(workers):
+            client.register_plugin(PinToCore(cores), name=PinToCore.name)
         log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
         yield client
 

@@ -91,7 +91,8 @@ def check_rollouts(solutions: int, terrains: int, when: str) -> None:
 
 CLUSTER_FLAGS: dict[str, Flag] = {  # every command that flies policies on a cluster
     "workers": Flag(2, "Number of Dask worker processes (one thread each) of the local cluster "
-                       f"flying the rollouts (at most {MAX_WORKERS:,}, and what memory holds).",
+                       f"flying the rollouts (at most {MAX_WORKERS:,}, and what memory holds); "
+                       "as many as the cores: each is pinned to a core of its own.",
                     whole_number_up_to(MAX_WORKERS), per_run=True),
     "scheduler_address": Flag(None, "Address of a running Dask scheduler (tcp://HOST:PORT) to "
                                     "evaluate on instead of starting a local cluster; --workers "

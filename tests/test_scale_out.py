@@ -132,3 +132,57 @@ def test_local_workers_fly_without_dasks_profiler():
         callbacks = client.run(lambda dask_worker: sorted(dask_worker.periodic_callbacks))
     assert len(callbacks) == 2
     assert all("heartbeat" in names and "profile" not in names for names in callbacks.values())
+
+
+def threads_cores(dask_worker) -> tuple:
+    """Run on a worker: its name, its process and the cores of each of its threads."""
+    import os
+
+    return (dask_worker.name, os.getpid(),
+            {frozenset(os.sched_getaffinity(int(thread))) for thread in os.listdir("/proc/self/task")})
+
+
+def pinned_workers(client) -> dict:
+    """Worker name: (process, the cores its threads may run on), once each has run a task (its
+    task thread is started then)."""
+    import os
+
+    for address in client.scheduler_info()["workers"]:
+        client.submit(os.getpid, workers=[address], pure=False).result(timeout=60)
+    return {name: (pid, cores) for name, pid, cores in client.run(threads_cores).values()}
+
+
+def restarted(client, name: int, old_address: str, count: int) -> bool:
+    """Whether the scheduler knows `count` workers again, worker `name` at a new address."""
+    workers = client.scheduler_info()["workers"]
+    return len(workers) == count and any(worker["name"] == name and address != old_address
+                                         for address, worker in workers.items())
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "sched_setaffinity"), reason="Linux's affinity")
+def test_a_local_worker_per_core_is_pinned_to_its_core_and_so_is_its_restart():
+    """A worker per core: worker i on core i, every thread of it, and again once its nanny has
+    started it anew after a SIGKILL. Fewer workers than cores are left free."""
+    import logging
+    import os
+    import signal
+
+    from qdsearch import cluster
+
+    cores = sorted(os.sched_getaffinity(0))
+    with cluster.dask_client(len(cores), None, logging.getLogger("test")) as client:
+        before = pinned_workers(client)
+        assert {name: cores_of for name, (_, cores_of) in before.items()} == {
+            i: {frozenset([core])} for i, core in enumerate(cores)}
+        victim, (pid, _) = max(before.items())
+        address = next(address for address, worker in client.scheduler_info()["workers"].items()
+                       if worker["name"] == victim)
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.time() + 90
+        while time.time() < deadline and not restarted(client, victim, address, len(cores)):
+            time.sleep(0.2)
+        after = pinned_workers(client)
+        assert after[victim][0] != pid and after[victim][1] == {frozenset([cores[victim]])}
+    if len(cores) > 1:
+        with cluster.dask_client(len(cores) - 1, None, logging.getLogger("test")) as client:
+            assert all(cores_of == {frozenset(cores)} for _, cores_of in pinned_workers(client).values())
