@@ -252,7 +252,7 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     import dask
     from dask.distributed import Client
 
-    from qdsearch.pinning import PinToCore, cores_to_pin
+    from qdsearch.pinning import pin_workers
 
     for name in ("asyncio", "tornado.application"):  # once: the same filter is kept once
         logging.getLogger(name).addFilter(not_dask_stop)
@@ -283,8 +283,7 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
         cluster = start_local_cluster(workers, log)
     quiet_dask_logs()  # LocalCluster's silence_logs set its own level
     with cluster, Client(cluster) as client, losing_the_scheduler(client, cluster.scheduler_address):
-        if cores := cores_to_pin(workers):
-            client.register_plugin(PinToCore(cores), name=PinToCore.name)
+        pin_workers(client, workers)
         log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
         yield client
 

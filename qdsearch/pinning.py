@@ -2,7 +2,8 @@
 
 Map:
 - `cores_to_pin`: the cores, or none (fewer or more workers than cores; not on macOS or Windows);
-- `PinToCore`: the Dask worker plugin that pins each worker process, and each restarted one.
+- `PinToCore`: the Dask worker plugin that pins each worker process, and each restarted one;
+  `pin_workers` sends it to a new local cluster.
 
 Why (docs/performance.md, "Each worker on a core of its own"): a worker per core leaves no core
 to the main process (the scheduler, the client, tell and ask, the saves: ~7% of the two cores
@@ -48,6 +49,17 @@ class PinToCore(WorkerPlugin):
         if not isinstance(worker.name, int):
             return
         core = {self.cores[worker.name % len(self.cores)]}
-        for thread in os.listdir("/proc/self/task"):
-            with contextlib.suppress(OSError):  # a thread that ended meanwhile; a core not ours
-                os.sched_setaffinity(int(thread), core)
+        with contextlib.suppress(OSError):  # no /proc/self/task (a sandbox): left where it is
+            for thread in os.listdir("/proc/self/task"):
+                with contextlib.suppress(OSError):  # a thread that ended meanwhile; a core not ours
+                    os.sched_setaffinity(int(thread), core)
+
+
+def pin_workers(client, workers: int) -> None:
+    """Pin a new local cluster's `workers` (PinToCore) if there is one per core. A worker lost
+    while the plugin is sent (the scheduler's broadcast raises its fault) leaves the run as it
+    is: the scheduler keeps the plugin for every worker that joins later, and a lost scheduler is
+    reported where the run next uses it."""
+    if cores := cores_to_pin(workers):
+        with contextlib.suppress(Exception):
+            client.register_plugin(PinToCore(cores), name=PinToCore.name)

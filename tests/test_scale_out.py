@@ -181,6 +181,7 @@ def test_a_local_worker_per_core_is_pinned_to_its_core_and_so_is_its_restart():
     import signal
 
     from qdsearch import cluster
+    from qdsearch.pinning import PinToCore
 
     cores = sorted(os.sched_getaffinity(0))[:2]
     with on_cores(set(cores)), cluster.dask_client(len(cores), None, logging.getLogger("test")) as client:
@@ -198,4 +199,7 @@ def test_a_local_worker_per_core_is_pinned_to_its_core_and_so_is_its_restart():
         assert after[victim][0] != pid and after[victim][1] == {frozenset([cores[victim]])}
     if len(cores) > 1:
         with on_cores(set(cores)), cluster.dask_client(1, None, logging.getLogger("test")) as client:
+            assert all(cores_of == {frozenset(cores)} for _, cores_of in pinned_workers(client).values())
+            # a core that can't be had is no fault: the worker stays where it was
+            client.register_plugin(PinToCore([os.cpu_count() + 1000]), name="unreachable core")
             assert all(cores_of == {frozenset(cores)} for _, cores_of in pinned_workers(client).values())
