@@ -167,12 +167,11 @@ class Recorder:
     def __call__(self, client, solutions, env_seeds, measures, *args, **kwargs):
         submitted, cpu = time.time(), time.process_time()
         futures = self.original(client, solutions, env_seeds, measures, *args, **kwargs)
-        # the chunks of a batch, as submit_flights splits it (one terrain: rows of solutions)
-        sizes = [len(c) for c in np.array_split(np.arange(len(solutions)), len(futures))]
-        bounds = np.cumsum([0, *sizes])
+        # the chunks of a batch, as submit_flights deals them out (one terrain: solutions)
+        chunks = engine.chunk_pairs(len(solutions), len(futures))
         self.batches.append({"submitted": submitted, "cpu": cpu, "keys": [f.key for f in futures],
-                             "durations": [duration_of(solutions[a:b], self.pool, self.step_s)
-                                           for a, b in zip(bounds[:-1], bounds[1:])],
+                             "durations": [duration_of(solutions[chunk], self.pool, self.step_s)
+                                           for chunk in chunks],
                              "run": self.run})
         return futures
 

@@ -125,6 +125,16 @@ def test_chunks_are_sized_by_rollouts_not_policies(dask_client):
     assert math.isclose(sum(sizes) / len(sizes), 60)
 
 
+def test_a_batchs_rollouts_are_dealt_out_to_its_chunks_and_come_back_in_order():
+    """Pair i goes to chunk i mod count, so each chunk holds some of every emitter's solutions
+    (neighbours fly alike: runs of them would make chunks of unequal length); per_terrain puts
+    the chunks' rows back in pair order."""
+    assert [chunk.tolist() for chunk in engine.chunk_pairs(10, 3)] == [[0, 3, 6, 9], [1, 4, 7], [2, 5, 8]]
+    rows = np.arange(24, dtype=float).reshape(12, 2)  # 6 solutions x 2 terrains, 2 columns
+    chunks = [rows[chunk] for chunk in engine.chunk_pairs(12, 5)]
+    assert np.array_equal(engine.per_terrain(chunks, [52, 7]), rows.reshape(6, 2, 2))
+
+
 def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks():
     """Parts of an experiment that share a scheduler split their batches for all the runs in
     flight on it, not just their own; a driver that stopped publishing, or closed, drops out."""
@@ -147,7 +157,8 @@ def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks()
         shared = engine.submit_flights(one, solutions, [52], (), True, sharing=sharing, threads=threads,
                                        env_name=LANDER)
         assert len(alone) == 2 and len(shared) == 1  # ceil(2 x 2 / runs) chunks
-        assert np.array_equal(np.concatenate(one.gather(alone)), np.concatenate(one.gather(shared)))
+        assert np.array_equal(engine.per_terrain(one.gather(alone), [52]),
+                              engine.per_terrain(one.gather(shared), [52]))
         second.close()
         first.refresh(3)
         assert first(3) == (2, 3)
@@ -163,7 +174,7 @@ def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
             Client(cluster) as client:
         futures = engine.submit_flights(client, solutions, [52], (), True, env_name=LANDER)
         assert len(futures) == 8  # 2 chunks for each of the 4 threads, flown at once
-        assert np.array_equal(np.concatenate(client.gather(futures)), serial)
+        assert np.array_equal(engine.per_terrain(client.gather(futures), [52])[:, 0], serial)
 
 
 def test_batches_are_flown_first_come_first_served(dask_client):
