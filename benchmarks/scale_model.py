@@ -315,7 +315,6 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         batch["left"] -= 1
         if batch["left"]:  # the client releases the result's key (the last one's after the next batch)
             streams[batch["run"] % parts].depart(now)
-        if batch["left"]:
             return
         split["to_start"].append(batch["first_start"] - batch["sent"])
         split["flying"].append(batch["last_end"] - batch["first_start"])
