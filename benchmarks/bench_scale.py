@@ -30,12 +30,14 @@ For each number of simulated workers N and of parts it prints, from one experime
 - the utilisation (work / (N x search time)), over the whole search and over its steady state
   (from the moment every run has sent its first batch to the first run's last tell);
 - the drivers' CPU and their main thread's wall time at work (not blocked waiting for a chunk)
-  per run-iteration, the schedulers' CPU per task (every second of the scheduler processes while
-  the drivers ran, over the tasks), when the last run opens, and each run-iteration's cycle
-  split: the driver (previous tell to submission), to the first chunk's start, flying (first
-  start to last end), back (last end to the tell);
+  per run-iteration, the schedulers' and the worker processes' CPU per task (every second of
+  those processes in the search phase, over the tasks), when the last run opens, and each
+  run-iteration's cycle split: the driver (previous tell to submission), to the first chunk's
+  start, flying (first start to last end), back (last end to the tell: the last result's landing
+  in the driver's process, then its wait for the main thread);
 - the time from a batch's submission to its first task starting (median and 90th percentile), and
-  a result's landing: from its task's end to the result in its driver's process (mean, median);
+  a result's landing: from its task's end to the result in its driver's process (mean, median),
+  and the share of batches whose last result landed while the driver's main thread was idle;
 - the time from the first batch's submission to the end of the last driver, its runs' last saves
   written (`all_saved_s`).
 Writes benchmarks/scale_results.json. Run it on a quiet machine.
@@ -43,6 +45,7 @@ Writes benchmarks/scale_results.json. Run it on a quiet machine.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import json
 import os
@@ -237,6 +240,26 @@ def process_cpu(pid: int) -> float:
     return times.user + times.system
 
 
+class CpuSampler(threading.Thread):
+    """Every 50 ms, the CPU seconds the schedulers and the worker processes have used, with the
+    time: their CPU over the search phase alone can then be read off (`between`). Over the whole
+    drive it would include their fixed cost per second (heartbeats, monitors) through the runs'
+    opening and last saves, when there are few tasks or none."""
+
+    def __init__(self, schedulers: list[int], workers: list[int]) -> None:
+        super().__init__(daemon=True)
+        self.pids, self.samples, self.stop = (schedulers, workers), [], threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.wait(0.05):
+            self.samples.append((time.time(), *(sum(process_cpu(pid) for pid in pids) for pids in self.pids)))
+
+    def between(self, start: float, end: float) -> tuple[float, float]:
+        """The schedulers' and the workers' CPU seconds from `start` to `end` (interpolated)."""
+        times, *cpus = np.array(self.samples).T
+        return tuple(float(np.interp(end, times, cpu) - np.interp(start, times, cpu)) for cpu in cpus)
+
+
 def one_size(workers: int, runs: int, iterations: int, processes: int, parts: int, pool: list[int],
              step_s: float, env_name: str, variant: tuple[int | None, ...] = (None, None, None)) -> dict:
     """One experiment of `runs` runs on `workers` simulated workers: one driving process and one
@@ -245,7 +268,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
     from dask.distributed import Client
 
     with tempfile.TemporaryDirectory() as tmp:
-        folder, started, clusters = Path(tmp), [], []
+        folder, started, clusters, worker_pids = Path(tmp), [], [], []
         try:
             count = max(1, processes // parts)  # worker processes per part
             for p in range(parts):
@@ -253,13 +276,15 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 procs, scheduler_file = start_cluster(folder / f"cluster{p}", share, count)
                 started += procs
                 clusters.append((procs[0].pid, scheduler_file, count))
+                worker_pids += [process.pid for process in procs[1:]]
             for _, scheduler_file, count in clusters:
                 with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
                     client.wait_for_workers(count, timeout=120)
                     client.run(install_simulation, pool, step_s)
             simulation = folder / "simulation.json"
             simulation.write_text(json.dumps([pool, step_s]))
-            before = [process_cpu(pid) for pid, _, _ in clusters]
+            sampler = CpuSampler([pid for pid, _, _ in clusters], worker_pids)
+            sampler.start()
             drivers = [subprocess.Popen(
                 [sys.executable, __file__, "drive", str(folder / "exp"), str(scheduler_file), str(simulation),
                  str(runs), str(iterations), env_name, *([f"--part={p + 1}/{parts}"] if parts > 1 else []),
@@ -270,7 +295,8 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
             for process in drivers:
                 if process.wait() != 0:
                     raise RuntimeError(f"a driving process failed ({process.args})")
-            scheduler_cpu = sum(process_cpu(pid) - cpu for (pid, _, _), cpu in zip(clusters, before))
+            sampler.stop.set()
+            sampler.join()
             log = {}
             for _, scheduler_file, _ in clusters:
                 with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
@@ -282,7 +308,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 process.kill()  # the cluster's work is done; its threads may still be asleep
             for process in started:
                 process.wait(timeout=60)
-    return {**summarise(workers, runs, iterations, parts, records, log, scheduler_cpu),
+    return {**summarise(workers, runs, iterations, parts, records, log, sampler),
             "log_every": variant[0] or iterations, "saver_processes": variant[1],
             "chunks_per_worker": variant[2]}  # None: engine.chunks_per_worker's
 
@@ -296,11 +322,13 @@ def install_simulation(pool: list[int], step_s: float) -> None:
     engine.fly_chunk = bench_scale.simulated_chunk(pool, step_s)
 
 
-def cycles(batches: list[dict], tells: list[dict], log: dict) -> dict[str, list[float]]:
+def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict) -> dict[str, list[float]]:
     """Each run-iteration's cycle, split: the driver (from the previous tell to this batch's
     submission), to the first chunk's start, flying (first start to last end), back (last end to
-    the tell)."""
-    split: dict[str, list[float]] = {"driver": [], "to_start": [], "flying": [], "back": []}
+    the tell); and back's two parts: its last result's landing (last end to the batch's last
+    result in the driver's process) and its wait there for the main thread (to the tell)."""
+    split: dict[str, list[float]] = {"driver": [], "to_start": [], "flying": [], "back": [],
+                                     "back_landing": [], "back_waiting": []}
     told: dict[str, list[float]] = {}
     for tell in tells:
         told.setdefault(tell["run"], []).append(tell["at"])
@@ -316,7 +344,33 @@ def cycles(batches: list[dict], tells: list[dict], log: dict) -> dict[str, list[
         split["to_start"].append(first - batch["submitted"])
         split["flying"].append(last - first)
         split["back"].append(told[batch["run"]][k] - last)
+        if all(key in landed for key in batch["keys"]):
+            lands = max(landed[key] for key in batch["keys"])
+            split["back_landing"].append(lands - last)
+            split["back_waiting"].append(told[batch["run"]][k] - lands)
     return split
+
+
+def turn_spread(turns: list[float]) -> np.ndarray:
+    """The spread of the driver's turns (a tell to the next batch's submission): 40 quantiles over
+    their mean, the shape the model draws its turns from."""
+    return np.quantile(turns, (np.arange(40) + 0.5) / 40) / np.mean(turns)
+
+
+def landings_while_idle(record: dict, landed: dict) -> tuple[int, int]:
+    """Of a driving process's batches, how many had their last result land while its main thread
+    was waiting for a chunk (idle), and how many in all. A result reaches the driver's process in
+    its client's thread, which needs the GIL the main thread holds while it works."""
+    waits = sorted(record["waits"])
+    starts = [start for start, _ in waits]
+    idle = total = 0
+    for batch in record["batches"]:
+        if all(key in landed for key in batch["keys"]):
+            lands = max(landed[key] for key in batch["keys"])
+            i = bisect.bisect_right(starts, lands) - 1
+            idle += i >= 0 and waits[i][1] >= lands
+            total += 1
+    return idle, total
 
 
 def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> float:
@@ -329,7 +383,7 @@ def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> floa
 
 
 def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
-              scheduler_cpu: float) -> dict:
+              sampler: CpuSampler) -> dict:
     """The figures of one experiment. Its search phase runs from the first batch's submission to
     the last chunk's end: before it, each run's first checkpoint; after it, each run's last save
     (plots, pickles: ~0.5 s a run, which a real 300-iteration run spreads over its iterations).
@@ -341,6 +395,7 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     latencies = [min(log[k][0] for k in b["keys"] if k in log) - b["submitted"]
                  for b in batches if any(k in log for k in b["keys"])]
     search_s = max(end for _, end in log.values()) - batches[0]["submitted"]
+    scheduler_cpu, worker_cpu = sampler.between(batches[0]["submitted"], batches[0]["submitted"] + search_s)
     work = sum(sum(b["durations"]) for b in batches)
     # no run can be faster than its iterations' longest chunks, one after another
     paths: dict[str, float] = {}
@@ -361,9 +416,10 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     # steady state: on a shared machine it exceeds the CPU the process is given (before it, the
     # runs open; after it, the runs' last saves take the driver's GIL)
     driver_wall = [driver_wall_per_iteration(r, steady) for r in records]
-    split = cycles(batches, tells, log)
     # from a chunk's end on its worker to its result in the driver's process (as_completed's queue)
     landed = {key: at for r in records for key, at in r["landed"].items()}
+    split = cycles(batches, tells, log, landed)
+    idle, counted = np.sum([landings_while_idle(r, landed) for r in records], axis=0)
     landing = [at - log[key][1] for key, at in landed.items() if key in log]
     return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
             "tasks_per_batch": round(tasks / len(batches), 2), "work_s": round(work, 2),
@@ -376,8 +432,11 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "driver_cpu_ms_per_iteration": round(1000 * float(np.mean(driver_cpu)), 3),
             "driver_wall_ms_per_iteration": round(1000 * float(np.mean(driver_wall)), 3),
             "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),
+            "worker_cpu_ms_per_task": round(1000 * worker_cpu / tasks, 3),
             **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) for key, values in split.items()},
+            "driver_turn_spread": [round(float(q), 3) for q in turn_spread(split["driver"])],
             "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
+            "last_result_lands_driver_idle": round(float(idle / max(1, counted)), 3),
             "result_lands_ms_median": round(1000 * float(np.median(landing)), 1),
             "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),
             "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1),

@@ -6,8 +6,9 @@ one) and each run-iteration's cycle split, for designs and sizes no machine here
 
 The model (every server serves one job at a time, first come first served):
 - a driver per part (`parts`; runs dealt to parts as experiments.py deals them, run i to part
-  i mod K): a run's iteration costs it `driver_iteration_s` (tell, ask, saving) plus
-  `client_task_s` per chunk it sends and per result it takes back;
+  i mod K): a run's iteration costs it `driver_iteration_s` (tell, ask, saving; scaled by a draw
+  from `driver_spread`, the measured spread of the turns, where given) plus `client_task_s` per
+  chunk it sends and per result it takes back;
 - a scheduler per `schedulers` (part p uses scheduler p mod S; the workers are shared out
   evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
   up to ceil(`saturation` x threads) tasks on a worker process (Dask's worker-saturation),
@@ -80,6 +81,9 @@ class Costs:
     # the driver's times are its main thread's wall times measured on those shared CPUs: they are
     # not slowed by processor sharing again
     driver_wall: bool = False
+    # the spread of the driver's turns: each run-iteration's driver_iteration_s is scaled by one of
+    # these, drawn at random (a measured turn's quantiles over their mean; empty: every turn the mean)
+    driver_spread: tuple[float, ...] = ()
     chunks_per_worker: int | None = None  # None: the engine's own (CHUNKS_PER_WORKER, TASK_RATE)
     task_rate: float | None = None
     log_every: int = 0  # 0: no saves (bench_scale.py's runs save only at their end)
@@ -118,6 +122,8 @@ def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = 
 
 
 SPLIT = ("driver", "to_start", "flying", "back")  # a run-iteration's cycle, in order
+BACK = ("back_landing", "back_waiting")  # back: its last result's landing, then its wait for the driver
+IDLE = "last_result_lands_driver_idle"  # the share of batches whose last result finds the driver idle
 
 
 class Server:
@@ -208,7 +214,9 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     """One experiment on the model: its makespan, the ideal, the efficiency, each server's
     utilisation and the mean split of a run-iteration's cycle (as bench_scale.py splits it: the
     driver from a tell to the next batch's sending, to the first chunk's start, flying, and back
-    from the last chunk's end to the tell). Workers are processes of `threads` threads."""
+    from the last chunk's end to the tell; back in two: the last result's landing at its driver,
+    then its wait there), and how often that last result finds its driver idle. Workers are
+    processes of `threads` threads."""
     sim, episodes, c = Simulation(), workload.episodes(), costs
     machine = ([], c.cores) if c.cores else None
     drivers = [Server(sim, machine, slowed=not c.driver_wall) for _ in range(parts)]
@@ -220,9 +228,11 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
     # driver sends it (cluster.ClusterShare)
     sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
-    split: dict[str, list[float]] = {key: [] for key in SPLIT}
+    split: dict[str, list[float]] = {key: [] for key in (*SPLIT, *BACK)}
     state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs),
-             "told": np.zeros(workload.runs), "saves": np.zeros(parts)}
+             "told": np.zeros(workload.runs), "saves": np.zeros(parts), "idle_landings": []}
+    spread = np.asarray(c.driver_spread or (1.0,)) / np.mean(c.driver_spread or (1.0,))
+    turns = np.random.default_rng(workload.seed + 1)
 
     def tell(run: int, done: dict | None, ready: float) -> None:
         """The driver tells the run its batch `done` (None: opens it) and sends the next one."""
@@ -231,11 +241,14 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         cycle = ready - state["told"][run] if k > 1 else None  # the run's last cycle, as loop.Run keeps it
         sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), sharing[part % schedulers], cycle,
                             c.chunks_per_worker, c.task_rate) if k < workload.iterations else []
-        service = c.driver_iteration_s + c.client_task_s * len(sizes) + (c.run_open_s if k == 0 else 0.0)
+        service = (c.driver_iteration_s * turns.choice(spread) + c.client_task_s * len(sizes)
+                   + (c.run_open_s if k == 0 else 0.0))
         told = drivers[part].serve(ready, service, lambda t: send(run, k, sizes, told, t) if sizes else None)
         state["told"][run] = told
         if done:
             split["back"].append(told - done["last_end"])
+            split["back_landing"].append(done["landed"] - done["last_end"])
+            split["back_waiting"].append(told - done["landed"])
         if k and c.log_every and (k % c.log_every == 0 or k == workload.iterations):
             state["saves"][part] += 1
             drivers[part].serve(ready, c.save_s, lambda t: draw(part % schedulers, t) if c.draw_s else None)
@@ -254,7 +267,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         state["work"] += sum(durations)
         state["paths"][run] += max(durations)
         batch = {"run": run, "k": k, "left": len(sizes), "sent": sent,
-                 "first_start": math.inf, "last_end": 0.0}
+                 "first_start": math.inf, "last_end": 0.0, "landed": 0.0, "to_land": len(sizes)}
         sched = run % parts % schedulers
         tasks = [{"batch": batch, "duration": duration} for duration in durations]
         # the scheduler takes the batch's graph in whole before it hands any of its tasks out
@@ -309,7 +322,11 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         if batch is None:  # a drawing: its files are written in the driver's saver thread
             return
         lands = max(now + c.hop_s, task["end"] + c.landing_s)
-        drivers[batch["run"] % parts].serve(lands, c.client_task_s, lambda t: taken(batch, t))
+        batch["landed"], batch["to_land"] = max(batch["landed"], lands), batch["to_land"] - 1
+        driver = drivers[batch["run"] % parts]
+        if not batch["to_land"]:  # its last result: does it find the driver idle?
+            sim.at(lands, lambda t: state["idle_landings"].append(driver.free_at <= t))
+        driver.serve(lands, c.client_task_s, lambda t: taken(batch, t))
 
     def taken(batch: dict, now: float) -> None:
         batch["left"] -= 1
@@ -331,6 +348,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
             "driver_busy": max(d.busy for d in drivers) / search,
             "scheduler_busy": max(s.busy for s in scheds) / search,
             "saver_busy": float(state["saves"].max()) * c.saver_s / search,
+            IDLE: float(np.mean(state["idle_landings"])),
             **{f"cycle_{key}_ms": 1000 * float(np.mean(values)) for key, values in split.items()}}
 
 
@@ -351,8 +369,9 @@ def cycle_shares(row: dict) -> dict[str, float]:
 def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     """The service times one bench_scale.py row measured, as the model's costs: the drivers' time
     per run-iteration (less the client's share per task, which the model charges per chunk sent
-    and per result taken), the schedulers' CPU per task, and the opening of a run (the time the
-    last run took to open, over the runs each driver opened). The drivers' time is their main
+    and per result taken), the schedulers' and the worker processes' CPU per task (the workers'
+    where the row has it), and the opening of a run (the time the last run took to open, over the
+    runs each driver opened). The drivers' time is their main
     thread's wall time at work where the row has it: on the benchmark's 2 shared cores a driver
     is given less than a core, and by how much the model's processor sharing can't tell well
     enough (at 64 workers and one part the driver is ~95% busy, where a few percent of its speed
@@ -365,6 +384,9 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
                  driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
                  scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
+                 worker_task_s=row["worker_cpu_ms_per_task"] / 1000 if "worker_cpu_ms_per_task" in row
+                 else Costs.worker_task_s,
+                 driver_spread=tuple(row.get("driver_turn_spread", ())),
                  chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]),
                  task_rate=chunks["task_rate"])
 
@@ -393,7 +415,10 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
                           "model": round(model["efficiency"], 3),
                           "error": round(model["efficiency"] - row["efficiency"], 3),
                           "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
-                          **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT}}))
+                          **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT},
+                          **{f"{k}_ms": [row[f"cycle_{k}_ms"], round(model[f"cycle_{k}_ms"], 1)]
+                             for k in BACK if f"cycle_{k}_ms" in row},
+                          **({IDLE: [row[IDLE], round(model[IDLE], 3)]} if IDLE in row else {})}))
 
 
 def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,

@@ -119,3 +119,29 @@ def test_saves_take_the_drivers_time_and_drawings_a_workers():
     in_process = simulate(workload, 1, Costs(**{**saving, "saver_s": 0.3}))
     assert in_process["search_s"] == pytest.approx(work)
     assert in_process["saver_busy"] == pytest.approx(3 * 0.3 / work)
+
+
+def test_the_way_back_is_a_landing_then_a_wait_for_the_driver():
+    """One run on one worker: every last result lands 40 ms after its chunk and finds the driver
+    idle. With a save of 1 s after each sending, longer than a batch's 0.8 s flight, the results
+    of every batch after the first find the driver busy and wait for it."""
+    workload = Workload(runs=1, iterations=5, batch=8, lengths=[np.array([100])])
+    idle = simulate(workload, 1, Costs(**{**FREE.__dict__, "landing_s": 0.04}))
+    assert idle["cycle_back_landing_ms"] == pytest.approx(40.0) and idle["cycle_back_waiting_ms"] == 0.0
+    assert idle["last_result_lands_driver_idle"] == 1.0
+    busy = simulate(workload, 1, Costs(**{**FREE.__dict__, "landing_s": 0.04, "log_every": 1, "save_s": 1.0}))
+    assert busy["last_result_lands_driver_idle"] == pytest.approx(1 / 5)
+    # the save outlasts the flight and its landing by 0.16 s, for 4 of the 5 batches
+    assert busy["cycle_back_waiting_ms"] == pytest.approx(4 / 5 * 1000 * (1.0 - 0.8 - 0.04))
+
+
+def test_the_drivers_turns_are_drawn_from_their_measured_spread():
+    """Turns of 0 or 2x the mean (0.05 s): 199 turns add 0.1 s each time a long one is drawn,
+    about half the time."""
+    workload = Workload(runs=1, iterations=200, batch=4, lengths=[np.array([10])])
+    work = workload.episodes().sum() * 1e-3
+    costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.05})
+    assert simulate(workload, 1, costs)["search_s"] == pytest.approx(work + 199 * 0.05)
+    spread = simulate(workload, 1, Costs(**{**costs.__dict__, "driver_spread": (0.0, 2.0)}))
+    long_turns = (spread["search_s"] - work) / 0.1
+    assert long_turns == pytest.approx(round(long_turns)) and 70 < long_turns < 130
