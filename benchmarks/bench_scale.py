@@ -34,7 +34,8 @@ For each number of simulated workers N and of parts it prints, from one experime
   those processes in the search phase, over the tasks), when the last run opens, and each
   run-iteration's cycle split: the driver (previous tell to submission), to the first chunk's
   start, flying (first start to last end), back (last end to the tell: the last result's landing
-  in the driver's process, then its wait for the main thread);
+  in the driver's process, then its wait for the main thread, also over the batches told once a
+  run has ended, whose last save its driver writes meanwhile);
 - the time from a batch's submission to its first task starting (median and 90th percentile), and
   a result's landing: from its task's end to the result in its driver's process (mean, median),
   and the share of batches whose last result landed while the driver's main thread was idle;
@@ -326,12 +327,14 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict) -> d
     """Each run-iteration's cycle, split: the driver (from the previous tell to this batch's
     submission), to the first chunk's start, flying (first start to last end), back (last end to
     the tell); and back's two parts: its last result's landing (last end to the batch's last
-    result in the driver's process) and its wait there for the main thread (to the tell)."""
+    result in the driver's process) and its wait there for the main thread (to the tell), that
+    wait also for the batches told once a run has ended (its last save written meanwhile)."""
     split: dict[str, list[float]] = {"driver": [], "to_start": [], "flying": [], "back": [],
-                                     "back_landing": [], "back_waiting": []}
+                                     "back_landing": [], "back_waiting": [], "back_waiting_late": []}
     told: dict[str, list[float]] = {}
     for tell in tells:
         told.setdefault(tell["run"], []).append(tell["at"])
+    first_end = min(times[-1] for times in told.values())
     seen: dict[str, int] = {}
     for batch in batches:
         k = seen[batch["run"]] = seen.get(batch["run"], -1) + 1
@@ -348,6 +351,8 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict) -> d
             lands = max(landed[key] for key in batch["keys"])
             split["back_landing"].append(lands - last)
             split["back_waiting"].append(told[batch["run"]][k] - lands)
+            if told[batch["run"]][k] > first_end:
+                split["back_waiting_late"].append(told[batch["run"]][k] - lands)
     return split
 
 
@@ -433,7 +438,9 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "driver_wall_ms_per_iteration": round(1000 * float(np.mean(driver_wall)), 3),
             "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),
             "worker_cpu_ms_per_task": round(1000 * worker_cpu / tasks, 3),
-            **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) for key, values in split.items()},
+            **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) if values else None
+               for key, values in split.items()},
+            "late_batches": len(split["back_waiting_late"]),
             "driver_turn_spread": [round(float(q), 3) for q in turn_spread(split["driver"])],
             "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
             "last_result_lands_driver_idle": round(float(idle / max(1, counted)), 3),
