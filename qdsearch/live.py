@@ -73,9 +73,11 @@ def live_document(run_dir: Path, config: RunConfig):
     from bokeh.plotting import figure
 
     task, axes = task_of(config), [MEASURES[name] for name in config.measures]
-    stamps: dict[str, float] = {}
 
     def make(doc) -> None:
+        # the files as this page last showed them: each page (each tab, each session) keeps its own,
+        # or a page refreshed first would leave the others stale
+        stamps: dict[str, tuple] = {}
         elites = ColumnDataSource(elite_columns(run_dir, config), name="elites")
         curve = ColumnDataSource(metric_columns(run_dir), name="metrics")
         title = Div(text=headline(run_dir, config, curve.data, len(elites.data["x"])), name="headline")

@@ -25,6 +25,7 @@ def page_value(page, expression: str):
 
 
 def test_the_live_page_shows_the_runs_files_and_follows_a_resume(tmp_path, dask_cluster, browser):
+    """Two pages on one server (two tabs): each follows the resume, whichever refreshes first."""
     run_dir = tmp_path / "<i>run&"  # a hostile name: escaped where the page shows it
     run.search(**tiny_flags(dask_cluster, iterations=2, log_every=1), outdir=str(run_dir))
     port = free_port()
@@ -48,12 +49,17 @@ def test_the_live_page_shows_the_runs_files_and_follows_a_resume(tmp_path, dask_
         headline = page_value(page, "doc.get_model_by_name('headline').text")
         assert "&lt;i&gt;run&amp;" in headline and "iteration 2 of 2" in headline
 
+        second = browser.new_page()
+        second.goto(f"http://127.0.0.1:{port}/")
+        second.wait_for_function("window.Bokeh && Bokeh.documents.length > 0", timeout=60000)
+
         experiments.resume(str(run_dir), iterations=5, scheduler_address=dask_cluster.scheduler_address)
-        page.wait_for_function("Bokeh.documents[0].get_model_by_name('metrics').data.iteration.length === 5",
-                               timeout=30000)
-        assert page_value(page, "Array.from(doc.get_model_by_name('metrics').data.qd_score)") == [
-            row["qd_score"] for row in run_metrics(run_dir)]
-        page.close()
+        resumed = "Bokeh.documents[0].get_model_by_name('metrics').data.iteration.length === 5"
+        for shown in (page, second):
+            shown.wait_for_function(resumed, timeout=30000)
+            assert page_value(shown, "Array.from(doc.get_model_by_name('metrics').data.qd_score)") == [
+                row["qd_score"] for row in run_metrics(run_dir)]
+            shown.close()
     finally:
         server.send_signal(signal.SIGTERM)
         out, err = server.communicate(timeout=30)
