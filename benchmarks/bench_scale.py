@@ -31,7 +31,8 @@ For each number of simulated workers N and of parts it prints, from one experime
   (from the moment every run has sent its first batch to the first run's last tell);
 - the drivers' CPU and their main thread's wall time at work (not blocked waiting for a chunk)
   per run-iteration, the schedulers' and the worker processes' CPU per task (every second of
-  those processes in the search phase, over the tasks), when the last run opens, and each
+  those processes in the search phase, over the tasks), when the last run opens (and when each
+  driver sent its first batch, and how long a driver takes to open a run), and each
   run-iteration's cycle split: the driver (previous tell to submission), to the first chunk's
   start, flying (first start to last end), back (last end to the tell: the last result's landing
   in the driver's process, then its wait for the main thread, also over the batches told once a
@@ -362,6 +363,20 @@ def turn_spread(turns: list[float]) -> np.ndarray:
     return np.quantile(turns, (np.arange(40) + 0.5) / 40) / np.mean(turns)
 
 
+def driver_starts(records: list[dict]) -> tuple[list[float], float]:
+    """When each driving process sent its first batch, from the first of them (the processes
+    start one by one), and the time a driver takes to open a run: each driver's span from its
+    first batch to its last run's first, over its other runs (mean over the drivers)."""
+    firsts = [min(b["submitted"] for b in r["batches"]) for r in records]
+    spans = []
+    for record, first in zip(records, firsts):
+        opened: dict[str, float] = {}
+        for batch in record["batches"]:
+            opened.setdefault(batch["run"], batch["submitted"])
+        spans.append((max(opened.values()) - first) / max(1, len(opened) - 1))
+    return [first - min(firsts) for first in firsts], float(np.mean(spans))
+
+
 def landings_while_idle(record: dict, landed: dict) -> tuple[int, int]:
     """Of a driving process's batches, how many had their last result land while its main thread
     was waiting for a chunk (idle), and how many in all. A result reaches the driver's process in
@@ -424,6 +439,7 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     # from a chunk's end on its worker to its result in the driver's process (as_completed's queue)
     landed = {key: at for r in records for key, at in r["landed"].items()}
     split = cycles(batches, tells, log, landed)
+    starts, opening = driver_starts(records)
     idle, counted = np.sum([landings_while_idle(r, landed) for r in records], axis=0)
     landing = [at - log[key][1] for key, at in landed.items() if key in log]
     return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
@@ -434,6 +450,8 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "steady_utilisation": round(in_window / (workers * (steady[1] - steady[0])), 3)
             if steady[1] > steady[0] else None,
             "last_run_opens_s": round(steady[0] - batches[0]["submitted"], 3),
+            "driver_starts_s": [round(start, 3) for start in starts],
+            "run_opens_ms": round(1000 * opening, 2),
             "driver_cpu_ms_per_iteration": round(1000 * float(np.mean(driver_cpu)), 3),
             "driver_wall_ms_per_iteration": round(1000 * float(np.mean(driver_wall)), 3),
             "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),

@@ -77,6 +77,8 @@ class Costs:
     step_s: float = 27e-6
     saturation: float = 1.1  # Dask's worker-saturation: tasks a worker process holds per thread
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
+    # when each part's driver starts, after the first (its process starts later: as measured)
+    part_starts: tuple[float, ...] = ()
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
     # the driver's times are its main thread's wall times measured on those shared CPUs: they are
     # not slowed by processor sharing again
@@ -338,7 +340,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         tell(batch["run"], batch, now)
 
     for run in range(workload.runs):
-        tell(run, None, 0.0)
+        start = c.part_starts[run % parts] if run % parts < len(c.part_starts) else 0.0
+        sim.at(start, lambda t, run=run: tell(run, None, t))
     sim.run()
     search = state["last"] - state["first"]
     ideal = max(state["work"] / workers, float(state["paths"].max()))
@@ -380,13 +383,17 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     client = Costs.client_task_s
     wall = row.get("driver_wall_ms_per_iteration")
     per_iteration = (wall or row["driver_cpu_ms_per_iteration"]) / 1000 - 2 * client * row["tasks_per_batch"]
-    opening = row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1)
+    # a run's opening: each driver's own where the row has it (the time the last run took to open
+    # also holds the drivers' later starts)
+    opening = (row["run_opens_ms"] / 1000 if "run_opens_ms" in row
+               else row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1))
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
                  driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
                  scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
                  worker_task_s=row["worker_cpu_ms_per_task"] / 1000 if "worker_cpu_ms_per_task" in row
                  else Costs.worker_task_s,
                  driver_spread=tuple(row.get("driver_turn_spread", ())),
+                 part_starts=tuple(row.get("driver_starts_s", ())),
                  chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]),
                  task_rate=chunks["task_rate"])
 
