@@ -145,3 +145,13 @@ def test_the_drivers_turns_are_drawn_from_their_measured_spread():
     spread = simulate(workload, 1, Costs(**{**costs.__dict__, "driver_spread": (0.0, 2.0)}))
     long_turns = (spread["search_s"] - work) / 0.1
     assert long_turns == pytest.approx(round(long_turns)) and 70 < long_turns < 130
+
+
+def test_a_part_whose_driver_starts_later_ends_later():
+    """Two parts, a run each, each on workers of its own: the second driver starts 0.5 s after
+    the first, and the search, from the first batch to the last chunk, lasts 0.5 s longer."""
+    workload = Workload(runs=2, iterations=3, batch=4, lengths=[np.array([100])])
+    together = simulate(workload, 8, FREE, parts=2, schedulers=2)
+    starts = Costs(**{**FREE.__dict__, "part_starts": (0.0, 0.5)})
+    later = simulate(workload, 8, starts, parts=2, schedulers=2)
+    assert later["search_s"] == pytest.approx(together["search_s"] + 0.5)
