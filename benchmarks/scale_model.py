@@ -370,16 +370,17 @@ def cycle_shares(row: dict) -> dict[str, float]:
 
 
 def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
-    """The service times one bench_scale.py row measured, as the model's costs: the drivers' time
-    per run-iteration (less the client's share per task, which the model charges per chunk sent
-    and per result taken), the schedulers' and the worker processes' CPU per task (the workers'
-    where the row has it), and the opening of a run (the time the last run took to open, over the
-    runs each driver opened). The drivers' time is their main
-    thread's wall time at work where the row has it: on the benchmark's 2 shared cores a driver
-    is given less than a core, and by how much the model's processor sharing can't tell well
-    enough (at 64 workers and one part the driver is ~95% busy, where a few percent of its speed
-    decide whether batches wait at the scheduler or at the driver); else its CPU time. And a
-    result's landing, as the row measured it."""
+    """The service times one bench_scale.py row measured, as the model's costs:
+    - the drivers' time per run-iteration, less the client's share per task (which the model
+      charges per chunk sent and per result taken), and the spread of their turns where the row
+      has it. It is their main thread's wall time at work where the row has it, else their CPU:
+      on the benchmark's 2 shared cores a driver is given less than a core, and fed its CPU under
+      the model's processor sharing it came out further from the measured split
+      (docs/performance.md);
+    - the schedulers' and the worker processes' CPU per task (the workers' where the row has it);
+    - the opening of a run (each driver's own where the row has it, else the time the last run
+      took to open over the runs each driver opened), and when each driver started;
+    - a result's landing, as the row measured it."""
     client = Costs.client_task_s
     wall = row.get("driver_wall_ms_per_iteration")
     per_iteration = (wall or row["driver_cpu_ms_per_iteration"]) / 1000 - 2 * client * row["tasks_per_batch"]
