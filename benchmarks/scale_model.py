@@ -8,7 +8,13 @@ The model (every server serves one job at a time, first come first served):
 - a driver per part (`parts`; runs dealt to parts as experiments.py deals them, run i to part
   i mod K): a run's iteration costs it `driver_iteration_s` (tell, ask, saving; scaled by a draw
   from `driver_spread`, the measured spread of the turns, where given) plus `client_task_s` per
-  chunk it sends and per result it takes back;
+  chunk it sends and per result it takes back. Its client's thread (Dask's event loop) sends the
+  batches and takes the results in, and needs the GIL for it: at once while the main thread is
+  idle, else when the main thread's work ends or after `gil_s`, whichever is sooner (on shared
+  cores the main thread holds the GIL while it waits for one);
+- each part's driver starts at `part_starts`, opens its runs one after another (`run_open_s`)
+  and sends each run's first batch as it opens it; its scheduler takes no task in until
+  `first_task_waits` after that (it unpickles the first graph, importing the tasks' code);
 - a scheduler per `schedulers` (part p uses scheduler p mod S; the workers are shared out
   evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
   up to ceil(`saturation` x threads) tasks on a worker process (Dask's worker-saturation),
@@ -25,7 +31,8 @@ The model (every server serves one job at a time, first come first served):
   together at that interval after it (the way back is in the measured landing);
 - with `cores`, the drivers, schedulers and worker event loops share that many CPUs (processor
   sharing: a job is slowed by the processes busy when it starts), as on the benchmark's machine;
-- chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`;
+- chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`
+  (a run's first batch: those its driver has opened so far, and the other parts');
 - with `log_every`, a run saves after every log_every-th iteration (and its last): `save_s` of its
   driver's time, booked after the next batch is sent (the saver thread takes the driver's GIL);
   with `draw_s`, its CSV and pictures are a task on the cluster of that many seconds (a design
@@ -41,6 +48,7 @@ The model (every server serves one job at a time, first come first served):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import heapq
 import itertools
 import math
@@ -79,6 +87,9 @@ class Costs:
     run_open_s: float = 0.0  # the driver's work before a run's first batch (its folder, checkpoint)
     # when each part's driver starts, after the first (its process starts later: as measured)
     part_starts: tuple[float, ...] = ()
+    # each part's wait, from its first batch's sending, before its scheduler starts a task: it
+    # unpickles the first graph it is sent, importing the code the tasks name (as measured)
+    first_task_waits: tuple[float, ...] = ()
     cores: int = 0  # CPUs the drivers and schedulers share (0: each has its own, as on a cluster)
     # the driver's times are its main thread's wall times measured on those shared CPUs: they are
     # not slowed by processor sharing again
@@ -93,6 +104,13 @@ class Costs:
     draw_s: float = 0.0  # 0: the CSV and pictures are drawn in the driver (part of save_s)
     first_draw_s: float = 0.0
     saver_s: float = 0.0
+    # the GIL a driver's main thread and its client's thread (its Dask event loop) share: a result
+    # lands, and a batch leaves, only when the client's thread has the GIL. While the main thread
+    # is at work, it gets it when that work ends or after gil_s, whichever is sooner. On a core of
+    # its own the main thread hands the GIL over within Python's switch interval (0: not modelled);
+    # on shared cores it holds it while it waits for one (measured: its wall time at work less
+    # its CPU, per run-iteration)
+    gil_s: float = 0.0
 
 
 @dataclasses.dataclass
@@ -125,6 +143,8 @@ def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = 
 
 SPLIT = ("driver", "to_start", "flying", "back")  # a run-iteration's cycle, in order
 BACK = ("back_landing", "back_waiting")  # back: its last result's landing, then its wait for the driver
+# the same for each run's first batch, sent while its driver opens the other runs
+FIRST = ("to_start_first", "flying_first", "back_landing_first", "back_waiting_first")
 IDLE = "last_result_lands_driver_idle"  # the share of batches whose last result finds the driver idle
 
 
@@ -138,6 +158,7 @@ class Server:
     def __init__(self, sim: Simulation, machine: tuple[list, int] | None = None, slowed: bool = True) -> None:
         self.sim, self.free_at, self.busy = sim, 0.0, 0.0
         self.machine = machine if slowed else None
+        self.idle_hooks: list[Callable[[float], None]] = []  # called when its last job ends
         if machine is not None:
             machine[0].append(self)
 
@@ -157,8 +178,49 @@ class Server:
             running = 1 + sum(1 for other in servers if other is not self and other.free_at > start)
             service *= max(1.0, running / cpus)
         self.free_at = start + service
-        self.sim.at(self.free_at, then)
+        self.sim.at(self.free_at, self.ended(then) if self.idle_hooks else then)
         return start
+
+    def ended(self, then: Callable[[float], None]) -> Callable[[float], None]:
+        """`then`, followed by the idle hooks if no job is left."""
+        def end(now: float) -> None:
+            then(now)
+            if self.free_at <= now:
+                for hook in self.idle_hooks:
+                    hook(now)
+        return end
+
+
+class GIL:
+    """The GIL of a driver's process: its client's thread acts at once while the main thread (the
+    driver's Server) is idle; while it is at work, when that work ends or after `wait`, whichever
+    is sooner (Python's switch interval, stretched when the main thread waits for a core)."""
+
+    def __init__(self, sim: Simulation, main: Server, wait: float) -> None:
+        self.sim, self.main, self.wait, self.pending = sim, main, wait, []
+        main.idle_hooks.append(self.release)
+
+    def take(self, at: float, action: Callable[[float], None]) -> None:
+        """Run `action` in the client's thread when it has the GIL, from `at` on."""
+        if at > self.sim.now:
+            self.sim.at(at, lambda t: self.take(t, action))
+        elif not self.wait or self.main.free_at <= at:
+            action(at)
+        else:
+            job = [action]
+            self.pending.append(job)
+            self.sim.at(at + self.wait, lambda t: self.fire(job, t))
+
+    def fire(self, job: list, now: float) -> None:
+        if job[0] is not None:
+            action, job[0] = job[0], None
+            action(now)
+
+    def release(self, now: float) -> None:
+        """The main thread has gone idle: every action waiting for the GIL runs."""
+        pending, self.pending = self.pending, []
+        for job in pending:
+            self.fire(job, now)
 
 
 class Simulation:
@@ -222,26 +284,43 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     sim, episodes, c = Simulation(), workload.episodes(), costs
     machine = ([], c.cores) if c.cores else None
     drivers = [Server(sim, machine, slowed=not c.driver_wall) for _ in range(parts)]
+    gils = [GIL(sim, driver, c.gil_s) for driver in drivers]
     streams = [Stream(c.client_batch_s) for _ in range(parts)]  # each driver's to its scheduler
     scheds = [Server(sim, machine) for _ in range(schedulers)]
+    for p, wait in enumerate(c.first_task_waits[:schedulers]):  # its first graph's imports
+        start = c.part_starts[p] if p < len(c.part_starts) else 0.0
+        scheds[p].serve(start, wait, lambda t: None)
     pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c, sim,
                               machine) for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
     # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
     # driver sends it (cluster.ClusterShare)
     sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
-    split: dict[str, list[float]] = {key: [] for key in (*SPLIT, *BACK)}
+    own = [sum(1 for r in range(workload.runs) if r % parts == p) for p in range(parts)]  # each driver's runs
+    opened = np.zeros(parts, dtype=int)  # and how many it has opened so far
+    split: dict[str, list[float]] = {key: [] for key in (*SPLIT, *BACK, *FIRST)}
     state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs),
-             "told": np.zeros(workload.runs), "saves": np.zeros(parts), "idle_landings": []}
+             "told": np.zeros(workload.runs), "saves": np.zeros(parts), "idle_landings": [],
+             "landings": [], "tasks": 0}
     spread = np.asarray(c.driver_spread or (1.0,)) / np.mean(c.driver_spread or (1.0,))
     turns = np.random.default_rng(workload.seed + 1)
+
+    def note(batch: dict, key: str, value: float) -> None:
+        """A part of a batch's cycle, noted also apart if it is its run's first batch."""
+        split[key].append(value)
+        if batch["k"] == 0:
+            split[f"{key}_first"].append(value)
 
     def tell(run: int, done: dict | None, ready: float) -> None:
         """The driver tells the run its batch `done` (None: opens it) and sends the next one."""
         part, k = run % parts, (done["k"] + 1 if done else 0)
         pool = pools[part % schedulers]
         cycle = ready - state["told"][run] if k > 1 else None  # the run's last cycle, as loop.Run keeps it
-        sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), sharing[part % schedulers], cycle,
+        # a run's first batch is sized for the runs its driver has opened so far (and the other
+        # parts' on its scheduler): loop.Driver.start_more sends each as it opens it
+        opened[part] += k == 0
+        runs_in_flight = sharing[part % schedulers] - (own[part] - opened[part] if k == 0 else 0)
+        sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), runs_in_flight, cycle,
                             c.chunks_per_worker, c.task_rate) if k < workload.iterations else []
         service = (c.driver_iteration_s * turns.choice(spread) + c.client_task_s * len(sizes)
                    + (c.run_open_s if k == 0 else 0.0))
@@ -249,8 +328,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         state["told"][run] = told
         if done:
             split["back"].append(told - done["last_end"])
-            split["back_landing"].append(done["landed"] - done["last_end"])
-            split["back_waiting"].append(told - done["landed"])
+            note(done, "back_landing", done["landed"] - done["last_end"])
+            note(done, "back_waiting", told - done["landed"])
         if k and c.log_every and (k % c.log_every == 0 or k == workload.iterations):
             state["saves"][part] += 1
             drivers[part].serve(ready, c.save_s, lambda t: draw(part % schedulers, t) if c.draw_s else None)
@@ -267,14 +346,16 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         bounds = np.cumsum([0, *sizes])
         durations = [float(episodes[run, k, a:b].sum()) * c.step_s for a, b in zip(bounds[:-1], bounds[1:])]
         state["work"] += sum(durations)
+        state["tasks"] += len(durations)
         state["paths"][run] += max(durations)
         batch = {"run": run, "k": k, "left": len(sizes), "sent": sent,
                  "first_start": math.inf, "last_end": 0.0, "landed": 0.0, "to_land": len(sizes)}
         sched = run % parts % schedulers
         tasks = [{"batch": batch, "duration": duration} for duration in durations]
         # the scheduler takes the batch's graph in whole before it hands any of its tasks out
-        scheds[sched].serve(streams[run % parts].depart(sent) + c.hop_s, c.scheduler_task_s / 2 * len(tasks),
-                            lambda t: queue(sched, tasks, t))  # (the last batch's last release with it)
+        gils[run % parts].take(sent, lambda t: scheds[sched].serve(
+            streams[run % parts].depart(t) + c.hop_s, c.scheduler_task_s / 2 * len(tasks),
+            lambda t2: queue(sched, tasks, t2)))  # (the last batch's last release with it)
 
     def queue(sched: int, tasks: list[dict], now: float) -> None:
         waiting[sched].extend(tasks)
@@ -323,11 +404,16 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         batch = task["batch"]
         if batch is None:  # a drawing: its files are written in the driver's saver thread
             return
-        lands = max(now + c.hop_s, task["end"] + c.landing_s)
+        gils[batch["run"] % parts].take(max(now + c.hop_s, task["end"] + c.landing_s),
+                                        lambda t: land(batch, task, t))
+
+    def land(batch: dict, task: dict, lands: float) -> None:
+        """The result in its driver's process (as_completed's queue), for the main thread to take."""
+        state["landings"].append(lands - task["end"])
         batch["landed"], batch["to_land"] = max(batch["landed"], lands), batch["to_land"] - 1
         driver = drivers[batch["run"] % parts]
         if not batch["to_land"]:  # its last result: does it find the driver idle?
-            sim.at(lands, lambda t: state["idle_landings"].append(driver.free_at <= t))
+            state["idle_landings"].append(driver.free_at <= lands)
         driver.serve(lands, c.client_task_s, lambda t: taken(batch, t))
 
     def taken(batch: dict, now: float) -> None:
@@ -335,8 +421,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         if batch["left"]:  # the client releases the result's key (the last one's after the next batch)
             streams[batch["run"] % parts].depart(now)
             return
-        split["to_start"].append(batch["first_start"] - batch["sent"])
-        split["flying"].append(batch["last_end"] - batch["first_start"])
+        note(batch, "to_start", batch["first_start"] - batch["sent"])
+        note(batch, "flying", batch["last_end"] - batch["first_start"])
         tell(batch["run"], batch, now)
 
     for run in range(workload.runs):
@@ -348,11 +434,14 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     return {"workers": workers, "runs": workload.runs, "parts": parts, "schedulers": schedulers,
             "search_s": search, "ideal_s": ideal, "efficiency": ideal / search,
             "utilisation": state["work"] / (workers * search),
+            "tasks_per_batch": state["tasks"] / (workload.runs * workload.iterations),
             "driver_busy": max(d.busy for d in drivers) / search,
             "scheduler_busy": max(s.busy for s in scheds) / search,
             "saver_busy": float(state["saves"].max()) * c.saver_s / search,
-            IDLE: float(np.mean(state["idle_landings"])),
-            **{f"cycle_{key}_ms": 1000 * float(np.mean(values)) for key, values in split.items()}}
+            IDLE: float(np.mean(state["idle_landings"])) if state["idle_landings"] else math.nan,
+            "result_lands_ms_mean": 1000 * float(np.mean(state["landings"])),
+            **{f"cycle_{key}_ms": 1000 * float(np.mean(values)) if values else math.nan
+               for key, values in split.items()}}
 
 
 def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
@@ -379,8 +468,11 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
       (docs/performance.md);
     - the schedulers' and the worker processes' CPU per task (the workers' where the row has it);
     - the opening of a run (each driver's own where the row has it, else the time the last run
-      took to open over the runs each driver opened), and when each driver started;
-    - a result's landing, as the row measured it."""
+      took to open over the runs each driver opened), when each driver started, and how long its
+      first task waited to start (its scheduler's first graph);
+    - a result's landing, as the row measured it (fitted_landing takes the GIL's share out);
+    - the GIL's longest hold: the main thread's wall time at work less its CPU per run-iteration
+      (the time it waits for a core, holding the GIL)."""
     client = Costs.client_task_s
     wall = row.get("driver_wall_ms_per_iteration")
     per_iteration = (wall or row["driver_cpu_ms_per_iteration"]) / 1000 - 2 * client * row["tasks_per_batch"]
@@ -388,22 +480,40 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     # also holds the drivers' later starts)
     opening = (row["run_opens_ms"] / 1000 if "run_opens_ms" in row
                else row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1))
+    gil = (wall - row["driver_cpu_ms_per_iteration"]) / 1000 if wall else 0.0
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
+                 gil_s=max(0.0, gil),
                  driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
                  scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
                  worker_task_s=row["worker_cpu_ms_per_task"] / 1000 if "worker_cpu_ms_per_task" in row
                  else Costs.worker_task_s,
                  driver_spread=tuple(row.get("driver_turn_spread", ())),
                  part_starts=tuple(row.get("driver_starts_s", ())),
+                 first_task_waits=tuple(row.get("first_task_starts_s", ())),
                  chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]),
                  task_rate=chunks["task_rate"])
+
+
+def fitted_landing(model: Callable[[Costs], dict], costs: Costs, measured_s: float,
+                   rounds: int = 3) -> tuple[Costs, dict]:
+    """The model's run with a landing (a task's end to its result in the driver's process) as
+    measured. The measured landing holds the wait for the driver's GIL, which the model adds
+    itself: the rest (`landing_s`) is solved for, a few fixed-point rounds bringing the model's
+    mean landing to the measured one."""
+    out = model(costs)
+    for _ in range(rounds if costs.gil_s else 0):
+        gap = measured_s - out["result_lands_ms_mean"] / 1000
+        costs = dataclasses.replace(costs, landing_s=max(0.0, costs.landing_s + gap))
+        out = model(costs)
+    return costs, out
 
 
 def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:
     """The model against bench_scale.py's measured rows: each row's own service times fed in, the
     same episode lengths (pooled, as the benchmark draws them), the same worker processes (its
     `processes`, shared out among the parts) on the same number of CPUs; prints the measured and
-    predicted efficiency and cycle shares, and their differences."""
+    predicted efficiency and cycle shares, and their differences; the way back's two parts, the
+    same for the runs' first batches, and how often a last result finds its driver idle."""
     import json
 
     data = json.loads(Path(results).read_text())
@@ -415,9 +525,11 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
     chunks = data["chunks"]  # the engine's chunking when the rows were measured
     for row in data["rows"]:
         threads = math.ceil(row["workers"] / row["parts"] / max(1, processes // row["parts"]))
-        model = simulate(Workload(row["runs"], row["iterations"], batch, pool), row["workers"],
-                         measured_costs(row, step_s, cores, chunks), parts=row["parts"],
-                         schedulers=row["parts"], threads=threads)
+        workload = Workload(row["runs"], row["iterations"], batch, pool)
+        run = functools.partial(simulate, workload, row["workers"], parts=row["parts"],
+                                schedulers=row["parts"], threads=threads)
+        costs = measured_costs(row, step_s, cores, chunks)
+        _, model = fitted_landing(run, costs, row["result_lands_ms_mean"] / 1000)
         measured, predicted = cycle_shares(row), cycle_shares(model)
         print(json.dumps({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
                           "model": round(model["efficiency"], 3),
@@ -425,7 +537,7 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
                           "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
                           **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT},
                           **{f"{k}_ms": [row[f"cycle_{k}_ms"], round(model[f"cycle_{k}_ms"], 1)]
-                             for k in BACK if f"cycle_{k}_ms" in row},
+                             for k in (*BACK, *FIRST) if f"cycle_{k}_ms" in row},
                           **({IDLE: [row[IDLE], round(model[IDLE], 3)]} if IDLE in row else {})}))
 
 

@@ -155,3 +155,98 @@ def test_a_part_whose_driver_starts_later_ends_later():
     starts = Costs(**{**FREE.__dict__, "part_starts": (0.0, 0.5)})
     later = simulate(workload, 8, starts, parts=2, schedulers=2)
     assert later["search_s"] == pytest.approx(together["search_s"] + 0.5)
+
+
+def test_the_client_thread_waits_for_the_gil_while_the_main_thread_works():
+    """The main thread at work from 0 to 1 s: the client's thread gets the GIL after its wait
+    (0.1 s), or when the work ends if that is sooner, and at once while the main thread is idle."""
+    for wait, expected in ((0.1, [0.3, 1.0, 1.5]), (0.0, [0.2, 0.95, 1.5])):
+        sim = scale_model.Simulation()
+        main = scale_model.Server(sim)
+        gil = scale_model.GIL(sim, main, wait)
+        main.serve(0.0, 1.0, lambda t: None)
+        times = []
+        for at in (0.2, 0.95, 1.5):
+            gil.take(at, times.append)
+        sim.run()
+        assert times == pytest.approx(expected)
+
+
+def test_work_booked_back_to_back_keeps_the_gil():
+    """A job booked as the last one ends keeps the main thread at work: the client's thread,
+    waiting since 0.5 s with a long wait, gets the GIL when the second job ends."""
+    sim = scale_model.Simulation()
+    main = scale_model.Server(sim)
+    gil = scale_model.GIL(sim, main, 10.0)
+    main.serve(0.0, 1.0, lambda t: main.serve(t, 1.0, lambda _: None))
+    times = []
+    gil.take(0.5, times.append)
+    sim.run()
+    assert times == pytest.approx([2.0])
+
+
+def test_a_result_that_finds_the_driver_at_work_lands_when_the_gil_is_free():
+    """Two runs, two workers, driver turns of 0.5 s, one iteration: run 0's batch leaves when
+    the GIL's wait (0.1 s) ends in run 1's turn, flies 0.1 s, and its result lands after another
+    wait, at 0.8 s (a landing of 0.1 s), then waits for run 1's turn to end at 1 s. Run 1's
+    result comes at 1.1 s, during run 0's last tell, lands at 1.2 s and is taken at 1.5 s."""
+    workload = Workload(runs=2, iterations=1, batch=1, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.5, "gil_s": 0.1})
+    out = simulate(workload, 2, costs)
+    assert out["cycle_back_landing_ms"] == pytest.approx(100.0)
+    assert out["cycle_back_waiting_ms"] == pytest.approx((200.0 + 300.0) / 2)
+    assert out["last_result_lands_driver_idle"] == 0.0
+    assert out["result_lands_ms_mean"] == pytest.approx(100.0)
+
+
+def test_a_schedulers_first_graph_holds_the_first_tasks_back():
+    """One run, one worker: its scheduler's first graph (imports) takes 0.3 s, and the run's
+    first batch starts that much later."""
+    workload = Workload(runs=1, iterations=3, batch=4, lengths=[np.array([100])])
+    ready = simulate(workload, 1, FREE)
+    held = simulate(workload, 1, Costs(**{**FREE.__dict__, "first_task_waits": (0.3,)}))
+    assert held["search_s"] == pytest.approx(ready["search_s"] + 0.3)
+    assert held["cycle_to_start_first_ms"] == pytest.approx(300.0)
+
+
+def test_first_batches_are_sized_for_the_runs_opened_so_far():
+    """Four runs on 16 workers, one iteration: the driver sends each run's first batch as it
+    opens it, sized for 1, 2, 3 and 4 runs in flight (32, 24, 16 and 12 chunks)."""
+    workload = Workload(runs=4, iterations=1, batch=150, lengths=[np.array([10])])
+    sizes = [len(scale_model.chunk_sizes(150, 16, n)) for n in (1, 2, 3, 4)]
+    assert sizes == [32, 24, 16, 12]
+    assert simulate(workload, 16, FREE)["tasks_per_batch"] == pytest.approx(sum(sizes) / 4)
+    # two parts: each driver has opened its first run when it sends it
+    two = simulate(workload, 16, FREE, parts=2, schedulers=2)
+    halves = [len(scale_model.chunk_sizes(150, 8, n)) for n in (1, 1, 2, 2)]
+    assert two["tasks_per_batch"] == pytest.approx(sum(halves) / 4)
+
+
+def test_the_landing_outside_the_gil_is_solved_from_the_measured_one():
+    """A measured landing of 60 ms holds the GIL's wait: the fitted model's mean landing is the
+    measured one, with less of it outside the GIL."""
+    workload = Workload(runs=4, iterations=6, batch=8, lengths=[np.array([20, 60])])
+    costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.03, "gil_s": 0.02, "landing_s": 0.06})
+    fitted, out = scale_model.fitted_landing(lambda c: simulate(workload, 4, c), costs, 0.06)
+    assert out["result_lands_ms_mean"] == pytest.approx(60.0, abs=1.0)
+    assert fitted.landing_s < 0.06
+
+
+def test_the_benchmark_splits_each_runs_first_batch_apart():
+    """bench_scale.py's record of one driver, two runs of two iterations: each run's first batch
+    (sent while the driver opens the other) is also split apart, and the driver's wait for its
+    first task is from its first batch's sending to the first start of any task."""
+    import bench_scale
+
+    batches = [{"run": "a", "submitted": 0.0, "keys": ["a0"]}, {"run": "b", "submitted": 0.1, "keys": ["b0"]},
+               {"run": "a", "submitted": 2.0, "keys": ["a1"]}, {"run": "b", "submitted": 2.1, "keys": ["b1"]}]
+    tells = [{"run": "a", "at": 1.9}, {"run": "b", "at": 2.05},
+             {"run": "a", "at": 3.0}, {"run": "b", "at": 3.1}]
+    log = {"a0": (0.8, 1.5), "b0": (0.9, 1.6), "a1": (2.1, 2.8), "b1": (2.2, 2.9)}
+    landed = {"a0": 1.6, "b0": 1.7, "a1": 2.9, "b1": 3.0}
+    split = bench_scale.cycles(batches, tells, log, landed)
+    assert split["to_start_first"] == pytest.approx([0.8, 0.8])
+    assert split["back_landing_first"] == pytest.approx([0.1, 0.1])
+    assert split["back_waiting_first"] == pytest.approx([0.3, 0.35])
+    assert split["to_start"] == pytest.approx([0.8, 0.8, 0.1, 0.1])
+    assert bench_scale.first_task_starts([{"batches": batches}], log) == pytest.approx([0.8])
