@@ -480,6 +480,8 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
     # also holds the drivers' later starts)
     opening = (row["run_opens_ms"] / 1000 if "run_opens_ms" in row
                else row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1))
+    # measured from one run's first batch to the next's: the model adds a turn and its chunks
+    opening = max(0.0, opening - max(0.0, per_iteration) - client * row["tasks_per_batch"])
     gil = (wall - row["driver_cpu_ms_per_iteration"]) / 1000 if wall else 0.0
     return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
                  gil_s=max(0.0, gil),
