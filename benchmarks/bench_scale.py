@@ -332,39 +332,44 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict) -> d
     the tell); and back's two parts: its last result's landing (last end to the batch's last
     result in the driver's process) and its wait there for the main thread (to the tell), that
     wait also for the batches told once a run has ended (its last save written meanwhile)."""
-    split: dict[str, list[float]] = {"driver": [], "to_start": [], "flying": [], "back": [],
-                                     "back_landing": [], "back_waiting": [], "back_waiting_late": [],
-                                     "to_start_first": [], "flying_first": [], "back_landing_first": [],
-                                     "back_waiting_first": []}
+    split: dict[str, list[float]] = {key: [] for key in (
+        "driver", "to_start", "flying", "back", "back_landing", "back_waiting", "back_waiting_late",
+        "to_start_first", "flying_first", "back_landing_first", "back_waiting_first")}
     told: dict[str, list[float]] = {}
     for tell in tells:
         told.setdefault(tell["run"], []).append(tell["at"])
     first_end = min(times[-1] for times in told.values())
+    def note(key: str, value: float, k: int) -> None:  # a run's first batch (k 0): also apart
+        split[key].append(value)
+        if k == 0:
+            split[f"{key}_first"].append(value)
+
     seen: dict[str, int] = {}
     for batch in batches:
         k = seen[batch["run"]] = seen.get(batch["run"], -1) + 1
         spans = [log[key] for key in batch["keys"] if key in log]
         if not spans or k >= len(told.get(batch["run"], [])):
             continue
+        tell_at = told[batch["run"]][k]
         if k > 0:
             split["driver"].append(batch["submitted"] - told[batch["run"]][k - 1])
         first, last = min(a for a, _ in spans), max(b for _, b in spans)
-        split["to_start"].append(first - batch["submitted"])
-        split["flying"].append(last - first)
-        if k == 0:
-            split["to_start_first"].append(first - batch["submitted"])
-            split["flying_first"].append(last - first)
-        split["back"].append(told[batch["run"]][k] - last)
-        if all(key in landed for key in batch["keys"]):
-            lands = max(landed[key] for key in batch["keys"])
-            split["back_landing"].append(lands - last)
-            split["back_waiting"].append(told[batch["run"]][k] - lands)
-            if told[batch["run"]][k] > first_end:
-                split["back_waiting_late"].append(told[batch["run"]][k] - lands)
-            if k == 0:
-                split["back_landing_first"].append(lands - last)
-                split["back_waiting_first"].append(told[batch["run"]][k] - lands)
+        note("to_start", first - batch["submitted"], k)
+        note("flying", last - first, k)
+        split["back"].append(tell_at - last)
+        if (lands := last_landing(batch, landed)) is not None:
+            note("back_landing", lands - last, k)
+            note("back_waiting", tell_at - lands, k)
+            if tell_at > first_end:
+                split["back_waiting_late"].append(tell_at - lands)
     return split
+
+
+def last_landing(batch: dict, landed: dict) -> float | None:
+    """When the batch's last result landed in its driver's process (None: one never did)."""
+    if all(key in landed for key in batch["keys"]):
+        return max(landed[key] for key in batch["keys"])
+    return None
 
 
 def turn_spread(turns: list[float]) -> np.ndarray:
@@ -407,8 +412,7 @@ def landings_while_idle(record: dict, landed: dict) -> tuple[int, int]:
     starts = [start for start, _ in waits]
     idle = total = 0
     for batch in record["batches"]:
-        if all(key in landed for key in batch["keys"]):
-            lands = max(landed[key] for key in batch["keys"])
+        if (lands := last_landing(batch, landed)) is not None:
             i = bisect.bisect_right(starts, lands) - 1
             idle += i >= 0 and waits[i][1] >= lands
             total += 1

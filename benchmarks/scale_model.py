@@ -194,11 +194,12 @@ class Server:
 class GIL:
     """The GIL of a driver's process: its client's thread acts at once while the main thread (the
     driver's Server) is idle; while it is at work, when that work ends or after `wait`, whichever
-    is sooner (Python's switch interval, stretched when the main thread waits for a core)."""
+    is sooner (Costs.gil_s; 0: at once, no GIL modelled)."""
 
     def __init__(self, sim: Simulation, main: Server, wait: float) -> None:
         self.sim, self.main, self.wait, self.pending = sim, main, wait, []
-        main.idle_hooks.append(self.release)
+        if wait:  # else nothing ever waits for the main thread to go idle
+            main.idle_hooks.append(self.release)
 
     def take(self, at: float, action: Callable[[float], None]) -> None:
         """Run `action` in the client's thread when it has the GIL, from `at` on."""
@@ -496,13 +497,12 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
                  task_rate=chunks["task_rate"])
 
 
-def fitted_landing(model: Callable[[Costs], dict], costs: Costs, measured_s: float,
-                   rounds: int = 3) -> tuple[Costs, dict]:
+def fitted_landing(model: Callable[[Costs], dict], costs: Costs, rounds: int = 3) -> tuple[Costs, dict]:
     """The model's run with a landing (a task's end to its result in the driver's process) as
-    measured. The measured landing holds the wait for the driver's GIL, which the model adds
-    itself: the rest (`landing_s`) is solved for, a few fixed-point rounds bringing the model's
+    measured (`costs.landing_s`). The measured landing holds the wait for the driver's GIL, which
+    the model adds itself: the rest is solved for, a few fixed-point rounds bringing the model's
     mean landing to the measured one."""
-    out = model(costs)
+    measured_s, out = costs.landing_s, model(costs)
     for _ in range(rounds if costs.gil_s else 0):
         gap = measured_s - out["result_lands_ms_mean"] / 1000
         costs = dataclasses.replace(costs, landing_s=max(0.0, costs.landing_s + gap))
@@ -530,8 +530,7 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
         workload = Workload(row["runs"], row["iterations"], batch, pool)
         run = functools.partial(simulate, workload, row["workers"], parts=row["parts"],
                                 schedulers=row["parts"], threads=threads)
-        costs = measured_costs(row, step_s, cores, chunks)
-        _, model = fitted_landing(run, costs, row["result_lands_ms_mean"] / 1000)
+        _, model = fitted_landing(run, measured_costs(row, step_s, cores, chunks))
         measured, predicted = cycle_shares(row), cycle_shares(model)
         print(json.dumps({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
                           "model": round(model["efficiency"], 3),

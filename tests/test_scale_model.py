@@ -227,7 +227,7 @@ def test_the_landing_outside_the_gil_is_solved_from_the_measured_one():
     measured one, with less of it outside the GIL."""
     workload = Workload(runs=4, iterations=6, batch=8, lengths=[np.array([20, 60])])
     costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.03, "gil_s": 0.02, "landing_s": 0.06})
-    fitted, out = scale_model.fitted_landing(lambda c: simulate(workload, 4, c), costs, 0.06)
+    fitted, out = scale_model.fitted_landing(lambda c: simulate(workload, 4, c), costs)
     assert out["result_lands_ms_mean"] == pytest.approx(60.0, abs=1.0)
     assert fitted.landing_s < 0.06
 
