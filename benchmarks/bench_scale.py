@@ -10,6 +10,8 @@
         --lengths benchmarks/episode_lengths_lander.npz --out benchmarks/scale_saves.json   # saves
     python benchmarks/bench_scale.py --workers "[17]" --runs 4 --processes 17 --chunks "[2, 3]" \
         --lengths benchmarks/episode_lengths_lander.npz     # one of 15 parts of 256 workers
+    python benchmarks/bench_scale.py --workers "[64]" --switch "[None, 0.0005]" \
+        --lengths benchmarks/episode_lengths_lander.npz     # the drivers' switch interval
 
 A real experiment (`experiments.experiment`: the real driver, real pyribs ask and tell, real run
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
@@ -34,11 +36,13 @@ For each number of simulated workers N and of parts it prints, from one experime
   those processes in the search phase, over the tasks), when the last run opens (and when each
   driver sent its first batch, how long a driver takes to open a run, and how long each driver
   waited for its first task to start: its scheduler's first graph), and each run-iteration's
-  cycle split: the driver (previous tell to submission), to the first chunk's start, flying
-  (first start to last end), back (last end to the tell: the last result's landing in the
-  driver's process, then its wait for the main thread, also over the batches told once a run has
-  ended, whose last save its driver writes meanwhile), and the same for each run's first batch
-  apart (sent while its driver opens the other runs);
+  cycle split: the driver (previous tell to submission), to the first chunk's start (and on the
+  way, from the scheduler's and the workers' own logs: its graph taken in by the scheduler, the
+  chunk handed out there, at its worker process), flying (first start to last end), back (last
+  end to the tell: the last result's landing in the driver's process, then its wait for the main
+  thread, also over the batches told once a run has ended, whose last save its driver writes
+  meanwhile), and the same for each run's first batch apart (sent while its driver opens the
+  other runs);
 - the time from a batch's submission to its first task starting (median and 90th percentile), and
   a result's landing: from its task's end to the result in its driver's process (mean, median),
   and the share of batches whose last result landed while the driver's main thread was idle;
@@ -71,6 +75,9 @@ sys.path.insert(0, str(ROOT))
 
 from qdsearch import algorithms, engine, experiments, loop, run_config, run_files, tasks  # noqa: E402
 
+VARIANTS = ("log_every", "savers", "chunks", "switch")  # the drive command's options a row may set
+# to a chunk's start, its first parts: to its scheduler, handed out there, at its worker process
+OUT = ("to_scheduler", "to_assigned", "to_worker")
 TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start, end), time.time()
 
 
@@ -197,8 +204,11 @@ def start_cluster(folder: Path, workers: int, processes: int):
     # The code is importable everywhere, as on a cluster's shared filesystem: nothing is uploaded
     # (an upload would re-import the package on the workers and undo the simulation).
     # Workers as docs/slurm.sbatch starts them: without Dask's statistical profiler.
+    # The scheduler keeps every transition (Dask keeps the last 1,000): each task's first is
+    # when its graph was taken in (graph_arrivals).
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}",
-           "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
+           "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
+           "DASK_DISTRIBUTED__ADMIN__LOW_LEVEL_LOG_LENGTH": "1000000"}
     started = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1",
                                  "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
                                 cwd=folder, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
@@ -217,12 +227,16 @@ def start_cluster(folder: Path, workers: int, processes: int):
 
 def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iterations: int, env: str,
           part: str | None = None, record: str = "record.json", log_every: int | None = None,
-          savers: int | None = None, chunks: int | None = None) -> None:
+          savers: int | None = None, chunks: int | None = None, switch: float | None = None) -> None:
     """A driving process (a subcommand, run by one_size): the experiment (or its --part), its
     batches and tells recorded, written to `record`; with `savers`, at most that many saver
     processes (0: the saver thread draws, as with a local cluster); with `chunks`, that many
-    chunks per worker, whatever the runs (else engine.chunks_per_worker's)."""
+    chunks per worker, whatever the runs (else engine.chunks_per_worker's); with `switch`, that
+    switch interval (sys.setswitchinterval: how long a thread waits for the GIL before it asks the
+    holder to drop it; Python's own is 5 ms)."""
     pool, step_s = json.loads(Path(simulation).read_text())
+    if switch is not None:
+        sys.setswitchinterval(switch)
     if savers is not None:
         loop.SAVER_PROCESSES = savers
     if chunks is not None:
@@ -265,10 +279,10 @@ class CpuSampler(threading.Thread):
 
 
 def one_size(workers: int, runs: int, iterations: int, processes: int, parts: int, pool: list[int],
-             step_s: float, env_name: str, variant: tuple[int | None, ...] = (None, None, None)) -> dict:
+             step_s: float, env_name: str, variant: tuple[float | None, ...] = (None,) * 4) -> dict:
     """One experiment of `runs` runs on `workers` simulated workers: one driving process and one
     `dask scheduler` per part, the workers shared out among the schedulers; `variant`: the drive
-    command's log_every, savers and chunks (None: its own)."""
+    command's log_every, savers, chunks and switch interval (None: its own)."""
     from dask.distributed import Client
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -293,28 +307,57 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 [sys.executable, __file__, "drive", str(folder / "exp"), str(scheduler_file), str(simulation),
                  str(runs), str(iterations), env_name, *([f"--part={p + 1}/{parts}"] if parts > 1 else []),
                  f"--record={folder / f'record{p}.json'}",
-                 *[f"--{name}={value}" for name, value in zip(("log_every", "savers", "chunks"), variant)
-                   if value is not None]], stdout=subprocess.DEVNULL)
+                 *[f"--{name}={value}" for name, value in zip(VARIANTS, variant) if value is not None]],
+                stdout=subprocess.DEVNULL)
                 for p, (_, scheduler_file, _) in enumerate(clusters)]
             for process in drivers:
                 if process.wait() != 0:
                     raise RuntimeError(f"a driving process failed ({process.args})")
             sampler.stop.set()
             sampler.join()
-            log = {}
+            log, arrived, assigned, reached, reported = {}, {}, {}, {}, {}
             for _, scheduler_file, _ in clusters:
                 with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
                     for worker_log in client.run(lambda: __import__("bench_scale").TASK_LOG).values():
                         log.update(worker_log)
+                    for times, got in zip((arrived, assigned, reported),
+                                          client.run_on_scheduler(scheduler_times)):
+                        times.update(got)
+                    for worker_times in client.run(worker_arrivals).values():
+                        reached.update(worker_times)
             records = [json.loads((folder / f"record{p}.json").read_text()) for p in range(parts)]
         finally:
             for process in started:
                 process.kill()  # the cluster's work is done; its threads may still be asleep
             for process in started:
                 process.wait(timeout=60)
-    return {**summarise(workers, runs, iterations, parts, records, log, sampler),
+    times = (arrived, assigned, reached)  # each task's, by OUT
+    return {**summarise(workers, runs, iterations, parts, records, log, sampler, times, reported),
             "log_every": variant[0] or iterations, "saver_processes": variant[1],
-            "chunks_per_worker": variant[2]}  # None: engine.chunks_per_worker's
+            "chunks_per_worker": variant[2],  # None: engine.chunks_per_worker's
+            "driver_switch_s": variant[3]}  # None: Python's own
+
+
+def scheduler_times(dask_scheduler) -> tuple[dict[str, float], ...]:
+    """On a scheduler, by task (time.time()): when its graph was taken in (its first transition),
+    when it was handed to a worker process (to processing: Dask queues a task while every worker
+    process holds its worker-saturation's worth), and when its end was reported (to memory: its
+    worker process's slot is free again)."""
+    arrived: dict[str, float] = {}
+    assigned: dict[str, float] = {}
+    reported: dict[str, float] = {}
+    for transition in dask_scheduler.transition_log:
+        arrived.setdefault(transition.key, transition.timestamp)
+        for finish, times in (("processing", assigned), ("memory", reported)):
+            if transition.finish == finish:
+                times.setdefault(transition.key, transition.timestamp)
+    return arrived, assigned, reported
+
+
+def worker_arrivals(dask_worker) -> dict[str, float]:
+    """On a worker process: when each task reached it (its compute-task message handled)."""
+    return {entry[0]: entry[-1] for entry in dask_worker.state.log
+            if len(entry) == 5 and entry[1] == "compute-task"}
 
 
 def install_simulation(pool: list[int], step_s: float) -> None:
@@ -326,15 +369,20 @@ def install_simulation(pool: list[int], step_s: float) -> None:
     engine.fly_chunk = bench_scale.simulated_chunk(pool, step_s)
 
 
-def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict) -> dict[str, list[float]]:
+def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict,
+           arrived: tuple[dict, ...] = ({}, {}, {})) -> dict[str, list[float]]:
     """Each run-iteration's cycle, split: the driver (from the previous tell to this batch's
     submission), to the first chunk's start, flying (first start to last end), back (last end to
-    the tell); and back's two parts: its last result's landing (last end to the batch's last
-    result in the driver's process) and its wait there for the main thread (to the tell), that
-    wait also for the batches told once a run has ended (its last save written meanwhile)."""
+    the tell); to the start's first parts, for the chunk that starts first, the way to the
+    scheduler (to its graph taken in there), to its handing out there and to its worker process
+    (where `arrived`, those times by task, has them); and back's two parts: its last result's
+    landing (last end to the batch's last result in the driver's process) and its wait there for
+    the main thread (to the tell), that wait also for the batches told once a run has ended (its
+    last save written meanwhile)."""
     split: dict[str, list[float]] = {key: [] for key in (
-        "driver", "to_start", "flying", "back", "back_landing", "back_waiting", "back_waiting_late",
-        "to_start_first", "flying_first", "back_landing_first", "back_waiting_first")}
+        "driver", "to_start", *OUT, "flying", "back", "back_landing", "back_waiting", "back_waiting_late",
+        "to_start_first", *(f"{key}_first" for key in OUT), "flying_first", "back_landing_first",
+        "back_waiting_first")}
     told: dict[str, list[float]] = {}
     for tell in tells:
         told.setdefault(tell["run"], []).append(tell["at"])
@@ -355,6 +403,10 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict) -> d
             split["driver"].append(batch["submitted"] - told[batch["run"]][k - 1])
         first, last = min(a for a, _ in spans), max(b for _, b in spans)
         note("to_start", first - batch["submitted"], k)
+        starter = min((key for key in batch["keys"] if key in log), key=lambda key: log[key][0])
+        for key, times in zip(OUT, arrived):
+            if starter in times:
+                note(key, times[starter] - batch["submitted"], k)
         note("flying", last - first, k)
         split["back"].append(tell_at - last)
         if (lands := last_landing(batch, landed)) is not None:
@@ -404,19 +456,23 @@ def first_task_starts(records: list[dict], log: dict) -> list[float]:
     return waits
 
 
-def landings_while_idle(record: dict, landed: dict) -> tuple[int, int]:
+def landings_while_idle(record: dict, landed: dict) -> tuple[int, int, float]:
     """Of a driving process's batches, how many had their last result land while its main thread
-    was waiting for a chunk (idle), and how many in all. A result reaches the driver's process in
-    its client's thread, which needs the GIL the main thread holds while it works."""
+    was waiting for a chunk (idle), how many in all, and the seconds that idle main thread took to
+    wake, summed (from the landing to the end of its wait: the GIL and a core). A result reaches
+    the driver's process in its client's thread, which needs the GIL the main thread holds while
+    it works."""
     waits = sorted(record["waits"])
     starts = [start for start, _ in waits]
     idle = total = 0
+    woken = 0.0
     for batch in record["batches"]:
         if (lands := last_landing(batch, landed)) is not None:
             i = bisect.bisect_right(starts, lands) - 1
-            idle += i >= 0 and waits[i][1] >= lands
+            if i >= 0 and waits[i][1] >= lands:
+                idle, woken = idle + 1, woken + waits[i][1] - lands
             total += 1
-    return idle, total
+    return idle, total, woken
 
 
 def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> float:
@@ -429,7 +485,8 @@ def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> floa
 
 
 def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
-              sampler: CpuSampler) -> dict:
+              sampler: CpuSampler, arrived: tuple[dict, ...] = ({}, {}, {}),
+              reported: dict | None = None) -> dict:
     """The figures of one experiment. Its search phase runs from the first batch's submission to
     the last chunk's end: before it, each run's first checkpoint; after it, each run's last save
     (plots, pickles: ~0.5 s a run, which a real 300-iteration run spreads over its iterations).
@@ -464,10 +521,12 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     driver_wall = [driver_wall_per_iteration(r, steady) for r in records]
     # from a chunk's end on its worker to its result in the driver's process (as_completed's queue)
     landed = {key: at for r in records for key, at in r["landed"].items()}
-    split = cycles(batches, tells, log, landed)
+    split = cycles(batches, tells, log, landed, arrived)
     starts, opening = driver_starts(records)
-    idle, counted = np.sum([landings_while_idle(r, landed) for r in records], axis=0)
+    idle, counted, woken = np.sum([landings_while_idle(r, landed) for r in records], axis=0)
     landing = [at - log[key][1] for key, at in landed.items() if key in log]
+    # from a chunk's end to its scheduler's knowing it (its worker process's slot free again)
+    report = [at - log[key][1] for key, at in (reported or {}).items() if key in log]
     return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
             "tasks_per_batch": round(tasks / len(batches), 2), "work_s": round(work, 2),
             "ideal_s": round(ideal, 3), "search_s": round(search_s, 3),
@@ -488,7 +547,9 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "late_batches": len(split["back_waiting_late"]),
             "driver_turn_spread": [round(float(q), 3) for q in turn_spread(split["driver"])],
             "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
+            **({"result_reported_ms_mean": round(1000 * float(np.mean(report)), 1)} if report else {}),
             "last_result_lands_driver_idle": round(float(idle / max(1, counted)), 3),
+            "driver_wakes_ms_mean": round(1000 * float(woken / max(1, idle)), 1),
             "result_lands_ms_median": round(1000 * float(np.median(landing)), 1),
             "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),
             "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1),
@@ -513,18 +574,19 @@ def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int
 def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 20,
          processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20, parts: tuple = (1,),
          repeats: int = 1, lengths: str | None = None, log_every: tuple = (None,),
-         savers: tuple = (None,), chunks: tuple = (None,),
+         savers: tuple = (None,), chunks: tuple = (None,), switch: tuple = (None,),
          out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
     """`log_every`: the runs' saves (None: at their end only); `savers`: at most that many saver
     processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws);
-    `chunks`: chunks per worker (None: the engine's own, engine.chunks_per_worker)."""
+    `chunks`: chunks per worker (None: the engine's own, engine.chunks_per_worker); `switch`: the
+    driving processes' switch interval in seconds (None: Python's own, 5 ms)."""
     pool, step_s, source = lengths_pool(lengths, measured, env)
     print(f"episode lengths: {source}: {len(pool)} episodes, {np.mean(pool):.0f} steps on average "
           f"(median {np.median(pool):.0f}, max {max(pool)}); {1e6 * step_s:.1f} us a step (measured now)")
     rows = []
     for _ in range(repeats):
         for n in workers:
-            for k, variant in itertools.product(parts, itertools.product(log_every, savers, chunks)):
+            for k, variant in itertools.product(parts, itertools.product(log_every, savers, chunks, switch)):
                 rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env,
                                      variant))
                 print(json.dumps(rows[-1]))

@@ -1,5 +1,6 @@
 """The scale model (benchmarks/scale_model.py) against cases worked out by hand."""
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -207,6 +208,19 @@ def test_a_schedulers_first_graph_holds_the_first_tasks_back():
     held = simulate(workload, 1, Costs(**{**FREE.__dict__, "first_task_waits": (0.3,)}))
     assert held["search_s"] == pytest.approx(ready["search_s"] + 0.3)
     assert held["cycle_to_start_first_ms"] == pytest.approx(300.0)
+    assert held["first_task_starts_s"] == pytest.approx([0.3])
+
+
+def test_a_wall_time_measured_on_the_shared_cores_is_not_slowed_again():
+    """One CPU shared by three servers: a job started while two others are busy takes three times
+    its CPU, but a wall time (a scheduler's first graph, as measured) takes what it took."""
+    sim, machine = scale_model.Simulation(), ([], 1)
+    busy, measured, shared = (scale_model.Server(sim, machine) for _ in range(3))
+    busy.serve(0.0, 1.0, lambda t: None)
+    measured.serve(0.0, 0.3, lambda t: None, wall=True)
+    shared.serve(0.0, 0.3, lambda t: None)
+    assert measured.free_at == pytest.approx(0.3)
+    assert shared.free_at == pytest.approx(0.9)
 
 
 def test_first_batches_are_sized_for_the_runs_opened_so_far():
@@ -250,3 +264,63 @@ def test_the_benchmark_splits_each_runs_first_batch_apart():
     assert split["back_waiting_first"] == pytest.approx([0.3, 0.35])
     assert split["to_start"] == pytest.approx([0.8, 0.8, 0.1, 0.1])
     assert bench_scale.first_task_starts([{"batches": batches}], log) == pytest.approx([0.8])
+
+
+def test_the_benchmark_splits_the_way_to_the_first_start():
+    """bench_scale.py's way out of a batch, for its chunk that starts first: to its scheduler (its
+    graph taken in), to its handing out there and to its worker process, from the times the
+    scheduler's and the workers' logs give by task."""
+    import bench_scale
+
+    batches = [{"run": "a", "submitted": 0.0, "keys": ["a0", "a0b"]},
+               {"run": "a", "submitted": 2.0, "keys": ["a1"]}]
+    tells = [{"run": "a", "at": 1.9}, {"run": "a", "at": 3.0}]
+    log = {"a0": (0.9, 1.5), "a0b": (0.8, 1.4), "a1": (2.1, 2.8)}  # a0b starts first
+    arrived = ({"a0": 0.01, "a0b": 0.02, "a1": 2.03},  # taken in by the scheduler
+               {"a0": 0.5, "a0b": 0.6, "a1": 2.05},  # handed out to a worker
+               {"a0": 0.55, "a0b": 0.7, "a1": 2.08})  # at the worker
+    split = bench_scale.cycles(batches, tells, log, {}, arrived)
+    assert split["to_scheduler"] == pytest.approx([0.02, 0.03])
+    assert split["to_assigned"] == pytest.approx([0.6, 0.05])
+    assert split["to_worker"] == pytest.approx([0.7, 0.08])
+    assert split["to_worker_first"] == pytest.approx([0.7])
+    assert split["to_start"] == pytest.approx([0.8, 0.1])
+    assert bench_scale.cycles(batches, tells, log, {})["to_scheduler"] == []  # an older record
+
+
+def test_the_model_splits_the_way_to_the_first_start():
+    """One run of two chunks on one worker thread, worked out by hand: 5 ms a hop, and the
+    scheduler takes the batch's graph in at 1 ms a task (half its 2 ms) before it hands the first
+    chunk out."""
+    workload = Workload(runs=1, iterations=1, batch=8, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "hop_s": 0.005, "scheduler_task_s": 0.002, "saturation": 1.0,
+                     "chunks_per_worker": 2})
+    out = simulate(workload, 1, costs)
+    assert out["tasks_per_batch"] == 2
+    assert out["cycle_to_scheduler_ms"] == pytest.approx(5.0 + 2.0)  # a hop, then 2 x 1 ms
+    assert out["cycle_to_assigned_ms"] == pytest.approx(7.0)  # a free slot: handed out at once
+    assert out["cycle_to_worker_ms"] == pytest.approx(12.0)  # one hop more
+    assert out["cycle_to_start_ms"] == pytest.approx(12.0)
+    assert out["first_task_starts_s"] == pytest.approx([0.012])
+
+
+def test_a_worker_slot_is_held_until_its_tasks_end_is_reported():
+    """One worker thread with one slot, a batch of two chunks of 0.4 s: the second is handed out
+    when the scheduler learns of the first's end, 50 ms after it (`report_s`)."""
+    workload = Workload(runs=1, iterations=1, batch=8, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "saturation": 1.0, "chunks_per_worker": 2})
+    assert simulate(workload, 1, costs)["cycle_flying_ms"] == pytest.approx(800.0)
+    reported = simulate(workload, 1, dataclasses.replace(costs, report_s=0.05))
+    assert reported["cycle_flying_ms"] == pytest.approx(850.0)
+
+
+def test_an_idle_driver_takes_a_result_when_it_wakes():
+    """One run, one chunk an iteration: each result finds the driver idle, which wakes 20 ms
+    later (`wake_s`); the search, from the first batch to the last chunk's end, waits for two."""
+    workload = Workload(runs=1, iterations=3, batch=4, lengths=[np.array([100])])
+    free = simulate(workload, 1, FREE)
+    woken = simulate(workload, 1, dataclasses.replace(FREE, wake_s=0.02))
+    assert free["cycle_back_waiting_ms"] == pytest.approx(0.0)
+    assert woken["cycle_back_waiting_ms"] == pytest.approx(20.0)
+    assert woken["last_result_lands_driver_idle"] == 1.0
+    assert woken["search_s"] == pytest.approx(free["search_s"] + 2 * 0.02)
