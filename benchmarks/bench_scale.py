@@ -45,7 +45,8 @@ For each number of simulated workers N and of parts it prints, from one experime
   other runs);
 - the time from a batch's submission to its first task starting (median and 90th percentile), and
   a result's landing: from its task's end to the result in its driver's process (mean, median),
-  and the share of batches whose last result landed while the driver's main thread was idle;
+  and to its scheduler (its report), the share of batches whose last result landed while the
+  driver's main thread was idle, and how long that idle thread took to wake;
 - the time from the first batch's submission to the end of the last driver, its runs' last saves
   written (`all_saved_s`).
 Writes benchmarks/scale_results.json. Run it on a quiet machine.
@@ -204,8 +205,8 @@ def start_cluster(folder: Path, workers: int, processes: int):
     # The code is importable everywhere, as on a cluster's shared filesystem: nothing is uploaded
     # (an upload would re-import the package on the workers and undo the simulation).
     # Workers as docs/slurm.sbatch starts them: without Dask's statistical profiler.
-    # The scheduler keeps every transition (Dask keeps the last 1,000): each task's first is
-    # when its graph was taken in (graph_arrivals).
+    # The schedulers and workers keep every transition (Dask keeps the last 1,000): the way of
+    # each task, read off them (scheduler_times, worker_arrivals).
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}",
            "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
            "DASK_DISTRIBUTED__ADMIN__LOW_LEVEL_LOG_LENGTH": "1000000"}
@@ -331,8 +332,8 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 process.kill()  # the cluster's work is done; its threads may still be asleep
             for process in started:
                 process.wait(timeout=60)
-    times = (arrived, assigned, reached)  # each task's, by OUT
-    return {**summarise(workers, runs, iterations, parts, records, log, sampler, times, reported),
+    way_out = (arrived, assigned, reached)  # each task's times, by OUT
+    return {**summarise(workers, runs, iterations, parts, records, log, sampler, way_out, reported),
             "log_every": variant[0] or iterations, "saver_processes": variant[1],
             "chunks_per_worker": variant[2],  # None: engine.chunks_per_worker's
             "driver_switch_s": variant[3]}  # None: Python's own
@@ -370,12 +371,12 @@ def install_simulation(pool: list[int], step_s: float) -> None:
 
 
 def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict,
-           arrived: tuple[dict, ...] = ({}, {}, {})) -> dict[str, list[float]]:
+           way_out: tuple[dict, ...] = ({}, {}, {})) -> dict[str, list[float]]:
     """Each run-iteration's cycle, split: the driver (from the previous tell to this batch's
     submission), to the first chunk's start, flying (first start to last end), back (last end to
     the tell); to the start's first parts, for the chunk that starts first, the way to the
     scheduler (to its graph taken in there), to its handing out there and to its worker process
-    (where `arrived`, those times by task, has them); and back's two parts: its last result's
+    (where `way_out`, those times by task, has them); and back's two parts: its last result's
     landing (last end to the batch's last result in the driver's process) and its wait there for
     the main thread (to the tell), that wait also for the batches told once a run has ended (its
     last save written meanwhile)."""
@@ -404,7 +405,7 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict,
         first, last = min(a for a, _ in spans), max(b for _, b in spans)
         note("to_start", first - batch["submitted"], k)
         starter = min((key for key in batch["keys"] if key in log), key=lambda key: log[key][0])
-        for key, times in zip(OUT, arrived):
+        for key, times in zip(OUT, way_out):
             if starter in times:
                 note(key, times[starter] - batch["submitted"], k)
         note("flying", last - first, k)
@@ -485,7 +486,7 @@ def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> floa
 
 
 def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
-              sampler: CpuSampler, arrived: tuple[dict, ...] = ({}, {}, {}),
+              sampler: CpuSampler, way_out: tuple[dict, ...] = ({}, {}, {}),
               reported: dict | None = None) -> dict:
     """The figures of one experiment. Its search phase runs from the first batch's submission to
     the last chunk's end: before it, each run's first checkpoint; after it, each run's last save
@@ -521,7 +522,7 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
     driver_wall = [driver_wall_per_iteration(r, steady) for r in records]
     # from a chunk's end on its worker to its result in the driver's process (as_completed's queue)
     landed = {key: at for r in records for key, at in r["landed"].items()}
-    split = cycles(batches, tells, log, landed, arrived)
+    split = cycles(batches, tells, log, landed, way_out)
     starts, opening = driver_starts(records)
     idle, counted, woken = np.sum([landings_while_idle(r, landed) for r in records], axis=0)
     landing = [at - log[key][1] for key, at in landed.items() if key in log]

@@ -276,10 +276,10 @@ def test_the_benchmark_splits_the_way_to_the_first_start():
                {"run": "a", "submitted": 2.0, "keys": ["a1"]}]
     tells = [{"run": "a", "at": 1.9}, {"run": "a", "at": 3.0}]
     log = {"a0": (0.9, 1.5), "a0b": (0.8, 1.4), "a1": (2.1, 2.8)}  # a0b starts first
-    arrived = ({"a0": 0.01, "a0b": 0.02, "a1": 2.03},  # taken in by the scheduler
+    way_out = ({"a0": 0.01, "a0b": 0.02, "a1": 2.03},  # taken in by the scheduler
                {"a0": 0.5, "a0b": 0.6, "a1": 2.05},  # handed out to a worker
                {"a0": 0.55, "a0b": 0.7, "a1": 2.08})  # at the worker
-    split = bench_scale.cycles(batches, tells, log, {}, arrived)
+    split = bench_scale.cycles(batches, tells, log, {}, way_out)
     assert split["to_scheduler"] == pytest.approx([0.02, 0.03])
     assert split["to_assigned"] == pytest.approx([0.6, 0.05])
     assert split["to_worker"] == pytest.approx([0.7, 0.08])
