@@ -380,10 +380,9 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict,
     landing (last end to the batch's last result in the driver's process) and its wait there for
     the main thread (to the tell), that wait also for the batches told once a run has ended (its
     last save written meanwhile)."""
+    noted = ("to_start", *OUT, "flying", "back_landing", "back_waiting")  # each also for first batches
     split: dict[str, list[float]] = {key: [] for key in (
-        "driver", "to_start", *OUT, "flying", "back", "back_landing", "back_waiting", "back_waiting_late",
-        "to_start_first", *(f"{key}_first" for key in OUT), "flying_first", "back_landing_first",
-        "back_waiting_first")}
+        "driver", "back", "back_waiting_late", *noted, *(f"{key}_first" for key in noted))}
     told: dict[str, list[float]] = {}
     for tell in tells:
         told.setdefault(tell["run"], []).append(tell["at"])
@@ -402,9 +401,9 @@ def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict,
         tell_at = told[batch["run"]][k]
         if k > 0:
             split["driver"].append(batch["submitted"] - told[batch["run"]][k - 1])
-        first, last = min(a for a, _ in spans), max(b for _, b in spans)
-        note("to_start", first - batch["submitted"], k)
         starter = min((key for key in batch["keys"] if key in log), key=lambda key: log[key][0])
+        first, last = log[starter][0], max(b for _, b in spans)
+        note("to_start", first - batch["submitted"], k)
         for key, times in zip(OUT, way_out):
             if starter in times:
                 note(key, times[starter] - batch["submitted"], k)

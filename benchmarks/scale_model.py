@@ -151,12 +151,12 @@ def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = 
 
 SPLIT = ("driver", "to_start", "flying", "back")  # a run-iteration's cycle, in order
 BACK = ("back_landing", "back_waiting")  # back: its last result's landing, then its wait for the driver
-# the same for each run's first batch, sent while its driver opens the other runs
-FIRST = ("to_start_first", "flying_first", "back_landing_first", "back_waiting_first")
 # to the start's first parts: the way to the scheduler (the batch's graph taken in there), and for
 # the chunk that starts first, to its handing out there (Dask's queue: worker-saturation) and to
 # its worker process
 OUT = ("to_scheduler", "to_assigned", "to_worker")
+# the same parts for each run's first batch, sent while its driver opens the other runs
+FIRST = tuple(f"{key}_first" for key in ("to_start", *OUT, "flying", *BACK))
 IDLE = "last_result_lands_driver_idle"  # the share of batches whose last result finds the driver idle
 
 
@@ -314,8 +314,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
     own = [sum(1 for r in range(workload.runs) if r % parts == p) for p in range(parts)]  # each driver's runs
     opened = np.zeros(parts, dtype=int)  # and how many it has opened so far
-    split: dict[str, list[float]] = {key: [] for key in (
-        *SPLIT, *OUT, *(f"{key}_first" for key in OUT), *BACK, *FIRST)}
+    split: dict[str, list[float]] = {key: [] for key in (*SPLIT, *OUT, *BACK, *FIRST)}
     # each part's first batch sent and first task started: its wait for its scheduler's first graph
     firsts = {"sent": np.full(parts, math.inf), "started": np.full(parts, math.inf)}
     state = {"first": math.inf, "last": 0.0, "work": 0.0, "paths": np.zeros(workload.runs),
@@ -576,8 +575,7 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
                           "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
                           **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT},
                           **{f"{k}_ms": [row[f"cycle_{k}_ms"], round(model[f"cycle_{k}_ms"], 1)]
-                             for k in (*OUT, *BACK, *FIRST, *(f"{key}_first" for key in OUT))
-                             if row.get(f"cycle_{k}_ms") is not None},
+                             for k in (*OUT, *BACK, *FIRST) if row.get(f"cycle_{k}_ms") is not None},
                           **({IDLE: [row[IDLE], round(model[IDLE], 3)]} if IDLE in row else {}),
                           **({"first_task_starts_s": [row["first_task_starts_s"], [
                               round(wait, 3) for wait in model["first_task_starts_s"]]]}
