@@ -23,7 +23,8 @@ from a real search of --measured iterations flown first here, which also gives t
 With --parts K, the experiment is split in K parts (experiment --part), each driven by its own
 process on its own `dask scheduler`, the workers shared out among them.
 
-For each number of simulated workers N and of parts it prints, from one experiment:
+For each number of simulated workers N and of parts it prints, from one experiment (its records
+summed up by scale_records.py):
 - the efficiency against an ideal cluster: the ideal makespan over the measured search phase (from
   the first batch's submission to the last chunk's end; the runs' first checkpoints and last
   saves, which a real 300-iteration run spreads thin, are left out). The ideal cluster has no
@@ -54,7 +55,6 @@ Writes benchmarks/scale_results.json. Run it on a quiet machine.
 
 from __future__ import annotations
 
-import bisect
 import itertools
 import json
 import os
@@ -74,12 +74,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from scale_records import OUT, summarise  # noqa: E402
+
 from qdsearch import algorithms, engine, experiments, loop, run_config, run_files, tasks  # noqa: E402
 
 VARIANTS = ("log_every", "savers", "chunks", "switch")  # the drive command's options a row may set
-# to a chunk's start, its first parts: to its scheduler, handed out there, at its worker process
-OUT = ("to_scheduler", "to_assigned", "to_worker")
-TASK_LOG: dict[str, tuple[float, float]] = {}  # on a worker: task key -> (start, end), time.time()
+# on a worker: task key -> (start, end, its thread), time.time(); the thread as "pid-ident"
+TASK_LOG: dict[str, tuple[float, float, str]] = {}
 
 
 def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
@@ -110,7 +111,7 @@ def simulated_chunk(lengths: list[int], step_s: float):
         start = time.time()
         steps = [lengths[zlib.crc32(np.asarray(s).tobytes()) % len(lengths)] for s in solutions]
         time.sleep(sum(steps) * step_s)
-        TASK_LOG[thread_state.key] = (start, time.time())
+        TASK_LOG[thread_state.key] = (start, time.time(), f"{os.getpid()}-{threading.get_ident()}")
         objective = 300 - 100 * np.sum(np.square(solutions), axis=1)
         values = [lo + (hi - lo) * (np.tanh(solutions[:, i]) + 1) / 2 for i, (lo, hi) in
                   enumerate(tasks.MEASURES[name].range for name in measures)]
@@ -280,10 +281,12 @@ class CpuSampler(threading.Thread):
 
 
 def one_size(workers: int, runs: int, iterations: int, processes: int, parts: int, pool: list[int],
-             step_s: float, env_name: str, variant: tuple[float | None, ...] = (None,) * 4) -> dict:
+             step_s: float, env_name: str, variant: tuple[float | None, ...] = (None,) * 4,
+             raw: Path | None = None) -> dict:
     """One experiment of `runs` runs on `workers` simulated workers: one driving process and one
     `dask scheduler` per part, the workers shared out among the schedulers; `variant`: the drive
-    command's log_every, savers, chunks and switch interval (None: its own)."""
+    command's log_every, savers, chunks and switch interval (None: its own); with `raw`, every
+    record it was summed up from written there (the drivers' records, each task's times)."""
     from dask.distributed import Client
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -333,7 +336,10 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
             for process in started:
                 process.wait(timeout=60)
     way_out = (arrived, assigned, reached)  # each task's times, by OUT
-    return {**summarise(workers, runs, iterations, parts, records, log, sampler, way_out, reported),
+    if raw is not None:
+        run_files.write_json(raw, {"records": records, "log": log, "reported": reported,
+                                   **dict(zip(OUT, way_out))})
+    return {**summarise(workers, runs, iterations, parts, records, log, sampler.between, way_out, reported),
             "log_every": variant[0] or iterations, "saver_processes": variant[1],
             "chunks_per_worker": variant[2],  # None: engine.chunks_per_worker's
             "driver_switch_s": variant[3]}  # None: Python's own
@@ -370,193 +376,6 @@ def install_simulation(pool: list[int], step_s: float) -> None:
     engine.fly_chunk = bench_scale.simulated_chunk(pool, step_s)
 
 
-def cycles(batches: list[dict], tells: list[dict], log: dict, landed: dict,
-           way_out: tuple[dict, ...] = ({}, {}, {})) -> dict[str, list[float]]:
-    """Each run-iteration's cycle, split: the driver (from the previous tell to this batch's
-    submission), to the first chunk's start, flying (first start to last end), back (last end to
-    the tell); to the start's first parts, for the chunk that starts first, the way to the
-    scheduler (to its graph taken in there), to its handing out there and to its worker process
-    (where `way_out`, those times by task, has them); and back's two parts: its last result's
-    landing (last end to the batch's last result in the driver's process) and its wait there for
-    the main thread (to the tell), that wait also for the batches told once a run has ended (its
-    last save written meanwhile)."""
-    noted = ("to_start", *OUT, "flying", "back_landing", "back_waiting")  # each also for first batches
-    split: dict[str, list[float]] = {key: [] for key in (
-        "driver", "back", "back_waiting_late", *noted, *(f"{key}_first" for key in noted))}
-    told: dict[str, list[float]] = {}
-    for tell in tells:
-        told.setdefault(tell["run"], []).append(tell["at"])
-    first_end = min(times[-1] for times in told.values())
-    def note(key: str, value: float, k: int) -> None:  # a run's first batch (k 0): also apart
-        split[key].append(value)
-        if k == 0:
-            split[f"{key}_first"].append(value)
-
-    seen: dict[str, int] = {}
-    for batch in batches:
-        k = seen[batch["run"]] = seen.get(batch["run"], -1) + 1
-        spans = [log[key] for key in batch["keys"] if key in log]
-        if not spans or k >= len(told.get(batch["run"], [])):
-            continue
-        tell_at = told[batch["run"]][k]
-        if k > 0:
-            split["driver"].append(batch["submitted"] - told[batch["run"]][k - 1])
-        starter = min((key for key in batch["keys"] if key in log), key=lambda key: log[key][0])
-        first, last = log[starter][0], max(b for _, b in spans)
-        note("to_start", first - batch["submitted"], k)
-        for key, times in zip(OUT, way_out):
-            if starter in times:
-                note(key, times[starter] - batch["submitted"], k)
-        note("flying", last - first, k)
-        split["back"].append(tell_at - last)
-        if (lands := last_landing(batch, landed)) is not None:
-            note("back_landing", lands - last, k)
-            note("back_waiting", tell_at - lands, k)
-            if tell_at > first_end:
-                split["back_waiting_late"].append(tell_at - lands)
-    return split
-
-
-def last_landing(batch: dict, landed: dict) -> float | None:
-    """When the batch's last result landed in its driver's process (None: one never did)."""
-    if all(key in landed for key in batch["keys"]):
-        return max(landed[key] for key in batch["keys"])
-    return None
-
-
-def turn_spread(turns: list[float]) -> np.ndarray:
-    """The spread of the driver's turns (a tell to the next batch's submission): 40 quantiles over
-    their mean, the shape the model draws its turns from."""
-    return np.quantile(turns, (np.arange(40) + 0.5) / 40) / np.mean(turns)
-
-
-def driver_starts(records: list[dict]) -> tuple[list[float], float]:
-    """When each driving process sent its first batch, from the first of them (the processes
-    start one by one), and the time a driver takes to open a run: each driver's span from its
-    first batch to its last run's first, over its other runs (mean over the drivers)."""
-    firsts = [min(b["submitted"] for b in r["batches"]) for r in records]
-    spans = []
-    for record, first in zip(records, firsts):
-        opened: dict[str, float] = {}
-        for batch in record["batches"]:
-            opened.setdefault(batch["run"], batch["submitted"])
-        spans.append((max(opened.values()) - first) / max(1, len(opened) - 1))
-    return [first - min(firsts) for first in firsts], float(np.mean(spans))
-
-
-def first_task_starts(records: list[dict], log: dict) -> list[float]:
-    """Each driving process's wait for its first task to start: from its first batch's
-    submission to the first start of any of its tasks. Its scheduler unpickles the first graph
-    it is sent (importing the code the tasks name) while the drivers open their runs, so the
-    first batches queue there: ~1 s on 2 shared cores, against ~0.05 s later."""
-    waits = []
-    for record in records:
-        starts = [log[key][0] for batch in record["batches"] for key in batch["keys"] if key in log]
-        waits.append(min(starts) - record["batches"][0]["submitted"])
-    return waits
-
-
-def landings_while_idle(record: dict, landed: dict) -> tuple[int, int, float]:
-    """Of a driving process's batches, how many had their last result land while its main thread
-    was waiting for a chunk (idle), how many in all, and the seconds that idle main thread took to
-    wake, summed (from the landing to the end of its wait: the GIL and a core). A result reaches
-    the driver's process in its client's thread, which needs the GIL the main thread holds while
-    it works."""
-    waits = sorted(record["waits"])
-    starts = [start for start, _ in waits]
-    idle = total = 0
-    woken = 0.0
-    for batch in record["batches"]:
-        if (lands := last_landing(batch, landed)) is not None:
-            i = bisect.bisect_right(starts, lands) - 1
-            if i >= 0 and waits[i][1] >= lands:
-                idle, woken = idle + 1, woken + waits[i][1] - lands
-            total += 1
-    return idle, total, woken
-
-
-def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> float:
-    """A driving process's main thread: its time at work in `window` (the window less its waits
-    for chunks) over the run-iterations it told in it."""
-    start, end = window
-    waited = sum(max(0.0, min(b, end) - max(a, start)) for a, b in record["waits"])
-    told = sum(1 for tell in record["tells"] if start <= tell["at"] < end)
-    return (end - start - waited) / max(1, told)
-
-
-def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
-              sampler: CpuSampler, way_out: tuple[dict, ...] = ({}, {}, {}),
-              reported: dict | None = None) -> dict:
-    """The figures of one experiment. Its search phase runs from the first batch's submission to
-    the last chunk's end: before it, each run's first checkpoint; after it, each run's last save
-    (plots, pickles: ~0.5 s a run, which a real 300-iteration run spreads over its iterations).
-    Its steady state runs from the moment every run has sent its first batch to the first run's
-    last tell: utilisation there is the work the workers did in it over workers x its length."""
-    batches = sorted((b for r in records for b in r["batches"]), key=lambda b: b["submitted"])
-    tells = [t for r in records for t in r["tells"]]
-    tasks = sum(len(b["keys"]) for b in batches)
-    latencies = [min(log[k][0] for k in b["keys"] if k in log) - b["submitted"]
-                 for b in batches if any(k in log for k in b["keys"])]
-    search_s = max(end for _, end in log.values()) - batches[0]["submitted"]
-    scheduler_cpu, worker_cpu = sampler.between(batches[0]["submitted"], batches[0]["submitted"] + search_s)
-    work = sum(sum(b["durations"]) for b in batches)
-    # no run can be faster than its iterations' longest chunks, one after another
-    paths: dict[str, float] = {}
-    for batch in batches:
-        paths[batch["run"]] = paths.get(batch["run"], 0.0) + max(batch["durations"])
-    ideal = max(work / workers, max(paths.values()))
-    opened = {}
-    for batch in batches:
-        opened.setdefault(batch["run"], batch["submitted"])
-    last_tells: dict[str, float] = {}
-    for tell in tells:
-        last_tells[tell["run"]] = max(last_tells.get(tell["run"], 0.0), tell["at"])
-    steady = (max(opened.values()), min(last_tells.values()))
-    in_window = sum(max(0.0, min(b, steady[1]) - max(a, steady[0])) for a, b in log.values())
-    driver_cpu = [(r["batches"][-1]["cpu"] - r["batches"][0]["cpu"]) / max(1, len(r["batches"]) - 1)
-                  for r in records]
-    # the main thread's wall time at work (not waiting for a chunk) per run-iteration told in the
-    # steady state: on a shared machine it exceeds the CPU the process is given (before it, the
-    # runs open; after it, the runs' last saves take the driver's GIL)
-    driver_wall = [driver_wall_per_iteration(r, steady) for r in records]
-    # from a chunk's end on its worker to its result in the driver's process (as_completed's queue)
-    landed = {key: at for r in records for key, at in r["landed"].items()}
-    split = cycles(batches, tells, log, landed, way_out)
-    starts, opening = driver_starts(records)
-    idle, counted, woken = np.sum([landings_while_idle(r, landed) for r in records], axis=0)
-    landing = [at - log[key][1] for key, at in landed.items() if key in log]
-    # from a chunk's end to its scheduler's knowing it (its worker process's slot free again)
-    report = [at - log[key][1] for key, at in (reported or {}).items() if key in log]
-    return {"workers": workers, "runs": runs, "iterations": iterations, "parts": parts, "tasks": tasks,
-            "tasks_per_batch": round(tasks / len(batches), 2), "work_s": round(work, 2),
-            "ideal_s": round(ideal, 3), "search_s": round(search_s, 3),
-            "efficiency": round(ideal / search_s, 3),
-            "utilisation": round(work / (workers * search_s), 3),
-            "steady_utilisation": round(in_window / (workers * (steady[1] - steady[0])), 3)
-            if steady[1] > steady[0] else None,
-            "last_run_opens_s": round(steady[0] - batches[0]["submitted"], 3),
-            "driver_starts_s": [round(start, 3) for start in starts],
-            "first_task_starts_s": [round(wait, 3) for wait in first_task_starts(records, log)],
-            "run_opens_ms": round(1000 * opening, 2),
-            "driver_cpu_ms_per_iteration": round(1000 * float(np.mean(driver_cpu)), 3),
-            "driver_wall_ms_per_iteration": round(1000 * float(np.mean(driver_wall)), 3),
-            "scheduler_cpu_ms_per_task": round(1000 * scheduler_cpu / tasks, 3),
-            "worker_cpu_ms_per_task": round(1000 * worker_cpu / tasks, 3),
-            **{f"cycle_{key}_ms": round(1000 * float(np.mean(values)), 1) if values else None
-               for key, values in split.items()},
-            "late_batches": len(split["back_waiting_late"]),
-            "driver_turn_spread": [round(float(q), 3) for q in turn_spread(split["driver"])],
-            "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
-            **({"result_reported_ms_mean": round(1000 * float(np.mean(report)), 1)} if report else {}),
-            "last_result_lands_driver_idle": round(float(idle / max(1, counted)), 3),
-            "driver_wakes_ms_mean": round(1000 * float(woken / max(1, idle)), 1),
-            "result_lands_ms_median": round(1000 * float(np.median(landing)), 1),
-            "first_start_ms_median": round(1000 * float(np.median(latencies)), 1),
-            "first_start_ms_p90": round(1000 * float(np.percentile(latencies, 90)), 1),
-            # to the end of the drivers' last save: what a user waits for, last saves included
-            "all_saved_s": round(max(r["ended"] for r in records) - batches[0]["submitted"], 3)}
-
-
 def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int], float, str]:
     """The episode lengths the simulated workers draw from, the cost of a step (from real
     rollouts here, now), and where the lengths come from: a file of a real search's lengths
@@ -575,20 +394,24 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
          processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20, parts: tuple = (1,),
          repeats: int = 1, lengths: str | None = None, log_every: tuple = (None,),
          savers: tuple = (None,), chunks: tuple = (None,), switch: tuple = (None,),
-         out: str = str(ROOT / "benchmarks" / "scale_results.json")) -> None:
+         out: str = str(ROOT / "benchmarks" / "scale_results.json"), raw: str | None = None) -> None:
     """`log_every`: the runs' saves (None: at their end only); `savers`: at most that many saver
     processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws);
     `chunks`: chunks per worker (None: the engine's own, engine.chunks_per_worker); `switch`: the
-    driving processes' switch interval in seconds (None: Python's own, 5 ms)."""
+    driving processes' switch interval in seconds (None: Python's own, 5 ms); `raw`: a folder
+    to write each row's records in (raw/row<i>.json: each batch, tell, wait and landing, and each
+    task's times on its way), for a closer look than the summary's means."""
     pool, step_s, source = lengths_pool(lengths, measured, env)
     print(f"episode lengths: {source}: {len(pool)} episodes, {np.mean(pool):.0f} steps on average "
           f"(median {np.median(pool):.0f}, max {max(pool)}); {1e6 * step_s:.1f} us a step (measured now)")
     rows = []
+    if raw:
+        Path(raw).mkdir(parents=True, exist_ok=True)
     for _ in range(repeats):
         for n in workers:
             for k, variant in itertools.product(parts, itertools.product(log_every, savers, chunks, switch)):
                 rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env,
-                                     variant))
+                                     variant, raw and Path(raw) / f"row{len(rows)}.json"))
                 print(json.dumps(rows[-1]))
     print("| simulated workers | parts | tasks per batch | ideal s | search s | efficiency | utilisation "
           "(steady) | driver CPU ms per iteration | scheduler CPU ms per task | cycle: driver, to start, "

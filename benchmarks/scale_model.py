@@ -19,11 +19,15 @@ The model (every server serves one job at a time, first come first served):
   evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
   up to ceil(`saturation` x threads) tasks on a worker process (Dask's worker-saturation),
   handing them out in arrival order (the engine sends each batch as a generation of its own:
-  engine.FIFO_TIMEOUT);
-- a worker process of `threads` threads runs a task on each free thread for the chunk's episodes
-  (steps x `step_s`); its event loop then spends `worker_task_s` on the result, which it starts
-  `result_delay_s` after the task's end when the thread goes straight on to another (GIL-holding
-  rollouts make the loop wait); every message takes `hop_s`; a result reaches its driver no sooner
+  engine.FIFO_TIMEOUT), each to the least busy worker process with a slot free (as Dask's
+  decide_worker_rootish_queuing_enabled picks);
+- a task handed out reaches its worker process no sooner than `reach_s` after (the message and
+  the process's event loop, on shared cores); a worker process of `threads` threads runs a task
+  on each free thread, `start_s` after both are there (its event loop), for the chunk's episodes
+  (steps x `step_s`); its event loop then spends
+  `worker_task_s` on the result, which it starts `result_delay_s` after the task's end when the
+  thread goes straight on to another (GIL-holding rollouts make the loop wait); every message
+  takes `hop_s`; a result reaches its driver no sooner
   than `landing_s` after its task's end (the reports and the client's fetch, measured end to end),
   and its scheduler no sooner than `report_s` (its worker process's slot is held until then); a
   driver idle when a result lands takes it `wake_s` later;
@@ -45,12 +49,13 @@ The model (every server serves one job at a time, first come first served):
   not simulated.
 
     python benchmarks/scale_model.py --workers "[256, 512]" --runs "[60, 400]" --parts "[1, 4, 16]"
+
+Checked against the real benchmark by scale_validation.py.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import heapq
 import itertools
 import math
@@ -82,6 +87,13 @@ class Costs:
     # a task's end reaches its scheduler (which frees its worker process's slot) no sooner than
     # this after it (the worker's event loop, its report: measured end to end where a row has it)
     report_s: float = 0.0
+    # a task handed out reaches its worker process no sooner than this after (the scheduler's
+    # message, the worker process's event loop waking: measured on shared cores; 0: hop_s alone)
+    reach_s: float = 0.0
+    # a worker process starts a task this long after both it and a free thread are there (its
+    # event loop, which also hands the thread's last result over: measured on shared cores; 0 on a
+    # core of its own)
+    start_s: float = 0.0
     # a driver's main thread, idle (waiting for a chunk) when a result lands, wakes this much later
     # (the GIL and a core: measured on the benchmark's shared cores; 0 on a core of its own)
     wake_s: float = 0.0
@@ -385,15 +397,16 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         dispatch(sched, now)
 
     def dispatch(sched: int, now: float) -> None:
-        for worker in pools[sched]:
-            while waiting[sched] and worker.held < worker.slots:
-                task = waiting[sched].popleft()
-                task["assigned"] = now
-                worker.held += 1
-                leaves = worker.stream.depart(now)
-                sim.at(leaves + c.hop_s, lambda t, w=worker, task=task: arrive(sched, w, task, t))
-            if not waiting[sched]:
+        while waiting[sched]:
+            free = [w for w in pools[sched] if w.held < w.slots]
+            if not free:
                 return
+            worker = min(free, key=lambda w: w.held / w.threads)
+            task = waiting[sched].popleft()
+            task["assigned"] = now
+            worker.held += 1
+            leaves = max(worker.stream.depart(now) + c.hop_s, now + c.reach_s)
+            sim.at(leaves, lambda t, w=worker, task=task: arrive(sched, w, task, t))
 
     def arrive(sched: int, worker: Worker, task: dict, now: float) -> None:
         task["reached"] = now
@@ -402,8 +415,15 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
             run_next(sched, worker, now)
 
     def run_next(sched: int, worker: Worker, now: float) -> None:
+        """A thread is free and a task waits: the worker process's loop starts it `start_s` later."""
         task = worker.queue.popleft()
         worker.running += 1
+        if c.start_s:
+            sim.at(now + c.start_s, lambda t: start_task(sched, worker, task, t))
+        else:
+            start_task(sched, worker, task, now)
+
+    def start_task(sched: int, worker: Worker, task: dict, now: float) -> None:
         duration, batch = task["duration"], task["batch"]
         if batch:
             if now < batch["first_start"]:  # the batch's first chunk to start
@@ -485,103 +505,6 @@ def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
         return [data[k] for k in keys], float(data["us_per_step"]) * 1e-6
 
 
-def cycle_shares(row: dict) -> dict[str, float]:
-    """A run-iteration's cycle split as shares of the whole cycle."""
-    total = sum(row[f"cycle_{key}_ms"] for key in SPLIT)
-    return {key: row[f"cycle_{key}_ms"] / total for key in SPLIT}
-
-
-def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
-    """The service times one bench_scale.py row measured, as the model's costs:
-    - the drivers' time per run-iteration, less the client's share per task (which the model
-      charges per chunk sent and per result taken), and the spread of their turns where the row
-      has it. It is their main thread's wall time at work where the row has it, else their CPU:
-      on the benchmark's 2 shared cores a driver is given less than a core, and fed its CPU under
-      the model's processor sharing it came out further from the measured split
-      (docs/performance.md);
-    - the schedulers' and the worker processes' CPU per task (the workers' where the row has it);
-    - the opening of a run (each driver's own where the row has it, else the time the last run
-      took to open over the runs each driver opened), when each driver started, and how long its
-      first task waited to start (its scheduler's first graph);
-    - a result's landing, as the row measured it (fitted_landing takes the GIL's share out), and
-      where the row has them its report to the scheduler and an idle driver's waking;
-    - the GIL's longest hold: the main thread's wall time at work less its CPU per run-iteration
-      (the time it waits for a core, holding the GIL)."""
-    client = Costs.client_task_s
-    wall = row.get("driver_wall_ms_per_iteration")
-    per_iteration = (wall or row["driver_cpu_ms_per_iteration"]) / 1000 - 2 * client * row["tasks_per_batch"]
-    # a run's opening: each driver's own where the row has it (the time the last run took to open
-    # also holds the drivers' later starts)
-    opening = (row["run_opens_ms"] / 1000 if "run_opens_ms" in row
-               else row["last_run_opens_s"] / max(1, row["runs"] // row["parts"] - 1))
-    # measured from one run's first batch to the next's: the model adds a turn and its chunks
-    opening = max(0.0, opening - max(0.0, per_iteration) - client * row["tasks_per_batch"])
-    gil = (wall - row["driver_cpu_ms_per_iteration"]) / 1000 if wall else 0.0
-    return Costs(driver_iteration_s=max(0.0, per_iteration), step_s=step_s, cores=cores, run_open_s=opening,
-                 gil_s=max(0.0, gil),
-                 driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
-                 report_s=row.get("result_reported_ms_mean", 0.0) / 1000,
-                 wake_s=row.get("driver_wakes_ms_mean", 0.0) / 1000,
-                 scheduler_task_s=row["scheduler_cpu_ms_per_task"] / 1000,
-                 worker_task_s=row["worker_cpu_ms_per_task"] / 1000 if "worker_cpu_ms_per_task" in row
-                 else Costs.worker_task_s,
-                 driver_spread=tuple(row.get("driver_turn_spread", ())),
-                 part_starts=tuple(row.get("driver_starts_s", ())),
-                 first_task_waits=tuple(row.get("first_task_starts_s", ())),
-                 chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]),
-                 task_rate=chunks["task_rate"])
-
-
-def fitted_landing(model: Callable[[Costs], dict], costs: Costs, rounds: int = 3) -> tuple[Costs, dict]:
-    """The model's run with a landing (a task's end to its result in the driver's process) as
-    measured (`costs.landing_s`). The measured landing holds the wait for the driver's GIL, which
-    the model adds itself: the rest is solved for, a few fixed-point rounds bringing the model's
-    mean landing to the measured one. (Each part's wait for its first task, solved for the same
-    way, put fewer rows within +-0.05 of the measured efficiency: docs/performance.md.)"""
-    measured_s, out = costs.landing_s, model(costs)
-    for _ in range(rounds if costs.gil_s else 0):
-        gap = measured_s - out["result_lands_ms_mean"] / 1000
-        costs = dataclasses.replace(costs, landing_s=max(0.0, costs.landing_s + gap))
-        out = model(costs)
-    return costs, out
-
-
-def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:
-    """The model against bench_scale.py's measured rows: each row's own service times fed in, the
-    same episode lengths (pooled, as the benchmark draws them), the same worker processes (its
-    `processes`, shared out among the parts) on the same number of CPUs; prints the measured and
-    predicted efficiency and cycle shares, and their differences; the way to the first start's
-    parts and the way back's, the same for the runs' first batches, and how often a last result
-    finds its driver idle."""
-    import json
-
-    data = json.loads(Path(results).read_text())
-    if not data["episodes"].get("lengths"):
-        raise SystemExit(f"{results}: measured without --lengths; the model needs the same episodes")
-    per_iteration, _ = load_lengths(data["episodes"]["lengths"])
-    pool = [np.concatenate(per_iteration)]
-    step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]
-    chunks = data["chunks"]  # the engine's chunking when the rows were measured
-    for row in data["rows"]:
-        threads = math.ceil(row["workers"] / row["parts"] / max(1, processes // row["parts"]))
-        workload = Workload(row["runs"], row["iterations"], batch, pool)
-        run = functools.partial(simulate, workload, row["workers"], parts=row["parts"],
-                                schedulers=row["parts"], threads=threads)
-        _, model = fitted_landing(run, measured_costs(row, step_s, cores, chunks))
-        measured, predicted = cycle_shares(row), cycle_shares(model)
-        print(json.dumps({"workers": row["workers"], "parts": row["parts"], "measured": row["efficiency"],
-                          "model": round(model["efficiency"], 3),
-                          "error": round(model["efficiency"] - row["efficiency"], 3),
-                          "worst_share_error": round(max(abs(predicted[k] - measured[k]) for k in SPLIT), 3),
-                          **{f"share_{k}": [round(measured[k], 3), round(predicted[k], 3)] for k in SPLIT},
-                          **{f"{k}_ms": [row[f"cycle_{k}_ms"], round(model[f"cycle_{k}_ms"], 1)]
-                             for k in (*OUT, *BACK, *FIRST) if row.get(f"cycle_{k}_ms") is not None},
-                          **({IDLE: [row[IDLE], round(model[IDLE], 3)]} if IDLE in row else {}),
-                          **({"first_task_starts_s": [row["first_task_starts_s"], [
-                              round(wait, 3) for wait in model["first_task_starts_s"]]]}
-                             if "first_task_starts_s" in row else {})}))
-
-
 def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,
          parts: tuple = (1,), schedulers: tuple = (0,),
          lengths: str = "benchmarks/episode_lengths_lander.npz", **costs: float) -> None:
@@ -609,5 +532,4 @@ def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: i
 if __name__ == "__main__":
     import fire
 
-    commands = {"predict": main, "validate": validate}
-    fire.Fire(commands if sys.argv[1:2] and sys.argv[1] in commands else main)
+    fire.Fire({"predict": main} if sys.argv[1:2] == ["predict"] else main)

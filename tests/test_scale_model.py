@@ -10,6 +10,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import scale_model  # noqa: E402
+import scale_validation  # noqa: E402
 from scale_model import Costs, Workload, simulate  # noqa: E402
 
 FREE = Costs(driver_iteration_s=0.0, client_task_s=0.0, scheduler_task_s=0.0, worker_task_s=0.0,
@@ -241,7 +242,7 @@ def test_the_landing_outside_the_gil_is_solved_from_the_measured_one():
     measured one, with less of it outside the GIL."""
     workload = Workload(runs=4, iterations=6, batch=8, lengths=[np.array([20, 60])])
     costs = Costs(**{**FREE.__dict__, "driver_iteration_s": 0.03, "gil_s": 0.02, "landing_s": 0.06})
-    fitted, out = scale_model.fitted_landing(lambda c: simulate(workload, 4, c), costs)
+    fitted, out = scale_validation.fitted_landing(lambda c: simulate(workload, 4, c), costs)
     assert out["result_lands_ms_mean"] == pytest.approx(60.0, abs=1.0)
     assert fitted.landing_s < 0.06
 
@@ -250,7 +251,7 @@ def test_the_benchmark_splits_each_runs_first_batch_apart():
     """bench_scale.py's record of one driver, two runs of two iterations: each run's first batch
     (sent while the driver opens the other) is also split apart, and the driver's wait for its
     first task is from its first batch's sending to the first start of any task."""
-    import bench_scale
+    import scale_records
 
     batches = [{"run": "a", "submitted": 0.0, "keys": ["a0"]}, {"run": "b", "submitted": 0.1, "keys": ["b0"]},
                {"run": "a", "submitted": 2.0, "keys": ["a1"]}, {"run": "b", "submitted": 2.1, "keys": ["b1"]}]
@@ -258,19 +259,19 @@ def test_the_benchmark_splits_each_runs_first_batch_apart():
              {"run": "a", "at": 3.0}, {"run": "b", "at": 3.1}]
     log = {"a0": (0.8, 1.5), "b0": (0.9, 1.6), "a1": (2.1, 2.8), "b1": (2.2, 2.9)}
     landed = {"a0": 1.6, "b0": 1.7, "a1": 2.9, "b1": 3.0}
-    split = bench_scale.cycles(batches, tells, log, landed)
+    split = scale_records.cycles(batches, tells, log, landed)
     assert split["to_start_first"] == pytest.approx([0.8, 0.8])
     assert split["back_landing_first"] == pytest.approx([0.1, 0.1])
     assert split["back_waiting_first"] == pytest.approx([0.3, 0.35])
     assert split["to_start"] == pytest.approx([0.8, 0.8, 0.1, 0.1])
-    assert bench_scale.first_task_starts([{"batches": batches}], log) == pytest.approx([0.8])
+    assert scale_records.first_task_starts([{"batches": batches}], log) == pytest.approx([0.8])
 
 
 def test_the_benchmark_splits_the_way_to_the_first_start():
     """bench_scale.py's way out of a batch, for its chunk that starts first: to its scheduler (its
     graph taken in), to its handing out there and to its worker process, from the times the
     scheduler's and the workers' logs give by task."""
-    import bench_scale
+    import scale_records
 
     batches = [{"run": "a", "submitted": 0.0, "keys": ["a0", "a0b"]},
                {"run": "a", "submitted": 2.0, "keys": ["a1"]}]
@@ -279,13 +280,13 @@ def test_the_benchmark_splits_the_way_to_the_first_start():
     way_out = ({"a0": 0.01, "a0b": 0.02, "a1": 2.03},  # taken in by the scheduler
                {"a0": 0.5, "a0b": 0.6, "a1": 2.05},  # handed out to a worker
                {"a0": 0.55, "a0b": 0.7, "a1": 2.08})  # at the worker
-    split = bench_scale.cycles(batches, tells, log, {}, way_out)
+    split = scale_records.cycles(batches, tells, log, {}, way_out)
     assert split["to_scheduler"] == pytest.approx([0.02, 0.03])
     assert split["to_assigned"] == pytest.approx([0.6, 0.05])
     assert split["to_worker"] == pytest.approx([0.7, 0.08])
     assert split["to_worker_first"] == pytest.approx([0.7])
     assert split["to_start"] == pytest.approx([0.8, 0.1])
-    assert bench_scale.cycles(batches, tells, log, {})["to_scheduler"] == []  # an older record
+    assert scale_records.cycles(batches, tells, log, {})["to_scheduler"] == []  # an older record
 
 
 def test_the_model_splits_the_way_to_the_first_start():
@@ -324,3 +325,57 @@ def test_an_idle_driver_takes_a_result_when_it_wakes():
     assert woken["cycle_back_waiting_ms"] == pytest.approx(20.0)
     assert woken["last_result_lands_driver_idle"] == 1.0
     assert woken["search_s"] == pytest.approx(free["search_s"] + 2 * 0.02)
+
+
+def test_a_task_goes_to_the_least_busy_worker_process_with_a_slot():
+    """Two worker processes of two threads, three slots each: a batch of four chunks of 0.4 s is
+    dealt two and two, as Dask deals queued tasks (each to the least busy), and flies in one
+    chunk's time. (Filled one process after the other, three went to the first, one of them
+    waiting there for a thread while a thread of the second stayed idle.)"""
+    workload = Workload(runs=1, iterations=1, batch=16, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "saturation": 1.5, "chunks_per_worker": 1})
+    out = simulate(workload, 4, costs, threads=2)
+    assert out["tasks_per_batch"] == 4
+    assert out["cycle_flying_ms"] == pytest.approx(400.0)
+
+
+def test_a_task_reaches_its_worker_no_sooner_than_measured():
+    """One thread, two slots, two chunks of 0.4 s: each reaches the worker process 20 ms after its
+    handing out (`reach_s`), and the first starts then; the second, there already, waits for the
+    thread."""
+    workload = Workload(runs=1, iterations=1, batch=8, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "saturation": 2.0, "chunks_per_worker": 2, "reach_s": 0.02})
+    out = simulate(workload, 1, costs)
+    assert out["cycle_to_assigned_ms"] == pytest.approx(0.0)
+    assert out["cycle_to_worker_ms"] == pytest.approx(20.0)
+    assert out["cycle_to_start_ms"] == pytest.approx(20.0)
+    assert out["cycle_flying_ms"] == pytest.approx(800.0)
+    # a hop longer than the measured reach is what it takes
+    slow = simulate(workload, 1, dataclasses.replace(costs, hop_s=0.03))
+    assert slow["cycle_to_worker_ms"] - slow["cycle_to_assigned_ms"] == pytest.approx(30.0)
+
+
+def test_a_worker_process_starts_a_task_when_its_loop_gets_to_it():
+    """One thread, two slots, two chunks of 0.4 s: the first starts 30 ms after it reaches the
+    worker process (`start_s`), the second, there already, 30 ms after the first ends."""
+    workload = Workload(runs=1, iterations=1, batch=8, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "saturation": 2.0, "chunks_per_worker": 2, "start_s": 0.03})
+    out = simulate(workload, 1, costs)
+    assert out["cycle_to_worker_ms"] == pytest.approx(0.0)
+    assert out["cycle_to_start_ms"] == pytest.approx(30.0)
+    assert out["cycle_flying_ms"] == pytest.approx(400.0 + 30.0 + 400.0)
+
+
+def test_the_benchmark_times_each_tasks_way_to_its_worker_and_its_start_there():
+    """Three tasks on one thread of a worker process: each reaches the process 10 ms after its
+    handing out; the first starts 5 ms after, the second waits for the first's end and starts
+    20 ms after it, the third reaches the process after the thread is free and starts 2 ms
+    later. A record without the threads gives nothing."""
+    import scale_records
+
+    log = {"a": (0.015, 0.5, "1-7"), "b": (0.52, 1.0, "1-7"), "c": (1.502, 2.0, "1-7")}
+    assigned = {"a": 0.0, "b": 0.0, "c": 1.49}
+    reached = {"a": 0.01, "b": 0.01, "c": 1.5}
+    times = scale_records.at_the_workers(log, assigned, reached)
+    assert times == {"task_reaches_ms_mean": pytest.approx(10.0), "task_starts_ms_mean": pytest.approx(9.0)}
+    assert scale_records.at_the_workers({k: v[:2] for k, v in log.items()}, assigned, reached) == {}
