@@ -80,7 +80,7 @@ def at_the_workers(row: dict) -> dict[str, float]:
     process's wait to start it once it and a free thread are there (`start_s`), as the row
     measured them over every task; a row measured before the threads were recorded has the way
     of each batch's first chunk only, and no start. (That chunk's way on to its thread mostly
-    waits for a thread, which the model does itself: fed as the start, it put 9 of the quiet set's
+    waits for a thread, which the model does itself: fed as the start, it put 7 of the quiet set's
     18 rows within +-0.05 in efficiency, against 17: docs/performance.md.)"""
     if "task_starts_ms_mean" in row:
         return {"reach_s": row["task_reaches_ms_mean"] / 1000, "start_s": row["task_starts_ms_mean"] / 1000}
