@@ -76,17 +76,22 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
 
 
 def at_the_workers(row: dict) -> dict[str, float]:
-    """A task's way from its handing out to its worker process (`reach_s`), and the worker
-    process's wait to start it once it and a free thread are there (`start_s`), as the row
-    measured them over every task; a row measured before the threads were recorded has the way
-    of each batch's first chunk only, and no start. (That chunk's way on to its thread mostly
-    waits for a thread, which the model does itself: fed as the start, it put 7 of the quiet set's
-    18 rows within +-0.05 in efficiency, against 17: docs/performance.md.)"""
+    """A worker process's own delays, as the row measured them:
+    - its way to a task (`reach_s`): from the handing out to the worker process of each batch's
+      first chunk, which mostly finds the scheduler's batched stream to it idle. (The mean over
+      every task also holds that stream's waits, which the model makes itself: fed as the
+      floor instead, it put 1 of 6 rows of one part of a big cluster within +-0.05 in the
+      split, against 4: docs/performance.md.)
+    - its wait to start a task once both the task and a free thread are there (`start_s`), over
+      every task, where the row has the threads. (Not the first chunk's way on to its thread:
+      that mostly waits for a thread, which the model does itself; fed as the start, it put 7 of
+      the quiet set's 18 rows within +-0.05 in efficiency, against 17.)"""
+    out = {}
+    if row.get("cycle_to_worker_ms") is not None:
+        out["reach_s"] = max(0.0, row["cycle_to_worker_ms"] - row["cycle_to_assigned_ms"]) / 1000
     if "task_starts_ms_mean" in row:
-        return {"reach_s": row["task_reaches_ms_mean"] / 1000, "start_s": row["task_starts_ms_mean"] / 1000}
-    if row.get("cycle_to_worker_ms") is None:
-        return {}
-    return {"reach_s": max(0.0, row["cycle_to_worker_ms"] - row["cycle_to_assigned_ms"]) / 1000}
+        out["start_s"] = row["task_starts_ms_mean"] / 1000
+    return out
 
 
 def fitted_landing(model: Callable[[Costs], dict], costs: Costs, rounds: int = 3) -> tuple[Costs, dict]:
