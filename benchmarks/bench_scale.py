@@ -303,6 +303,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
                     client.wait_for_workers(count, timeout=120)
                     client.run(install_simulation, pool, step_s)
+                    client.run_on_scheduler(record_graph_intakes)
             simulation = folder / "simulation.json"
             simulation.write_text(json.dumps([pool, step_s]))
             sampler = CpuSampler([pid for pid, _, _ in clusters], worker_pids)
@@ -319,7 +320,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                     raise RuntimeError(f"a driving process failed ({process.args})")
             sampler.stop.set()
             sampler.join()
-            log, arrived, assigned, reached, reported = {}, {}, {}, {}, {}
+            log, arrived, assigned, reached, reported, intakes = {}, {}, {}, {}, {}, []
             for _, scheduler_file, _ in clusters:
                 with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
                     for worker_log in client.run(lambda: __import__("bench_scale").TASK_LOG).values():
@@ -327,6 +328,7 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                     for times, got in zip((arrived, assigned, reported),
                                           client.run_on_scheduler(scheduler_times)):
                         times.update(got)
+                    intakes.append(client.run_on_scheduler(graph_intakes))
                     for worker_times in client.run(worker_arrivals).values():
                         reached.update(worker_times)
             records = [json.loads((folder / f"record{p}.json").read_text()) for p in range(parts)]
@@ -337,9 +339,10 @@ def one_size(workers: int, runs: int, iterations: int, processes: int, parts: in
                 process.wait(timeout=60)
     way_out = (arrived, assigned, reached)  # each task's times, by OUT
     if raw is not None:
-        run_files.write_json(raw, {"records": records, "log": log, "reported": reported,
+        run_files.write_json(raw, {"records": records, "log": log, "reported": reported, "intakes": intakes,
                                    **dict(zip(OUT, way_out))})
-    return {**summarise(workers, runs, iterations, parts, records, log, sampler.between, way_out, reported),
+    return {**summarise(workers, runs, iterations, parts, records, log, sampler.between, way_out, reported,
+                        intakes),
             "log_every": variant[0] or iterations, "saver_processes": variant[1],
             "chunks_per_worker": variant[2],  # None: engine.chunks_per_worker's
             "driver_switch_s": variant[3]}  # None: Python's own
@@ -359,6 +362,25 @@ def scheduler_times(dask_scheduler) -> tuple[dict[str, float], ...]:
             if transition.finish == finish:
                 times.setdefault(transition.key, transition.timestamp)
     return arrived, assigned, reported
+
+
+def record_graph_intakes(dask_scheduler) -> None:
+    """On a scheduler: each graph's intake (its update_graph handler, a wall time as Dask times
+    it) kept on the scheduler, in order; Dask keeps only their sum. (Nothing is imported there:
+    the scheduler's first graph imports the tasks' code, as it does without the benchmark.)"""
+    intakes = dask_scheduler.bench_graph_intakes = []
+    digest = dask_scheduler.digest_metric
+
+    def recording(name, value) -> None:
+        if name == "update-graph-duration":
+            intakes.append(value)
+        digest(name, value)
+    dask_scheduler.digest_metric = recording
+
+
+def graph_intakes(dask_scheduler) -> list[float]:
+    """On a scheduler: each graph's intake so far, in seconds (record_graph_intakes)."""
+    return list(dask_scheduler.bench_graph_intakes)
 
 
 def worker_arrivals(dask_worker) -> dict[str, float]:

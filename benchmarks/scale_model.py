@@ -16,7 +16,8 @@ The model (every server serves one job at a time, first come first served):
   and sends each run's first batch as it opens it; its scheduler takes no task in until
   `first_task_waits` after that (it unpickles the first graph, importing the tasks' code);
 - a scheduler per `schedulers` (part p uses scheduler p mod S; the workers are shared out
-  evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends; it keeps
+  evenly): `scheduler_task_s` of CPU per task, half when it arrives, half when it ends (or, with
+  `intake_s`, that long a batch when its graph arrives and all of it when a task ends); it keeps
   up to ceil(`saturation` x threads) tasks on a worker process (Dask's worker-saturation),
   handing them out in arrival order (the engine sends each batch as a generation of its own:
   engine.FIFO_TIMEOUT), each to the least busy worker process with a slot free (as Dask's
@@ -97,6 +98,10 @@ class Costs:
     # a driver's main thread, idle (waiting for a chunk) when a result lands, wakes this much later
     # (the GIL and a core: measured on the benchmark's shared cores; 0 on a core of its own)
     wake_s: float = 0.0
+    # a batch's graph taken in by its scheduler before it hands a task out: a wall time, as measured
+    # (its update_graph), each task's scheduler_task_s then spent at its end; None: half of
+    # scheduler_task_s a task here, the other half at the task's end
+    intake_s: float | None = None
     hop_s: float = 0.0001
     # Dask's batched streams' intervals (distributed 2026.8.0: the client's to its scheduler,
     # the scheduler's to each worker)
@@ -384,9 +389,11 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         sched = run % parts % schedulers
         tasks = [{"batch": batch, "duration": duration} for duration in durations]
         # the scheduler takes the batch's graph in whole before it hands any of its tasks out
+        intake = c.scheduler_task_s / 2 * len(tasks) if c.intake_s is None else c.intake_s
         gils[run % parts].take(sent, lambda t: scheds[sched].serve(
-            streams[run % parts].depart(t) + c.hop_s, c.scheduler_task_s / 2 * len(tasks),
-            lambda t2: taken_in(batch, sched, tasks, t2)))  # (the last batch's last release with it)
+            streams[run % parts].depart(t) + c.hop_s, intake,
+            lambda t2: taken_in(batch, sched, tasks, t2), wall=c.intake_s is not None))
+        # (the last batch's last release goes with it)
 
     def taken_in(batch: dict, sched: int, tasks: list[dict], now: float) -> None:
         note(batch, "to_scheduler", now - batch["sent"])
@@ -444,7 +451,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         if worker.queue:
             run_next(sched, worker, now)
         worker.loop.serve(now + delay, c.worker_task_s, lambda t: scheds[sched].serve(
-            max(t + c.hop_s, now + c.report_s), c.scheduler_task_s / 2,
+            max(t + c.hop_s, now + c.report_s), c.scheduler_task_s / (2 if c.intake_s is None else 1),
             lambda t2: done(sched, worker, task, t2)))
 
     def done(sched: int, worker: Worker, task: dict, now: float) -> None:

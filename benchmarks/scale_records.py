@@ -10,6 +10,7 @@ and its end's report).
   to open a run, and its wait for its first task (its scheduler's first graph);
 - `landings_while_idle`, `driver_wall_per_iteration`, `turn_spread`: the drivers' main threads;
 - `at_the_workers`: every task's way to its worker process, and on to its start there;
+- `graph_intake`: a batch's graph taken in by its scheduler;
 - `summarise`: all of it, with the efficiency, the utilisation and the service times per task.
 """
 
@@ -90,6 +91,14 @@ def at_the_workers(log: dict, assigned: dict, reached: dict) -> dict[str, float]
             "task_starts_ms_mean": round(1000 * float(np.mean(starts)), 1)}
 
 
+def graph_intake(intakes: list[list[float]]) -> dict[str, float]:
+    """A batch's graph taken in by its scheduler (its update_graph handler, a wall time), the mean
+    (ms) over every scheduler's graphs but its first: that one imports the code the tasks name
+    (first_task_starts holds it). Empty for a record without them."""
+    later = [value for graphs in intakes for value in graphs[1:]]
+    return {"graph_intake_ms_mean": round(1000 * float(np.mean(later)), 2)} if later else {}
+
+
 def last_landing(batch: dict, landed: dict) -> float | None:
     """When the batch's last result landed in its driver's process (None: one never did)."""
     if all(key in landed for key in batch["keys"]):
@@ -160,7 +169,7 @@ def driver_wall_per_iteration(record: dict, window: tuple[float, float]) -> floa
 def summarise(workers: int, runs: int, iterations: int, parts: int, records: list[dict], log: dict,
               cpu_between: Callable[[float, float], tuple[float, float]],
               way_out: tuple[dict, ...] = ({}, {}, {}),
-              reported: dict | None = None) -> dict:
+              reported: dict | None = None, intakes: list[list[float]] | None = None) -> dict:
     """The figures of one experiment. Its search phase runs from the first batch's submission to
     the last chunk's end: before it, each run's first checkpoint; after it, each run's last save
     (plots, pickles: ~0.5 s a run, which a real 300-iteration run spreads over its iterations).
@@ -223,6 +232,7 @@ def summarise(workers: int, runs: int, iterations: int, parts: int, records: lis
             "result_lands_ms_mean": round(1000 * float(np.mean(landing)), 1),
             **({"result_reported_ms_mean": round(1000 * float(np.mean(report)), 1)} if report else {}),
             **at_the_workers(log, way_out[1], way_out[2]),
+            **graph_intake(intakes or []),
             "last_result_lands_driver_idle": round(float(idle / max(1, counted)), 3),
             "driver_wakes_ms_mean": round(1000 * float(woken / max(1, idle)), 1),
             "result_lands_ms_median": round(1000 * float(np.median(landing)), 1),

@@ -305,6 +305,30 @@ def test_the_model_splits_the_way_to_the_first_start():
     assert out["first_task_starts_s"] == pytest.approx([0.012])
 
 
+def test_a_graph_taken_in_as_measured_takes_that_long_whatever_its_tasks():
+    """The case above with the graph's intake measured (3 ms, a wall time): the batch reaches the
+    scheduler after a hop and the intake, not after half of each task's scheduler CPU (2 x 1 ms);
+    its tasks' whole CPU is spent at their ends: the second chunk, handed out when the first's
+    end is taken in there, starts 2 ms after it, not 1."""
+    workload = Workload(runs=1, iterations=1, batch=8, lengths=[np.array([100])])
+    costs = Costs(**{**FREE.__dict__, "hop_s": 0.005, "scheduler_task_s": 0.002, "saturation": 1.0,
+                     "chunks_per_worker": 2})
+    halves = simulate(workload, 1, costs)
+    measured = simulate(workload, 1, dataclasses.replace(costs, intake_s=0.003))
+    assert halves["cycle_to_scheduler_ms"] == pytest.approx(5.0 + 2.0)
+    assert measured["cycle_to_scheduler_ms"] == pytest.approx(5.0 + 3.0)
+    assert measured["cycle_flying_ms"] - halves["cycle_flying_ms"] == pytest.approx(1.0)
+
+
+def test_the_benchmark_leaves_each_schedulers_first_graph_out_of_the_intake():
+    """Two schedulers' graphs: the first of each (its imports) is left out of the mean."""
+    import scale_records
+
+    assert scale_records.graph_intake([[0.5, 0.002, 0.004], [0.9, 0.006]]) == {
+        "graph_intake_ms_mean": pytest.approx(4.0)}
+    assert scale_records.graph_intake([]) == {}
+
+
 def test_a_worker_slot_is_held_until_its_tasks_end_is_reported():
     """One worker thread with one slot, a batch of two chunks of 0.4 s: the second is handed out
     when the scheduler learns of the first's end, 50 ms after it (`report_s`)."""
