@@ -48,6 +48,10 @@ summed up by scale_records.py):
   a result's landing: from its task's end to the result in its driver's process (mean, median),
   and to its scheduler (its report), the share of batches whose last result landed while the
   driver's main thread was idle, and how long that idle thread took to wake;
+- over every task, its way from its handing out to its worker process and its wait there, once
+  both it and a free thread are there, for the process's event loop to start it (each task's
+  thread is recorded); and a batch's graph taken in by its scheduler (Dask's own timing of its
+  update_graph, each scheduler's first graph, which imports the tasks' code, left out);
 - the time from the first batch's submission to the end of the last driver, its runs' last saves
   written (`all_saved_s`).
 Writes benchmarks/scale_results.json. Run it on a quiet machine.

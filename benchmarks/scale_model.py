@@ -25,13 +25,12 @@ The model (every server serves one job at a time, first come first served):
 - a task handed out reaches its worker process no sooner than `reach_s` after (the message and
   the process's event loop, on shared cores); a worker process of `threads` threads runs a task
   on each free thread, `start_s` after both are there (its event loop), for the chunk's episodes
-  (steps x `step_s`); its event loop then spends
-  `worker_task_s` on the result, which it starts `result_delay_s` after the task's end when the
-  thread goes straight on to another (GIL-holding rollouts make the loop wait); every message
-  takes `hop_s`; a result reaches its driver no sooner
-  than `landing_s` after its task's end (the reports and the client's fetch, measured end to end),
-  and its scheduler no sooner than `report_s` (its worker process's slot is held until then); a
-  driver idle when a result lands takes it `wake_s` later;
+  (steps x `step_s`); its event loop then spends `worker_task_s` on the result, which it starts
+  `result_delay_s` after the task's end when the thread goes straight on to another (GIL-holding
+  rollouts make the loop wait); every message takes `hop_s`; a result reaches its driver no
+  sooner than `landing_s` after its task's end (the reports and the client's fetch, measured end
+  to end), and its scheduler no sooner than `report_s` (its worker process's slot is held until
+  then); a driver idle when a result lands takes it `wake_s` later;
 - Dask's batched streams (distributed's BatchedSend): a driver's messages to its scheduler (its
   batches, and the release of each result it takes) and a scheduler's to each worker process
   leave at once if the stream's last batch left `client_batch_s` / `scheduler_batch_s` ago, else
