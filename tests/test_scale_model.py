@@ -403,3 +403,18 @@ def test_the_benchmark_times_each_tasks_way_to_its_worker_and_its_start_there():
     times = scale_records.at_the_workers(log, assigned, reached)
     assert times == {"task_reaches_ms_mean": pytest.approx(10.0), "task_starts_ms_mean": pytest.approx(9.0)}
     assert scale_records.at_the_workers({k: v[:2] for k, v in log.items()}, assigned, reached) == {}
+
+
+def test_the_benchmark_keeps_each_graphs_intake_on_a_real_scheduler():
+    """bench_scale.py's hook on Dask's own timing of update_graph: two graphs sent, two intakes
+    kept, each a positive wall time."""
+    import bench_scale
+    from dask.distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None)
+    with cluster, Client(cluster) as client:
+        client.run_on_scheduler(bench_scale.record_graph_intakes)
+        assert client.submit(sum, [1, 2]).result() == 3
+        assert client.gather(client.map(abs, [-3, -4])) == [3, 4]
+        intakes = client.run_on_scheduler(bench_scale.graph_intakes)
+    assert len(intakes) == 2 and all(value > 0 for value in intakes)
