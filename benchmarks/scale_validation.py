@@ -3,7 +3,8 @@
 row's own service times fed to the model, on the same number of CPUs, with the same episodes and
 worker processes; its efficiency and cycle split side by side with the measured ones.
 
-- `measured_costs` (with `at_the_workers`): what a row measured, as the model's Costs;
+- `measured_costs` (with `scheduler_costs`, `at_the_workers`): what a row measured, as the
+  model's Costs;
 - `fitted_landing`: the model's landing outside the driver's GIL, solved from the measured one;
 - `validate`: every row of a results file, then how many are within TOLERANCE.
 
@@ -40,7 +41,8 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
       on the benchmark's 2 shared cores a driver is given less than a core, and fed its CPU under
       the model's processor sharing it came out further from the measured split
       (docs/performance.md);
-    - the schedulers' and the worker processes' CPU per task (the workers' where the row has it);
+    - the schedulers' and the worker processes' CPU per task (the workers' where the row has it),
+      and a batch's graph taken in by its scheduler where the row has it;
     - the opening of a run (each driver's own where the row has it, else the time the last run
       took to open over the runs each driver opened), when each driver started, and how long its
       first task waited to start (its scheduler's first graph);
