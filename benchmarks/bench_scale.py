@@ -437,7 +437,7 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
         for n in workers:
             for k, variant in itertools.product(parts, itertools.product(log_every, savers, chunks, switch)):
                 rows.append(one_size(int(n), runs, iterations, processes, int(k), pool, step_s, env,
-                                     variant, raw and Path(raw) / f"row{len(rows)}.json"))
+                                     variant, Path(raw) / f"row{len(rows)}.json" if raw else None))
                 print(json.dumps(rows[-1]))
     print("| simulated workers | parts | tasks per batch | ideal s | search s | efficiency | utilisation "
           "(steady) | driver CPU ms per iteration | scheduler CPU ms per task | cycle: driver, to start, "

@@ -136,6 +136,16 @@ class Costs:
     # its CPU, per run-iteration)
     gil_s: float = 0.0
 
+    def graph_intake(self, tasks: int) -> float:
+        """A batch's graph of `tasks` tasks taken in by its scheduler: as measured, else half of
+        each task's scheduler CPU."""
+        return self.scheduler_task_s / 2 * tasks if self.intake_s is None else self.intake_s
+
+    @property
+    def task_end_s(self) -> float:
+        """A scheduler's CPU at each task's end: what the graph's intake left of the task's CPU."""
+        return self.scheduler_task_s / 2 if self.intake_s is None else self.scheduler_task_s
+
 
 @dataclasses.dataclass
 class Workload:
@@ -371,7 +381,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     def draw(sched: int, sent: float) -> None:
         """A save's CSV and pictures, as a task of no batch."""
         task = {"batch": None, "duration": c.draw_s}
-        scheds[sched].serve(sent + c.hop_s, c.scheduler_task_s / 2, lambda t: queue(sched, [task], t))
+        scheds[sched].serve(sent + c.hop_s, c.graph_intake(1), lambda t: queue(sched, [task], t),
+                            wall=c.intake_s is not None)
 
     def send(run: int, k: int, sizes: list[int], told: float, sent: float) -> None:
         state["first"] = min(state["first"], sent)
@@ -388,9 +399,8 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         sched = run % parts % schedulers
         tasks = [{"batch": batch, "duration": duration} for duration in durations]
         # the scheduler takes the batch's graph in whole before it hands any of its tasks out
-        intake = c.scheduler_task_s / 2 * len(tasks) if c.intake_s is None else c.intake_s
         gils[run % parts].take(sent, lambda t: scheds[sched].serve(
-            streams[run % parts].depart(t) + c.hop_s, intake,
+            streams[run % parts].depart(t) + c.hop_s, c.graph_intake(len(tasks)),
             lambda t2: taken_in(batch, sched, tasks, t2), wall=c.intake_s is not None))
         # (the last batch's last release goes with it)
 
@@ -404,10 +414,10 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
 
     def dispatch(sched: int, now: float) -> None:
         while waiting[sched]:
-            free = [w for w in pools[sched] if w.held < w.slots]
-            if not free:
+            worker = min((w for w in pools[sched] if w.held < w.slots), key=lambda w: w.held / w.threads,
+                         default=None)
+            if worker is None:  # every slot held: the task waits in the scheduler's queue
                 return
-            worker = min(free, key=lambda w: w.held / w.threads)
             task = waiting[sched].popleft()
             task["assigned"] = now
             worker.held += 1
@@ -450,7 +460,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         if worker.queue:
             run_next(sched, worker, now)
         worker.loop.serve(now + delay, c.worker_task_s, lambda t: scheds[sched].serve(
-            max(t + c.hop_s, now + c.report_s), c.scheduler_task_s / (2 if c.intake_s is None else 1),
+            max(t + c.hop_s, now + c.report_s), c.task_end_s,
             lambda t2: done(sched, worker, task, t2)))
 
     def done(sched: int, worker: Worker, task: dict, now: float) -> None:

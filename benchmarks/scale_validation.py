@@ -3,7 +3,7 @@
 row's own service times fed to the model, on the same number of CPUs, with the same episodes and
 worker processes; its efficiency and cycle split side by side with the measured ones.
 
-- `measured_costs` (with `scheduler_costs`, `at_the_workers`): what a row measured, as the
+- `measured_costs` (with `scheduler_costs`, `worker_delays`): what a row measured, as the
   model's Costs;
 - `fitted_landing`: the model's landing outside the driver's GIL, solved from the measured one;
 - `validate`: every row of a results file, then how many are within TOLERANCE.
@@ -65,7 +65,7 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
                  gil_s=max(0.0, gil),
                  driver_wall=wall is not None, landing_s=row.get("result_lands_ms_mean", 0.0) / 1000,
                  report_s=row.get("result_reported_ms_mean", 0.0) / 1000,
-                 **at_the_workers(row),
+                 **worker_delays(row),
                  wake_s=row.get("driver_wakes_ms_mean", 0.0) / 1000,
                  **scheduler_costs(row),
                  worker_task_s=row["worker_cpu_ms_per_task"] / 1000 if "worker_cpu_ms_per_task" in row
@@ -88,7 +88,7 @@ def scheduler_costs(row: dict) -> dict[str, float]:
     return {"scheduler_task_s": max(0.0, task_s - intake_s / row["tasks_per_batch"]), "intake_s": intake_s}
 
 
-def at_the_workers(row: dict) -> dict[str, float]:
+def worker_delays(row: dict) -> dict[str, float]:
     """A worker process's own delays, as the row measured them:
     - its way to a task (`reach_s`): from the handing out to the worker process of each batch's
       first chunk, which mostly finds the scheduler's batched stream to it idle. (The mean over
