@@ -121,6 +121,19 @@ def fitted_landing(model: Callable[[Costs], dict], costs: Costs, rounds: int = 3
     return costs, out
 
 
+def read_results(path: str) -> dict:
+    """A bench_scale.py results file measured with --lengths, or one line saying what is wrong."""
+    try:
+        data = json.loads(Path(path).read_text())
+        if not data["episodes"].get("lengths"):
+            raise SystemExit(f"{path}: measured without --lengths; the model needs the same episodes")
+        if missing := [key for key in ("rows", "machine", "chunks") if key not in data]:
+            raise KeyError(missing[0])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
+        raise SystemExit(f"{path}: not a bench_scale.py results file ({error!r})") from None
+    return data
+
+
 def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:
     """The model against bench_scale.py's measured rows: each row's own service times fed in, the
     same episode lengths (pooled, as the benchmark draws them), the same worker processes (its
@@ -130,9 +143,7 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
     finds its driver idle; last, in how many rows the efficiency and every cycle share are within
     TOLERANCE."""
 
-    data = json.loads(Path(results).read_text())
-    if not data["episodes"].get("lengths"):
-        raise SystemExit(f"{results}: measured without --lengths; the model needs the same episodes")
+    data = read_results(results)
     per_iteration, _ = load_lengths(data["episodes"]["lengths"])
     pool = [np.concatenate(per_iteration)]
     step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]

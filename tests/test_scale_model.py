@@ -418,3 +418,16 @@ def test_the_benchmark_keeps_each_graphs_intake_on_a_real_scheduler():
         assert client.gather(client.map(abs, [-3, -4])) == [3, 4]
         intakes = client.run_on_scheduler(bench_scale.graph_intakes)
     assert len(intakes) == 2 and all(value > 0 for value in intakes)
+
+
+def test_validation_of_a_file_that_is_not_a_results_file_is_one_line(tmp_path):
+    """A missing file, a file that is not JSON and JSON of another benchmark: one line each, no
+    traceback; a results file measured without --lengths says so."""
+    (tmp_path / "notes.txt").write_text("not json")
+    (tmp_path / "other.json").write_text('{"episodes": {"lengths": "x.npz"}}')
+    (tmp_path / "short.json").write_text('{"episodes": {}, "rows": []}')
+    for name, says in (("missing.json", "FileNotFoundError"), ("notes.txt", "JSONDecodeError"),
+                       ("other.json", "KeyError('rows')"), ("short.json", "measured without --lengths")):
+        with pytest.raises(SystemExit) as stop:
+            scale_validation.validate(str(tmp_path / name))
+        assert says in str(stop.value) and "\n" not in str(stop.value)
