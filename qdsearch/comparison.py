@@ -39,6 +39,7 @@ from qdsearch.experiments import read_experiment, run_setting
 from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics
+from qdsearch.parts import part_of
 from qdsearch.plots import save_metric_panels
 from qdsearch.run_config import RunConfig, load_checked_config
 from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, read_run_json, write_csv
@@ -466,14 +467,33 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
     plt.close(fig)
 
 
+def unfinished_note(folder: Path, plan: dict) -> str | None:
+    """What a comparison of an unfinished experiment should be told: its runs not done (and the
+    parts that drive them), which of them are left out for want of metrics, and how to finish."""
+    unfinished = [(index, entry) for index, entry in enumerate(plan["runs"]) if entry["state"] != "done"]
+    if not unfinished:
+        return None
+    absent = [entry for _, entry in unfinished if not (folder / entry["name"] / "metrics.json").is_file()]
+    named = ", ".join(f"{entry['name']} ({entry['state']})" for _, entry in unfinished[:6])
+    parts = sorted({part_of(plan, index) for index, _ in unfinished} - {None})
+    finish = (" and ".join(f"python lunar_lander.py resume {folder} --part {part}/{plan['parts']}"
+                           for part in parts) if parts else f"python lunar_lander.py resume {folder}")
+    return (f"note: {folder}: {len(unfinished)} of {len(plan['runs'])} runs of its plan are not done: "
+            f"{named}{', ...' if len(unfinished) > 6 else ''}; {len(absent)} of them have no metrics "
+            f"and are left out, the others are compared as far as they got; finish with: {finish}")
+
+
 def expand_folders(paths: list[Path]) -> list[Path]:
     """Run folders, each experiment folder replaced by its runs that have metrics; a run given
     twice (a folder named twice, or a run and its experiment) is counted once, and a note says so."""
     expanded: dict[Path, Path] = {}
     for path in paths:
         if (path / "experiment.json").is_file():
-            runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]
+            plan = read_experiment(path)
+            runs = [path / entry["name"] for entry in plan["runs"]]
             runs = [run for run in runs if (run / "metrics.json").is_file()]
+            if note := unfinished_note(path, plan):
+                print(note)
         else:
             runs = [path]
         for run in runs:

@@ -12,7 +12,8 @@ Map:
 - `new_seeds` (the first seeds the run did not search on), `fly_elites` (every elite on every
   seed, on Dask: objectives and measures per seed);
 - robustness: `robustness_table`, `write_robustness`;
-- the corrected archive: `corrected_archive`, `corrected_summary`, `write_corrected`;
+- the corrected archive: `corrected_archive`, `archive_metrics` (the run's row of the archive's
+  iteration), `corrected_summary`, `write_corrected`;
 - `evaluate`: the command.
 """
 
@@ -130,6 +131,20 @@ def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig)
     print(f"written to {', '.join(str(run / name) for name in CORRECTED_FILES)}")
 
 
+def archive_metrics(archive: Any, metrics: list[dict], run: Path) -> dict:
+    """The row of metrics.json of the iteration the archive is of. A run still being written saves
+    metrics.json before archive.pkl, so metrics read after the archive hold its row, and maybe
+    later ones: the last row that says what the archive holds (a row is made from the archive,
+    so they agree exactly)."""
+    stats = archive.stats
+    for row in reversed(metrics):
+        if row["num_elites"] == int(stats.num_elites) and row["qd_score"] == float(stats.qd_score):
+            return row
+    raise UsageError(f"{run / 'metrics.json'} has no row of the iteration {run / 'archive.pkl'} is of "
+                     f"({int(stats.num_elites)} elites, QD score {float(stats.qd_score):,.0f}); "
+                     f"if the run is being written, try again")
+
+
 def corrected_seeds(config: RunConfig, env_seeds: Any, repeats: Any) -> list[int]:
     """The seeds a corrected archive is flown on: --env_seeds, or --repeats new ones."""
     if env_seeds is not None and repeats is not None:
@@ -166,7 +181,9 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
         repeats: With --corrected: new seeds to fly every elite on (default 10).
     """
     archive, config = load_run(run_dir)
+    run = Path(str(run_dir))
     corrected = boolean("corrected", corrected)
+    own = archive_metrics(archive, load_metrics(run), run) if corrected else None  # read after it
     if not corrected and repeats is not None:
         raise UsageError("--repeats is for --corrected (the robustness table takes --env_seeds)")
     if corrected and top is not None:
@@ -178,7 +195,6 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
     if top is not None:
         rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
     check_rollouts(len(rows["solution"]), len(seeds), "to fly")
-    run = Path(str(run_dir))
     check_writable(run)  # before any elite is flown
     if seen := sorted(set(seeds) & set(config.env_seed)):
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
@@ -188,5 +204,5 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
         return
     flights = fly_elites(rows["solution"], seeds, tuple(config.measures), config, flags)
     fixed = corrected_archive(archive, config, rows["solution"], flights)
-    summary = corrected_summary(fixed, load_metrics(run)[-1], seeds, len(rows["solution"]))
+    summary = corrected_summary(fixed, own, seeds, len(rows["solution"]))
     write_corrected(run, fixed, summary, config)

@@ -40,10 +40,19 @@ from qdsearch.options import (
     checked,
     ignores,
     own_flags,
+    refuse_unused_row_flags,
     search_defaults,
     with_task,
 )
-from qdsearch.parts import claim_plan, merge_part_states, parse_part, part_folder, part_of, write_part_state
+from qdsearch.parts import (
+    claim_plan,
+    merge_part_states,
+    parse_part,
+    part_folder,
+    part_of,
+    runs_of_part,
+    write_part_state,
+)
 from qdsearch.run import resume_run
 from qdsearch.run_config import check_run_config, load_run_state, upgrade, write_config
 from qdsearch.run_files import (
@@ -146,6 +155,7 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
     if not names:
         raise UsageError("--algorithms is empty: the grid has no run")
     axes = {"algorithm": [one_of(ALGORITHMS)("algorithms", name) for name in names]}
+    refuse_unused_row_flags(axes["algorithm"], list(search_flags))
     common = {name: search_defaults()[name] for name in passed_on()}
     for name, value in search_flags.items():
         if SEARCH_FLAGS[name].sweep and isinstance(value, (list, tuple)):
@@ -156,8 +166,8 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
             common[name] = value
     common = with_task(check_flags(SEARCH_FLAGS, common))
     check_spaces(common["env"])
-    for setting in itertools.product(*axes.values()):
-        check_sizes({**common, **dict(zip(axes, setting))})
+    for setting in itertools.product(*axes.values()):  # each run's archive too (swept --cells)
+        check_sizes(with_task({**common, **dict(zip(axes, setting))}))
     return axes, common, seed_list("seeds", seeds)
 
 
@@ -220,7 +230,7 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
     again = f"python lunar_lander.py resume {folder}" + (
         "" if part is None else f" --part {part}/{plan['parts']}")
     with logging_redirect_tqdm(loggers=[log]):
-        owned = sum(1 for index in range(len(plan["runs"])) if part in (None, part_of(plan, index)))
+        owned = len(runs_of_part(plan, part))
         log.info(f"Experiment folder: {folder}: {len(plan['runs'])} runs "
                  f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
                  + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
@@ -254,7 +264,7 @@ class Experiment(Driver):
     def __init__(self, folder: Path, plan: dict, client, log: logging.Logger,
                  part: int | None = None) -> None:
         self.parts = {entry["name"]: part_of(plan, index) for index, entry in enumerate(plan["runs"])}
-        runs = [entry for entry in plan["runs"] if part in (None, self.parts[entry["name"]])]
+        runs = runs_of_part(plan, part)
         super().__init__(
             client, log, [entry for entry in runs if entry["state"] != "done"],
             total=sum(entry["config"]["iterations"] for entry in runs),
@@ -396,8 +406,7 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
         if not parts:
             locks.enter_context(folder_lock(folder))
         plan = read_experiment(folder)  # as it is now that no other process writes it
-        mine = [entry for index, entry in enumerate(plan["runs"])
-                if not split or part_of(plan, index) == split[0]]
+        mine = runs_of_part(plan, split[0] if split else None)
         workers = checked("workers", plan["workers"] if workers is None else workers)
         planned = max(entry["config"]["iterations"] for entry in plan["runs"])
         if iterations is not None:

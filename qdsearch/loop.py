@@ -90,15 +90,22 @@ class Run:
                       [iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0)], log)
             log.info(f"Warm start: {len(elites)} elites re-evaluated, {len(scheduler.result_archive)} "
                      f"kept; emitters start from the best (objective {objectives.max():.1f})")
-        kept = run.scheduler.result_archive
-        if hasattr(kept, "centroids"):  # a CVT archive's cells, for a reader to see
-            atomic_write(run_dir / "centroids.npy", lambda f: np.save(f, kept.centroids))
+        run.write_centroids()
         run.save_checkpoint(force=True)
         return run
 
     @classmethod
     def from_checkpoint(cls, run_dir: Path, checkpoint: dict, log: logging.Logger) -> Run:
-        return cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"], log)
+        run = cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"], log)
+        if not (run_dir / "centroids.npy").exists():  # deleted: resume's check refused an edited one
+            run.write_centroids()
+        return run
+
+    def write_centroids(self) -> None:
+        """A CVT archive's cells in centroids.npy, for a reader to see (a grid's need no file)."""
+        kept = self.scheduler.result_archive
+        if hasattr(kept, "centroids"):
+            atomic_write(self.dir / "centroids.npy", lambda f: np.save(f, kept.centroids))
 
     @property
     def iteration(self) -> int:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from qdsearch.algorithms import ALGORITHMS, ARCHIVES
+from qdsearch.algorithms import ALGORITHMS, ARCHIVES, CVT_SAMPLES
 from qdsearch.family import Family
 from qdsearch.flags import (
     Flag,
@@ -23,6 +23,7 @@ from qdsearch.flags import (
     boolean,
     distinct_names,
     fraction,
+    number_up_to,
     one_of,
     positive_float,
     positive_int,
@@ -47,6 +48,10 @@ MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights co
 MAX_SOLUTIONS = 100_000  # asked per iteration (n_emitters * batch_size): 173 MB of 216 weights
 MAX_ROLLOUTS = 10_000_000  # solutions x terrains flown in one batch: ~32 bytes of results each
 MAX_WORKERS = 1_024  # worker processes of a local cluster (and what memory holds: check_local_memory)
+# A step size (--sigma0, --line_sigma) moves weights by that many times the policy's starting
+# scale (zeros, steps of 1); 1e300 overflows the first ask, and iso+line steps compound from
+# elite to elite, so a step far past any useful one is refused before a run starts.
+MAX_STEP = 1_000.0
 
 
 def default_measures(family: Family) -> tuple[str, ...]:
@@ -63,6 +68,19 @@ def own_flags(algorithm: str) -> tuple[str, ...]:
 def ignores(algorithm: str, flag: str) -> bool:
     """Whether the algorithm ignores the flag (another algorithm's own, like cma_mae's rate)."""
     return flag in ROW_FLAGS and flag not in own_flags(algorithm)
+
+
+def refuse_unused_row_flags(algorithms: list[str], given: list[str]) -> None:
+    """A row's own flag (cma_mae's --learning_rate) given to algorithms none of which use it is
+    refused, as an unknown flag is: it would be recorded and silently change nothing."""
+    algorithms = [algorithm for algorithm in algorithms if algorithm in ALGORITHMS]  # others: refused later
+    for flag in given:
+        if algorithms and flag in ROW_FLAGS and all(ignores(algorithm, flag) for algorithm in algorithms):
+            users = [name for name, row in ALGORITHMS.items() if flag in row.flags]
+            named = list(dict.fromkeys(algorithms))
+            who = (f"--algorithm {named[0]} does not" if len(named) == 1
+                   else f"none of --algorithms {', '.join(named)}")
+            raise UsageError(f"--{flag} is a flag of {', '.join(users)} only; {who} use it")
 
 
 def check_sizes(config: dict) -> None:
@@ -136,16 +154,18 @@ SEARCH_FLAGS: dict[str, Flag] = {
                     one_of(ARCHIVES), label=8, before="grid"),
     "grid": Flag(None, f"Grid archive: cells along each measure; default {DEFAULT_GRID}.", positive_int,
                  sweep=True, label=3, before=DEFAULT_GRID),
-    "cells": Flag(None, f"CVT archive: its cells (centroids, made once by k-means and kept in the "
-                        f"run); default {DEFAULT_CVT_CELLS}, at least 2^measures.",
-                  whole_number_up_to(MAX_CELLS), sweep=True, label=9),
+    "cells": Flag(None, f"CVT archive: its cells (centroids, made once by k-means over "
+                        f"{CVT_SAMPLES:,} points and kept in the run); default {DEFAULT_CVT_CELLS}, "
+                        f"at least 2^measures, at most {CVT_SAMPLES:,}.",
+                  whole_number_up_to(CVT_SAMPLES), sweep=True, label=9),
     "algorithm": Flag("cma_me", "Which QD algorithm, a row of ALGORITHMS: " + ", ".join(
         f"{name} ({row.summary})" for name, row in ALGORITHMS.items()) + "; each asks n_emitters * "
         "batch_size solutions per iteration (docs/algorithms.md).", one_of(ALGORITHMS), per_run=True),
     "n_emitters": Flag(5, f"Number of emitters (at most {MAX_EMITTERS:,}).",
                        whole_number_up_to(MAX_EMITTERS), sweep=True, label=4),
     "sigma0": Flag(1.0, "Initial step size of each emitter (CMA-ES sigma); map_elites: the fixed "
-                        "sigma of its Gaussian mutation.", positive_float, sweep=True, label=6),
+                        f"sigma of its Gaussian mutation (at most {MAX_STEP:g}).",
+                   number_up_to(MAX_STEP), sweep=True, label=6),
     "batch_size": Flag(30, f"Solutions each emitter proposes per iteration (n_emitters * "
                            f"batch_size: at most {MAX_SOLUTIONS:,}).", whole_number_up_to(MAX_SOLUTIONS),
                        sweep=True, label=5),
@@ -156,7 +176,8 @@ SEARCH_FLAGS: dict[str, Flag] = {
                           sweep=True, label=7, before=0.01),
     "line_sigma": Flag(0.2, "The iso+line rows (line_map_elites, me_map_elites, dns): the step along "
                             "the line between two elites (pyribs' IsoLineEmitter line_sigma; its "
-                            "iso_sigma is --sigma0).", positive_float, sweep=True, label=10),
+                            f"iso_sigma is --sigma0; at most {MAX_STEP:g}).", number_up_to(MAX_STEP),
+                      sweep=True, label=10),
     "novelty_threshold": Flag(0.037, "ns_cma, nslc: the novelty (mean distance to the 15 nearest "
                                      "neighbours) a solution needs to enter the proximity archive, "
                                      "as a fraction of the measures' mean span (pyribs' ns_cma: "

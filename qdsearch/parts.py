@@ -10,7 +10,7 @@ logs to parts/I_of_K/part.log, so no two processes ever write one file. Reading 
 merges the parts' states into its plan, so `resume` and `compare` see the whole experiment.
 
 Map:
-- `parse_part` (--part I/K), `part_of` (the part a run belongs to), `part_folder`;
+- `parse_part` (--part I/K), `part_of` (the part a run belongs to), `runs_of_part`, `part_folder`;
 - `claim_plan`: experiment.json created once, or the same plan found there;
 - `write_part_state`, `merge_part_states`.
 """
@@ -49,6 +49,11 @@ def parse_part(value: Any) -> tuple[int, int]:
 def part_of(plan: dict, index: int) -> int | None:
     """The part that drives run `index` of the plan (None: an experiment not split)."""
     return index % plan["parts"] + 1 if plan.get("parts") else None
+
+
+def runs_of_part(plan: dict, part: int | None) -> list[dict]:
+    """The runs of the plan that `part` drives (None: the whole experiment, unsplit)."""
+    return [entry for index, entry in enumerate(plan["runs"]) if part in (None, part_of(plan, index))]
 
 
 def part_folder(folder: Path, part: int, parts: int) -> Path:
@@ -91,7 +96,7 @@ def claim_plan(folder: Path, plan: dict) -> None:
 def write_part_state(folder: Path, plan: dict, part: int) -> None:
     """The states of the runs `part` owns (and its timing and drives), in its own state file."""
     runs = {entry["name"]: {key: entry[key] for key in ("state", "error") if key in entry}
-            for index, entry in enumerate(plan["runs"]) if part_of(plan, index) == part}
+            for entry in runs_of_part(plan, part)}
     record = plan.setdefault("part_records", {}).get(str(part), {})
     write_json(part_folder(folder, part, plan["parts"]) / "state.json",
                {"format": PART_FORMAT, "part": part, "parts": plan["parts"], "runs": runs, **record})

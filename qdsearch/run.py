@@ -20,7 +20,7 @@ from typing import Any, Iterator
 from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
 from qdsearch.flags import UsageError, check_flags, takes
 from qdsearch.loop import OneRun, Run
-from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, checked, with_task
+from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, checked, refuse_unused_row_flags, with_task
 from qdsearch.run_config import check_run_config, load_archive, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
@@ -34,7 +34,7 @@ from qdsearch.run_files import (
 from qdsearch.tasks import check_spaces
 
 
-@takes(SEARCH_FLAGS)
+@takes(SEARCH_FLAGS, given=lambda flags, named: refuse_unused_row_flags([flags["algorithm"]], named))
 def search(**flags: Any) -> None:
     """Search a task (--env; Lunar Lander's landings by default) with a QD algorithm and write a
     run folder.

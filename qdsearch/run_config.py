@@ -8,7 +8,7 @@ Map:
   the one way a RunConfig is made), `write_config`;
 - CHECKPOINT_FORMAT; `load_checkpoint`;
 - `load_run_config`, `load_checked_config` (what the results commands read), `load_run_state`
-  (what resume reads), `check_same_config`;
+  (what resume reads), `check_same_config`, `check_centroids`;
 - `check_archive` and `load_archive` (an archive must be the grid of its run's config).
 """
 
@@ -125,8 +125,25 @@ def load_run_state(run_dir: Path) -> tuple[RunConfig, dict | None]:
         checkpoint = load_checkpoint(path)
         if (run_dir / "config.json").is_file():
             check_same_config(load_run_config(run_dir), checkpoint["config"], run_dir)
+        check_centroids(run_dir, checkpoint["scheduler"].result_archive)
         return checkpoint["config"], checkpoint
     return load_run_config(run_dir), None
+
+
+def check_centroids(run_dir: Path, archive: Any) -> None:
+    """A CVT run's centroids.npy must hold its archive's centroids: readers place its cells by
+    that file, so a run whose file was edited or cut short is not continued."""
+    path = run_dir / "centroids.npy"
+    if not hasattr(archive, "centroids") or not path.exists():
+        return
+    try:
+        found = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as error:
+        raise UsageError(f"{path}: unreadable ({error}); it must hold the run's centroids") from None
+    if found.shape != archive.centroids.shape or not np.array_equal(found, archive.centroids):
+        raise UsageError(f"{path}: holds {'x'.join(map(str, found.shape))} values that are not the "
+                         f"centroids of the run's archive ({archive.centroids.shape[0]} cells); "
+                         f"delete it, and resume writes it again from the checkpoint")
 
 
 def check_same_config(recorded: RunConfig, checkpointed: RunConfig, run_dir: Path) -> None:

@@ -129,16 +129,27 @@ class Wandb:
         self.run.finish()
 
 
+# How long MLflow tries a server before it fails (the user's own settings win): about 3 s.
+MLFLOW_PATIENCE = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
+                   "MLFLOW_HTTP_REQUEST_TIMEOUT": "5"}
+
+
 class Mlflow:
     """An MLflow run per run, in MLFLOW_TRACKING_URI or a SQLite store beside the run."""
 
     module, package = "mlflow", "mlflow"
 
     def __init__(self, run_dir: Path, config: Any, note: dict) -> None:
+        # A tracking server that does not answer: MLflow's own retries (7, backing off from 2 s)
+        # held a 2-iteration run 64 s; a few quick tries, then the one line of a failed tracker.
+        for name, value in MLFLOW_PATIENCE.items():
+            os.environ.setdefault(name, value)
         from mlflow import MlflowClient
         from mlflow.entities import Param
 
-        logging.getLogger("mlflow").setLevel(logging.WARNING)  # its store's set-up notes are not ours
+        # Its store's set-up notes are not ours, and its errors (a read-only store: a traceback of
+        # 89 lines on the console) are the tracker's fault, said in Tracking's one line.
+        logging.getLogger("mlflow").setLevel(logging.CRITICAL)
 
         home = Path(config.experiment) if group_of(config) else run_dir
         uri = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{home.resolve() / 'mlflow.db'}"
@@ -264,8 +275,12 @@ class Tracking:
             return True, action(*args)
         except Exception as error:  # a server down, a full disk, a library's own fault
             (self.open or {}).pop(name, None)
-            self.log.warning(f"tracker {name} failed ({type(error).__name__}: {clipped(fault_text(error))}); "
-                             f"it is off for this run, which goes on")
+            root = error  # a library's own wrapper may say less than what it wraps
+            while (inner := root.__cause__ or root.__context__) is not None and inner is not error:
+                root = inner
+            because = "" if root is error else f"; cause: {type(root).__name__}: {clipped(fault_text(root))}"
+            self.log.warning(f"tracker {name} failed ({type(error).__name__}: {clipped(fault_text(error))}"
+                             f"{because}); it is off for this run, which goes on")
             return False, None
 
     def save(self, metrics: list[dict]) -> None:

@@ -129,6 +129,8 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
         scalable = schedulers[name]
         assert scalable.archive.learning_rate == 0.01 and scalable.result_archive is not scalable.archive
         assert all(type(e._opt) is es and type(e._ranker) is ImprovementRanker for e in scalable.emitters)
+        # CMA-MAE's own selection and restart, with only the ES changed (Tjanaka et al. 2023)
+        assert all(e._selection_rule == "mu" and e._restart_rule == "basic" for e in scalable.emitters)
     bandit = schedulers["me_map_elites"]  # a pool of 4 kinds x 5, 5 of them active
     assert isinstance(bandit, BanditScheduler) and len(bandit.emitter_pool) == 20
     assert [type(e._ranker) for e in bandit.emitter_pool[:15:5]] == [
@@ -263,6 +265,7 @@ def test_unknown_algorithm_and_bad_learning_rate_are_one_line_errors(run_cli, tm
     result = run_cli("--algorithm", "cma_es", "--outdir", tmp_path / "run")
     assert_one_line_error(result, "--algorithm", "cma_es", "cma_me, cma_mae, map_elites")
     for value in (0, 1.5, "fast"):
-        assert_one_line_error(run_cli(f"--learning_rate={value}", "--outdir", tmp_path / "run"),
+        assert_one_line_error(run_cli("--algorithm", "cma_mae", f"--learning_rate={value}", "--outdir",
+                                      tmp_path / "run"),
                               "--learning_rate", "(0, 1]")
     assert not (tmp_path / "run").exists()

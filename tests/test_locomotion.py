@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from xml.etree import ElementTree
 
 import mujoco
 import numpy as np
@@ -19,27 +20,54 @@ from util import assert_one_line_error, assert_same_run, folder_state, load_pick
 ROBOT_ROWS = ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Ant-v5", "ant_omni"]
 
 
+def feet_in_the_model(env) -> list[str]:
+    """The robot's feet as its MuJoCo model (the XML the env loads) has them, not as our table
+    names them: the geoms of the bodies at the ends of the legs (bodies without bodies inside),
+    in the file's order (Walker2d: the right foot, then the left)."""
+    root = ElementTree.parse(env.unwrapped.fullpath).getroot()
+    return [geom.get("name") for body in root.iter("body") if body.find("body") is None
+            for geom in body.findall("geom")]
+
+
 def hand_trace(env_name: str, solution: np.ndarray, seed: int) -> dict:
     """One episode stepped by hand on gym.make's env: each foot's contact steps (MuJoCo's contact
-    list, read pair by pair), the torso from the env's info, the rewards."""
+    list, read pair by pair, for the feet read from the model's XML), the torso from the env's
+    info, the rewards."""
     task = tasks.ENVIRONMENTS[env_name]
     env = tasks.plain_env(env_name)
     obs, _ = env.reset(seed=seed)
     model, data = env.unwrapped.model, env.unwrapped.data
-    robot = locomotion.ROBOTS[task.family.name]
-    feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) for name in robot.feet]
+    feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) for name in feet_in_the_model(env)]
+    assert len(feet) == len(locomotion.ROBOTS[task.family.name].feet) and -1 not in feet
+    height = torso_height(env)
     floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     start, weights = data.qpos[:2].copy(), solution.reshape(task.action_dim, task.obs_dim)
     contacts, rewards, forward, steps, done, info = [0] * len(feet), 0.0, 0.0, 0, False, {}
+    heights = 0.0
     while not done:
         obs, reward, terminated, truncated, info = env.step(np.tanh(weights @ obs))
         done, steps = terminated or truncated, steps + 1
         rewards, forward = rewards + reward, forward + info["reward_forward"]
+        heights += height(data.qpos)
         for i, foot in enumerate(feet):
             contacts[i] += any({int(data.contact[k].geom1), int(data.contact[k].geom2)} == {foot, floor}
                                for k in range(data.ncon))
     return {"shares": [c / steps for c in contacts], "start": start, "x": info["x_position"],
-            "y": info.get("y_position"), "return": rewards, "forward": forward, "steps": steps}
+            "y": info.get("y_position"), "return": rewards, "forward": forward, "steps": steps,
+            "height": heights / steps}
+
+
+def torso_height(env):
+    """The torso's height from the joints, as the model's XML places it: a free joint (the Ant)
+    holds it; a planar robot's is the torso's place plus its slide joint rootz, less its ref."""
+    model = env.unwrapped.model
+    torso = ElementTree.parse(env.unwrapped.fullpath).getroot().find(".//body[@name='torso']")
+    rootz = torso.find("joint[@name='rootz']")
+    if rootz is None:
+        return lambda qpos: float(qpos[2])
+    at = model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "rootz")]
+    base = float(torso.get("pos").split()[2]) - float(rootz.get("ref", "0"))
+    return lambda qpos: base + float(qpos[at])
 
 
 @pytest.mark.parametrize("env_name", ROBOT_ROWS)
@@ -47,13 +75,15 @@ def test_locomotion_measures_match_a_hand_made_trace(env_name):
     task = tasks.ENVIRONMENTS[env_name]
     names = tuple(tasks.family_measures(task.family))
     env = tasks.make_env(env_name=env_name)
-    touched = 0
+    touched = feet_apart = 0
     for solution in np.random.default_rng(5).normal(size=(3, task.solution_dim)) * 0.5:
         trace = hand_trace(env_name, solution, 11)
         objective, *values = tasks.rollout(solution, 11, env, names, env_name=env_name)
         measured = dict(zip(names, values))
         feet = [name for name in names if "_foot" in name]
         assert [measured[name] for name in feet] == trace["shares"]
+        feet_apart += len(set(trace["shares"])) > 1  # the feet's measures can tell them apart
+        assert measured["torso_height"] == pytest.approx(trace["height"], abs=1e-9)
         assert measured["forward_distance"] == pytest.approx(trace["x"] - trace["start"][0], abs=1e-9)
         if "final_y" in measured:
             assert (measured["final_x"], measured["final_y"]) == pytest.approx((trace["x"], trace["y"]))
@@ -61,6 +91,7 @@ def test_locomotion_measures_match_a_hand_made_trace(env_name):
         assert objective == pytest.approx(expected, rel=1e-12, abs=1e-9)
         touched += sum(trace["shares"]) > 0
     assert touched > 0  # some foot of some policy touched the floor: the measure can tell
+    assert feet_apart > 0 or len(feet) == 1  # a foot read twice would not pass unseen
 
 
 def test_ant_omni_leaves_the_forward_reward_out_of_the_objective():

@@ -11,9 +11,9 @@ import pytest
 from matplotlib.image import imread
 
 import lunar_lander as ll
-from qdsearch import evaluation, fast_lander, lander, results, tasks
+from qdsearch import evaluation, fast_lander, lander, results, run, tasks
 from qdsearch.flags import UsageError, seed_list
-from util import LANDER, assert_one_line_error, folder_state, load_pickle
+from util import LANDER, assert_one_line_error, folder_state, load_pickle, tiny_flags
 
 TUTORIAL = list(tasks.TUTORIAL_MEASURES)  # the measures of the run the tests look at
 
@@ -181,6 +181,41 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
     assert table["mean_objective"].is_monotonic_decreasing
     assert imread(run_dir / "robustness_heatmap.png").std() > 0.05
     assert "4 elites on 2 terrains" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("kind", ["grid", "cvt"])
+def test_corrected_metrics_of_a_run_searched_on_several_terrains(tmp_path, dask_cluster, kind):
+    """A run searched on terrains 0-2, corrected on 4 seeds: the seeds are the first 4 it did
+    not search on (3-6, not 3 alone), and its corrected QD score, coverage and cells equal a hand
+    recomputation: each elite flown on each seed, placed by its mean measures in the run's own
+    cells (a CVT run's: the nearest of centroids.npy), the best of a cell counted less the
+    task's QD offset."""
+    run_dir = tmp_path / "run"
+    flags = dict(iterations=2, n_emitters=1, batch_size=4, env_seed="0-2", log_every=2,
+                 **({"archive": "cvt", "cells": 16} if kind == "cvt" else {}))
+    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(run_dir))
+    evaluation.evaluate(str(run_dir), corrected=True, repeats=4,
+                        scheduler_address=dask_cluster.scheduler_address)
+
+    summary = json.loads((run_dir / "corrected.json").read_text())
+    assert summary["env_seeds"] == [3, 4, 5, 6] and summary["repeats"] == 4
+    archive, task = load_pickle(run_dir / "archive.pkl"), tasks.ENVIRONMENTS[LANDER]
+    env, best = tasks.make_env(fast=False, env_name=LANDER), {}
+    low, high = np.array(archive.lower_bounds), np.array(archive.upper_bounds)
+    for solution in archive.data()["solution"]:
+        flights = [tasks.rollout(solution, seed, env, env_name=LANDER) for seed in range(3, 7)]
+        mean = np.array(flights).mean(axis=0)
+        if kind == "cvt":
+            cell = int(np.argmin(np.linalg.norm(np.load(run_dir / "centroids.npy") - mean[1:], axis=1)))
+        else:
+            place = np.clip(np.floor((mean[1:] - low) / (high - low) * archive.dims).astype(int), 0, 49)
+            cell = int(place[0] * 50 + place[1])
+        best[cell] = max(best.get(cell, -np.inf), mean[0])
+    assert summary["num_elites"] == len(best) > 1
+    assert summary["qd_score"] == pytest.approx(sum(v - task.qd_offset for v in best.values()), rel=1e-12)
+    assert summary["coverage"] == pytest.approx(len(best) / (16 if kind == "cvt" else 2500), rel=1e-12)
+    assert summary["best_objective"] == pytest.approx(max(best.values()), rel=1e-12)
+    assert summary["run"]["qd_score"] == json.loads((run_dir / "metrics.json").read_text())[-1]["qd_score"]
 
 
 def test_corrected_archive_equals_a_hand_recomputation(run_dir, archive, dask_cluster):

@@ -46,6 +46,10 @@ def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, refer
     config = json.loads((run_dir / "config.json").read_text())
     assert config["iterations"] == ITERATIONS
     assert config["resumed"][0]["from_iteration"] == stop_at
+    # the run's clock goes on from where the checkpoint left it (its rows before the stop kept)
+    rows = json.loads((run_dir / "metrics.json").read_text())
+    elapsed = [row["elapsed_s"] for row in rows]
+    assert all(later > earlier for earlier, later in zip(elapsed, elapsed[1:])), elapsed
 
 
 def launch_run(run_dir, dask_cluster):

@@ -203,3 +203,33 @@ def test_a_local_worker_per_core_is_pinned_to_its_core_and_so_is_its_restart():
             # a core that can't be had is no fault: the worker stays where it was
             client.register_plugin(PinToCore([os.cpu_count() + 1000]), name="unreachable core")
             assert all(cores_of == {frozenset(cores)} for _, cores_of in pinned_workers(client).values())
+
+
+def test_a_cluster_where_some_workers_have_the_code_and_some_do_not_gets_it_everywhere(tmp_path):
+    """A mixed cluster: the scheduler and one worker elsewhere, one worker with the package on its
+    path (PYTHONPATH). ship_code sends the package when any of them lacks it, so that every
+    worker can run a task."""
+    from dask.distributed import Client
+
+    from conftest import ROOT
+    from qdsearch.cluster import ship_code
+    from util import start_scheduler, stop_all
+
+    scheduler, scheduler_file = start_scheduler(tmp_path / "scheduler")
+    processes = [scheduler]
+    try:
+        for i, path in enumerate(("", str(ROOT))):
+            folder = tmp_path / f"w{i}"
+            folder.mkdir()
+            processes.append(subprocess.Popen(
+                [sys.executable, "-m", "dask", "worker", "--scheduler-file", str(scheduler_file),
+                 "--nthreads", "1", "--no-dashboard", "--local-directory", str(folder)],
+                cwd=folder, env={**os.environ, "PYTHONPATH": path}, stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL, start_new_session=True))
+        with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
+            client.wait_for_workers(2, timeout=60)
+            assert sorted(can_import_the_code(client)) == [False, True]
+            ship_code(client)
+            assert can_import_the_code(client) == [True, True]
+    finally:
+        stop_all(processes)

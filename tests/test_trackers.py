@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 pytest.importorskip("tensorboardX", reason="the trackers: pip install -r requirements-trackers.txt")
@@ -121,6 +122,12 @@ def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_clu
     assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == steps
     assert [h["_step"] for h in wandb_history(run_dir) if "qd/qd_score" in h] == steps
     assert len(list(run_dir.glob("wandb/offline-run-*"))) == 2  # one W&B run, resumed by its id
+    assert len({record.run_id for record in wandb_records(run_dir, "run")}) == 1
+    # the run's own clock goes on across the stop, and so do the trackers' seconds per iteration
+    elapsed = [row["elapsed_s"] for row in metrics_of(run_dir)]
+    assert all(later > earlier for earlier, later in zip(elapsed, elapsed[1:])), elapsed
+    spent = [e.value for e in tensorboard_of(run_dir).Scalars("time/seconds_per_iteration")]
+    assert spent == pytest.approx(np.diff([0.0, *elapsed]).tolist(), abs=1e-5)
     client, run_id = mlflow_of(run_dir)
     assert sorted(m.step for m in client.get_metric_history(run_id, "qd_score")) == steps
     assert [m.value for m in client.get_metric_history(run_id, "qd_score")] == [
@@ -146,14 +153,31 @@ def test_an_experiments_runs_are_grouped_by_it(tmp_path, dask_cluster):
 @pytest.mark.slow  # real tracked searches
 def test_a_failing_tracker_is_one_line_and_the_search_goes_on(tmp_path, dask_cluster, tracked, monkeypatch):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")  # nothing listens there
-    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
-    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "3")
+    for name in trackers.MLFLOW_PATIENCE:  # MLflow's tries as the tracker sets them
+        monkeypatch.delenv(name, raising=False)
     run_dir = tmp_path / "run"
     run.search(**tiny_flags(dask_cluster, **TRACKED, track="tensorboard,mlflow"), outdir=str(run_dir))
     lines = [line for line in (run_dir / "run.log").read_text().splitlines() if "failed (" in line]
     assert len(lines) == 1 and "tracker mlflow failed" in lines[0] and "goes on" in lines[0]
     assert run_archive(run_dir).equals(run_archive(tracked[1]))
     assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == list(range(1, 7))
+
+
+def test_an_unreachable_tracking_server_fails_the_tracker_within_seconds(tmp_path, monkeypatch):
+    """MLflow's own retries (7, backing off from 2 s) held a 2-iteration run 64 s for a server that
+    does not answer; the tracker tries a few times, quickly, then fails (one line, in the run)."""
+    import time
+
+    from qdsearch import run_config
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")
+    for name in trackers.MLFLOW_PATIENCE:
+        monkeypatch.delenv(name, raising=False)
+    config = run_config.check_run_config(tiny_flags(track="mlflow"))
+    started = time.monotonic()
+    with pytest.raises(Exception, match="127.0.0.1"):
+        trackers.Mlflow(tmp_path, config, {})
+    assert time.monotonic() - started < 20
 
 
 @pytest.mark.slow  # real tracked searches
