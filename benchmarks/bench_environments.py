@@ -2,7 +2,7 @@
 """What does a step of each task cost, and does the engine keep 2 workers busy on it?
 
     python benchmarks/bench_environments.py [--iterations 10] [--envs BipedalWalker-v3,LunarLander-v3]
-        [--out environments_results.json]   # a file beside this script
+        [--out benchmarks/environments_results.json]
 
 For each row of ENVIRONMENTS, the same seeded CMA-ME search (the default 5 emitters x 30, the
 task's default measures, terrain 52) runs for --iterations iterations twice:
@@ -74,7 +74,7 @@ def archive_of(scheduler) -> list:
 
 
 def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVIRONMENTS),
-         out: str = "environments_results.json") -> None:
+         out: str = "benchmarks/environments_results.json") -> None:
     from dask.distributed import Client, LocalCluster
 
     envs = [name.strip() for name in str(envs).split(",")]
@@ -99,7 +99,7 @@ def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVI
     result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
               "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
               "workers": workers, "rows": rows, "versions": run_files.library_versions()}
-    out = Path(__file__).with_name(out)
+    out = Path(out)
     out.write_text(json.dumps(result, indent=1) + "\n")
     print(f"| env | mean steps | us/step | rollouts/s (1 core) | s/iteration ({workers} workers) | "
           f"efficiency | same archive |\n| --- | --- | --- | --- | --- | --- | --- |")

@@ -156,7 +156,7 @@ def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]
 
 
 def main(iterations: int = 20, workers: tuple = (1, 2), repeats: int = 3,
-         out: str = "benchmarks/results.json") -> None:
+         out: str = "benchmarks/evaluation_results.json") -> None:
     """Median of `repeats` rounds of every variant: a shared machine's speed wanders by ~10%."""
     steps = count_steps(iterations)
     rollouts = iterations * CONFIG.n_emitters * CONFIG.batch_size
@@ -196,7 +196,8 @@ def main(iterations: int = 20, workers: tuple = (1, 2), repeats: int = 3,
     }
     print_table(rows, summary)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
-    run_files.write_json(Path(out), {"summary": summary, "rows": rows})
+    run_files.write_json(Path(out), {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
+                                      "summary": summary, "rows": rows})
     print(f"written: {out}")
 
 

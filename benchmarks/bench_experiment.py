@@ -103,6 +103,7 @@ def main(runs: int = 4, iterations: int = 20, workers: int = 2,
         two_s = two_at_once_seconds(configs)
     timing = plan["timing"]
     result = {
+        "date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
         "runs": runs, "iterations": iterations, "workers": workers,
         "searches_one_after_another_s": round(sum(serial), 2),

@@ -75,7 +75,8 @@ def main(repeats: int = 5, baseline: str | None = None,
                 rows[name].append(one_search(script, Path(tmp) / f"{name}_{repeat}"))
                 print(name, rows[name][-1], flush=True)
     floors = [import_floor() for _ in range(repeats)]
-    result = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+    result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
+              "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
               "search": "--iterations 20 --workers 2 --seed 1",
               **{name: summary(found) for name, found in rows.items()},
               "import_floor_median_s": round(statistics.median(floors), 2),

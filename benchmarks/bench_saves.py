@@ -58,6 +58,7 @@ def main(run: str = "outputs/seed42", saves: int = 10, out: str = "benchmarks/sa
         in_thread = timed_saves(saved, saves, processes=0)
         in_process = timed_saves(saved, saves, processes=1)
     result = {
+        "date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
         "run": Path(run).name, "iteration": checkpoint["iteration"],
         "elites": len(checkpoint["scheduler"].result_archive), "saves": saves,

@@ -24,6 +24,7 @@ import platform
 import statistics
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import fire
@@ -50,7 +51,8 @@ def main(trackers: tuple = ("tensorboard", "wandb", "mlflow", "tensorboard,wandb
                 if (folder / "archive.csv").read_bytes() != untracked.read_bytes():
                     raise SystemExit(f"{name}: the archive differs from the untracked run's")
                 print(name, rows[name][-1], flush=True)
-    result = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+    result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
+              "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
               "search": f"--iterations {iterations} --workers 2 --seed 1 --log_every 25",
               "settings": {name: {"wall_median_s": round(statistics.median(r["wall_s"] for r in found), 2),
                                   "loop_median_s": round(statistics.median(r["loop_s"] for r in found), 2),

@@ -1,4 +1,4 @@
-"""The scale model (benchmarks/scale_model.py) against cases worked out by hand."""
+"""The scale model (benchmarks/scale/scale_model.py) against cases worked out by hand."""
 
 import dataclasses
 import sys
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks" / "scale"))
 
 import scale_model  # noqa: E402
 import scale_validation  # noqa: E402
@@ -431,3 +431,19 @@ def test_validation_of_a_file_that_is_not_a_results_file_is_one_line(tmp_path):
         with pytest.raises(SystemExit) as stop:
             scale_validation.validate(str(tmp_path / name))
         assert says in str(stop.value) and "\n" not in str(stop.value)
+
+
+def test_a_results_file_finds_its_episode_lengths_where_they_moved(tmp_path):
+    """A results file names the lengths where they were when it was measured; moved together, they
+    are found beside it (or in the scale folder), and the committed results file finds its own."""
+    import json
+
+    (tmp_path / "lengths.npz").write_bytes(b"")
+    results = str(tmp_path / "results.json")
+    moved = {"episodes": {"lengths": "elsewhere/lengths.npz"}}
+    assert scale_validation.lengths_file(moved, results) == str(tmp_path / "lengths.npz")
+    with pytest.raises(SystemExit, match="are not there"):
+        scale_validation.lengths_file({"episodes": {"lengths": "elsewhere/none.npz"}}, results)
+    committed = scale_validation.HERE / "scale_results.json"
+    found = scale_validation.lengths_file(json.loads(committed.read_text()), str(committed))
+    assert Path(found).is_file() and Path(found).name == "episode_lengths_lander.npz"

@@ -4,7 +4,10 @@ workers sleep for and scale_model.py flies. A CMA-ME search of the task's defaul
 serially in this process (the same asks and tells as `search`, seed --seed), recording each
 episode's steps; the file keeps one array per iteration and the search's mean cost of a step.
 
-    python benchmarks/episode_lengths.py --iterations 300 --out benchmarks/episode_lengths_lander.npz
+    python benchmarks/scale/episode_lengths.py --iterations 300 \
+        --out benchmarks/scale/episode_lengths_lander.npz
+    python benchmarks/scale/episode_lengths.py --iterations 60 --env BipedalWalker-v3 \
+        --out benchmarks/scale/episode_lengths_walker.npz
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from pathlib import Path
 import fire
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from qdsearch import algorithms, engine, options, run_config, tasks  # noqa: E402
 
@@ -42,7 +45,7 @@ def record(iterations: int, env_name: str, seed: int) -> tuple[list[np.ndarray],
 
 
 def main(iterations: int = 300, env: str = tasks.DEFAULT_ENV, seed: int = 1,
-         out: str = "benchmarks/episode_lengths_lander.npz") -> None:
+         out: str = "benchmarks/scale/episode_lengths_lander.npz") -> None:
     steps, step_s = record(iterations, env, seed)
     np.savez_compressed(out, **{f"iteration_{k + 1:04d}": s for k, s in enumerate(steps)},
                         us_per_step=np.array(1e6 * step_s), env=np.array(env))

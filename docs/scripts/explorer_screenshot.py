@@ -3,8 +3,8 @@
 (Debian's chromium, driven by Playwright), one cell's landing played to a given step and paused,
 with the cell's numbers shown as on hover.
 
-    python docs/explorer_screenshot.py outputs/seed42/explorer.html --cell 798 --step 191 \
-        --out docs/explorer.png
+    python docs/scripts/explorer_screenshot.py outputs/seed42/explorer.html --cell 798 --step 191 \
+        --out docs/pictures/explorer.png
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-
                   "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
-def screenshot(page_file: str, cell: int = 798, step: int = 191, out: str = "docs/explorer.png") -> None:
+def screenshot(page_file: str, cell: int = 798, step: int = 191,
+               out: str = "docs/pictures/explorer.png") -> None:
     """Open the page, play the elite of `cell` to `step`, hover its cell, and save the view."""
     with sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_FLAGS)

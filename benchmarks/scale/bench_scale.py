@@ -1,24 +1,25 @@
 #!/usr/bin/env python
 """How far does one experiment scale? The real driver on clusters of up to 512 simulated workers.
 
-    python benchmarks/bench_scale.py                          # 60 runs x 20 iterations; N = 16..512
-    python benchmarks/bench_scale.py --workers "[16, 64]" --parts "[1, 2, 4]" --repeats 3 \
-        --lengths benchmarks/episode_lengths_lander.npz      # a 300-iteration search's episodes
-    python benchmarks/bench_scale.py --env BipedalWalker-v3 --measured 6 --iterations 10 \
-        --workers "[64, 256, 512]" --out benchmarks/scale_results_walker.json   # long episodes
-    python benchmarks/bench_scale.py --workers "[16]" --log_every "[20, 10]" --savers "[0, 2]" \
-        --lengths benchmarks/episode_lengths_lander.npz --out benchmarks/scale_saves.json   # saves
-    python benchmarks/bench_scale.py --workers "[17]" --runs 4 --processes 17 --chunks "[2, 3]" \
-        --lengths benchmarks/episode_lengths_lander.npz     # one of 15 parts of 256 workers
-    python benchmarks/bench_scale.py --workers "[64]" --switch "[None, 0.0005]" \
-        --lengths benchmarks/episode_lengths_lander.npz     # the drivers' switch interval
+    python benchmarks/scale/bench_scale.py --workers "[16, 64]" --parts "[1, 2, 4]" --repeats 3 \
+        --iterations 20 --lengths benchmarks/scale/episode_lengths_lander.npz   # scale_results.json
+    python benchmarks/scale/bench_scale.py --out outputs/scale.json   # 60 runs x 20 iterations; N = 16..512
+    python benchmarks/scale/bench_scale.py --env BipedalWalker-v3 --measured 6 --iterations 10 \
+        --workers "[64, 256, 512]" --out outputs/scale_walker.json   # long episodes
+    python benchmarks/scale/bench_scale.py --workers "[64]" --log_every "[20, 10]" --savers "[0, 2]" \
+        --lengths benchmarks/scale/episode_lengths_lander.npz --out outputs/scale_saves.json   # saves
+    python benchmarks/scale/bench_scale.py --workers "[17]" --runs 4 --processes 17 --chunks "[2, 3]" \
+        --iterations 100 --lengths benchmarks/scale/episode_lengths_lander.npz \
+        --out outputs/scale_chunks.json   # one of 15 parts of 256 workers
+    python benchmarks/scale/bench_scale.py --workers "[64]" --switch "[None, 0.0005]" \
+        --lengths benchmarks/scale/episode_lengths_lander.npz --out outputs/scale_switch.json
 
 A real experiment (`experiments.experiment`: the real driver, real pyribs ask and tell, real run
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
 cluster, and worker processes with many threads each. Each thread is a simulated worker: its task
 sleeps as long as the real chunk would take and returns made-up objectives and measures (a
 smooth function of each policy). Each simulated policy is given an episode length (by a hash of
-its weights) from --lengths (every iteration of a real search, benchmarks/episode_lengths.py) or
+its weights) from --lengths (every iteration of a real search, episode_lengths.py) or
 from a real search of --measured iterations flown first here, which also gives the cost of a step.
 With --parts K, the experiment is split in K parts (experiment --part), each driven by its own
 process on its own `dask scheduler`, the workers shared out among them.
@@ -54,7 +55,7 @@ summed up by scale_records.py):
   update_graph, each scheduler's first graph, which imports the tasks' code, left out);
 - the time from the first batch's submission to the end of the last driver, its runs' last saves
   written (`all_saved_s`).
-Writes benchmarks/scale_results.json. Run it on a quiet machine.
+Writes benchmarks/scale/scale_results.json (--out). Run it on a quiet machine.
 """
 
 from __future__ import annotations
@@ -75,7 +76,8 @@ from pathlib import Path
 import fire
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent  # benchmarks/scale: this script, scale_records.py
+ROOT = HERE.parents[1]  # the repository: the package
 sys.path.insert(0, str(ROOT))
 
 from scale_records import OUT, summarise  # noqa: E402
@@ -212,7 +214,7 @@ def start_cluster(folder: Path, workers: int, processes: int):
     # Workers as docs/slurm.sbatch starts them: without Dask's statistical profiler.
     # The schedulers and workers keep every transition (Dask keeps the last 1,000): the way of
     # each task, read off them (scheduler_times, worker_arrivals).
-    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'benchmarks'}",
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{HERE}",
            "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
            "DASK_DISTRIBUTED__ADMIN__LOW_LEVEL_LOG_LENGTH": "1000000"}
     started = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1",
@@ -405,7 +407,7 @@ def install_simulation(pool: list[int], step_s: float) -> None:
 def lengths_pool(lengths: str | None, measured: int, env: str) -> tuple[list[int], float, str]:
     """The episode lengths the simulated workers draw from, the cost of a step (from real
     rollouts here, now), and where the lengths come from: a file of a real search's lengths
-    (benchmarks/episode_lengths.py: every iteration of it pooled), or the first `measured`
+    (episode_lengths.py: every iteration of it pooled), or the first `measured`
     iterations of a search flown here."""
     real, step_s = measure_rollouts(measured, env)
     if lengths is None:
@@ -420,7 +422,7 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
          processes: int = 4, env: str = tasks.DEFAULT_ENV, measured: int = 20, parts: tuple = (1,),
          repeats: int = 1, lengths: str | None = None, log_every: tuple = (None,),
          savers: tuple = (None,), chunks: tuple = (None,), switch: tuple = (None,),
-         out: str = str(ROOT / "benchmarks" / "scale_results.json"), raw: str | None = None) -> None:
+         out: str = str(HERE / "scale_results.json"), raw: str | None = None) -> None:
     """`log_every`: the runs' saves (None: at their end only); `savers`: at most that many saver
     processes a driver (None: the code's own, loop.SAVER_PROCESSES; 0: its saver thread draws);
     `chunks`: chunks per worker (None: the engine's own, engine.chunks_per_worker); `switch`: the

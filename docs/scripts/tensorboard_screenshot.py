@@ -5,7 +5,7 @@ Playwright) with the heatmap's card shown at the last save, beside the QD-score 
 
     python lunar_lander.py --iterations 60 --log_every 10 --seed 42 --track tensorboard \
         --outdir outputs/tb_demo
-    python docs/tensorboard_screenshot.py outputs/tb_demo --out docs/tensorboard.png
+    python docs/scripts/tensorboard_screenshot.py outputs/tb_demo --out docs/pictures/tensorboard.png
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def screenshot(run_dir: str, out: str = "docs/tensorboard.png") -> None:
+def screenshot(run_dir: str, out: str = "docs/pictures/tensorboard.png") -> None:
     """Serve the run's event files, show the heatmap and QD score cards, and save the view."""
     port = free_port()
     logdir = str(Path(run_dir))  # its run: the run folder's tensorboard/

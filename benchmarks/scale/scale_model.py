@@ -48,7 +48,8 @@ The model (every server serves one job at a time, first come first served):
   a core of its own) spend per save: reported as the processes it keeps busy (`saver_busy`),
   not simulated.
 
-    python benchmarks/scale_model.py --workers "[256, 512]" --runs "[60, 400]" --parts "[1, 4, 16]"
+    python benchmarks/scale/scale_model.py predict --workers "[256, 512]" --runs "[60, 400]" \
+        --parts "[1, 4, 16]"
 
 Checked against the real benchmark by scale_validation.py.
 """
@@ -66,7 +67,8 @@ from typing import Callable
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+HERE = Path(__file__).resolve().parent  # benchmarks/scale
+sys.path.insert(0, str(HERE.parents[1]))  # the repository: the package
 
 from qdsearch import engine  # noqa: E402
 
@@ -514,7 +516,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
 
 
 def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
-    """Episode lengths per iteration and the cost of a step, as benchmarks/episode_lengths.py
+    """Episode lengths per iteration and the cost of a step, as episode_lengths.py
     wrote them."""
     with np.load(path) as data:
         keys = sorted(k for k in data.files if k.startswith("iteration_"))
@@ -523,10 +525,10 @@ def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
 
 def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,
          parts: tuple = (1,), schedulers: tuple = (0,),
-         lengths: str = "benchmarks/episode_lengths_lander.npz", **costs: float) -> None:
+         lengths: str = str(HERE / "episode_lengths_lander.npz"), **costs: float) -> None:
     """Print the model's prediction for each size, workload and design (`schedulers` 0: one per
     part): `lengths` (a real
-    search's episodes, iteration by iteration: benchmarks/episode_lengths.py) and `costs` (the
+    search's episodes, iteration by iteration: episode_lengths.py) and `costs` (the
     fields of Costs; step_s defaults to the lengths file's own)."""
     import json
 

@@ -1,9 +1,9 @@
 #!/usr/bin/env python
 """Do the MEASURES ranges hold what real policies reach? The figures of docs/terrains.md.
 
-    python docs/measure_ranges.py outputs/seed42 --random 1000        # values outside each range
-    python docs/measure_ranges.py outputs/ranges_fuel outputs/ranges_vx_angle   # edge cells
-    python docs/measure_ranges.py outputs/walker_300/* --env BipedalWalker-v3 --random 300 --good 0
+    python docs/scripts/measure_ranges.py outputs/seed42 --random 1000        # values outside each range
+    python docs/scripts/measure_ranges.py outputs/ranges_fuel outputs/ranges_vx_angle   # edge cells
+    python docs/scripts/measure_ranges.py outputs/walker_300/* --env BipedalWalker-v3 --random 300 --good 0
 
 For the policies given (the elites of each run folder's archive, plus --random policies with
 weights drawn from N(0, 1), seeded), each flown on terrain 52 of --env: the share of each of the
@@ -21,7 +21,7 @@ from pathlib import Path
 import fire
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from qdsearch import engine, tasks  # noqa: E402
 from qdsearch.results import load_run  # noqa: E402

@@ -8,8 +8,8 @@ worker processes; its efficiency and cycle split side by side with the measured 
 - `fitted_landing`: the model's landing outside the driver's GIL, solved from the measured one;
 - `validate`: every row of a results file, then how many are within TOLERANCE.
 
-    python benchmarks/scale_validation.py --results benchmarks/scale_validation_quiet.json
-    python benchmarks/scale_validation.py --results benchmarks/scale_chunks_4_runs.json --processes 17
+    python benchmarks/scale/scale_validation.py    # benchmarks/scale/scale_results.json
+    python benchmarks/scale/scale_validation.py --results outputs/scale_chunks.json --processes 17
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scale_model import BACK, FIRST, IDLE, OUT, SPLIT, Costs, Workload, load_lengths, simulate
+from scale_model import BACK, FIRST, HERE, IDLE, OUT, SPLIT, Costs, Workload, load_lengths, simulate
 
 TOLERANCE = 0.05  # issue 29's bound on the efficiency and on each share of the cycle
 
@@ -39,8 +39,7 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
       charges per chunk sent and per result taken), and the spread of their turns where the row
       has it. It is their main thread's wall time at work where the row has it, else their CPU:
       on the benchmark's 2 shared cores a driver is given less than a core, and fed its CPU under
-      the model's processor sharing it came out further from the measured split
-      (docs/performance.md);
+      the model's processor sharing it came out further from the measured split (README.md);
     - the schedulers' and the worker processes' CPU per task (the workers' where the row has it),
       and a batch's graph taken in by its scheduler where the row has it;
     - the opening of a run (each driver's own where the row has it, else the time the last run
@@ -94,7 +93,7 @@ def worker_delays(row: dict) -> dict[str, float]:
       first chunk, which mostly finds the scheduler's batched stream to it idle. (The mean over
       every task also holds that stream's waits, which the model makes itself: fed as the
       floor instead, it put 1 of 6 rows of one part of a big cluster within +-0.05 in the
-      split, against 4: docs/performance.md.)
+      split, against 4: README.md.)
     - its wait to start a task once both the task and a free thread are there (`start_s`), over
       every task, where the row has the threads. (Not the first chunk's way on to its thread:
       that mostly waits for a thread, which the model does itself; fed as the start, it put 7 of
@@ -112,7 +111,7 @@ def fitted_landing(model: Callable[[Costs], dict], costs: Costs, rounds: int = 3
     measured (`costs.landing_s`). The measured landing holds the wait for the driver's GIL, which
     the model adds itself: the rest is solved for, a few fixed-point rounds bringing the model's
     mean landing to the measured one. (Each part's wait for its first task, solved for the same
-    way, put fewer rows within +-0.05 of the measured efficiency: docs/performance.md.)"""
+    way, put fewer rows within +-0.05 of the measured efficiency: README.md.)"""
     measured_s, out = costs.landing_s, model(costs)
     for _ in range(rounds if costs.gil_s else 0):
         gap = measured_s - out["result_lands_ms_mean"] / 1000
@@ -134,7 +133,17 @@ def read_results(path: str) -> dict:
     return data
 
 
-def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150, processes: int = 4) -> None:
+def lengths_file(data: dict, results: str) -> str:
+    """The episode lengths a results file was measured with: the file it names, or one of that name
+    beside the results file or in this folder (where the file names a place it has moved from)."""
+    named = Path(data["episodes"]["lengths"])
+    for path in (named, Path(results).parent / named.name, HERE / named.name):
+        if path.is_file():
+            return str(path)
+    raise SystemExit(f"{results}: its episode lengths, {named}, are not there")
+
+
+def validate(results: str = str(HERE / "scale_results.json"), batch: int = 150, processes: int = 4) -> None:
     """The model against bench_scale.py's measured rows: each row's own service times fed in, the
     same episode lengths (pooled, as the benchmark draws them), the same worker processes (its
     `processes`, shared out among the parts) on the same number of CPUs; prints the measured and
@@ -144,7 +153,7 @@ def validate(results: str = "benchmarks/scale_validation.json", batch: int = 150
     TOLERANCE."""
 
     data = read_results(results)
-    per_iteration, _ = load_lengths(data["episodes"]["lengths"])
+    per_iteration, _ = load_lengths(lengths_file(data, results))
     pool = [np.concatenate(per_iteration)]
     step_s, cores = data["episodes"]["us_per_step"] * 1e-6, data["machine"]["cpus"]
     chunks = data["chunks"]  # the engine's chunking when the rows were measured
