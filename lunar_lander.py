@@ -49,10 +49,10 @@ import signal
 import sys
 from typing import Any, Callable
 
-from qdsearch.cluster import STOP
 from qdsearch.flags import UsageError, as_typed, one_line, shown
 from qdsearch.options import SEARCH_FLAGS
 from qdsearch.run_files import RunError, fault_text
+from qdsearch.stopping import STOP
 
 if __name__ == "__mp_main__":
     # A local worker (Dask spawns its processes from this script): Ctrl-C in a terminal reaches

@@ -4,18 +4,19 @@
 Map, a module per role, imports going down the list only:
 - flags: the `Flag` entry, the checkers, UsageError;
 - run_files: locks, atomic writes, JSON and pickles, logs; RunError;
+- stopping: Ctrl-C and SIGTERM (`STOP`), acted on where stopping is safe;
 - plots: heatmaps and progress curves;
 - trackers: TensorBoard, W&B and MLflow (--track), offline first, each iteration once;
 - pinning: a local cluster's worker per core pinned to it (a Dask worker plugin);
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
-  STOP (Ctrl-C and SIGTERM); the package shipped to workers that lack it;
+  the package shipped to workers that lack it;
 - family: what a task family declares (`Family`, `Environment`, `Measure`), the linear policy;
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
 - lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
   each): its rows, its episode, how it is drawn;
 - tasks: the families gathered: ENVIRONMENTS, MEASURES; an episode (`fly`, `rollout`);
 - algorithms: ALGORITHMS and `build_scheduler`;
-- engine: chunks of rollouts on the workers, back in order;
+- engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
 - options: every command's flags, declared once, and the bounds on sizes;
 - metrics: a run's metrics rows;
 - saving: a run folder's files, written while the loop goes on (saver threads; on a cluster
@@ -26,6 +27,7 @@ Map, a module per role, imports going down the list only:
 - run: `search` and `resume` of a run folder;
 - parts: an experiment split into parts, each its own process: the plan written once, a state
   file per part;
+- experiment_folder: experiment.json read and checked, a setting's label (what compare reads);
 - experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
 - results: `video`, `elites`, `trajectories`, and choosing elites;
 - evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);

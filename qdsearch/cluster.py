@@ -3,7 +3,6 @@ written, joined with every wait bounded and stoppable, started locally (again, i
 while it starts), and reported in one line when it is lost.
 
 Map:
-- `StopRequests` and `STOP`: Ctrl-C and SIGTERM, acted on where stopping is safe (every wait);
 - finding a scheduler: `scheduler_of` (--scheduler_address, or --scheduler_file through
   `read_scheduler_file`), `check_scheduler_reachable`, `scheduler_identity` (the bounded
   handshake that tells a Dask scheduler from a web server or a silent port) and
@@ -12,9 +11,8 @@ Map:
   the memory there is: `check_local_memory`; a worker per core pinned to it: pinning.py), the
   code shipped to it (`ship_code`); a lost scheduler leaves it as a `SchedulerLost`;
 - the quiet: `quiet_dask_logs`, `not_dask_stop`, `QUIET_CLUSTER`; `preloading` imports what a run
-  needs while its cluster starts;
-- `ClusterShare`: the cluster's worker threads, and the runs in flight on its scheduler from
-  every driver (parts of an experiment may share one), which size a batch's chunks.
+  needs while its cluster starts.
+Every wait is stoppable: Ctrl-C and SIGTERM (stopping.py's STOP) end it at once.
 """
 
 from __future__ import annotations
@@ -25,7 +23,6 @@ import importlib
 import json
 import logging
 import os
-import signal
 import sys
 import time
 import warnings
@@ -34,45 +31,7 @@ from typing import Any, Callable, Iterator
 
 from qdsearch.flags import UsageError, clipped, positive_float, shown
 from qdsearch.run_files import RunError, fault_text
-
-
-class StopRequests:
-    """Ctrl-C and SIGTERM, acted on only where stopping is safe.
-
-    A signal only records the request, except inside `interruptible()` (waiting for the cluster),
-    where it stops the wait at once. So a stop never cuts a checkpoint write, an import or a tell
-    in half: the iteration in flight is abandoned and the last completed one is kept.
-    """
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._raise_now = False
-
-    def install(self) -> None:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._on_signal)
-
-    def _on_signal(self, signum: int, frame: Any) -> None:
-        self.requested = True
-        if self._raise_now:
-            self._raise_now = False
-            raise KeyboardInterrupt
-
-    def check(self) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-
-    @contextlib.contextmanager
-    def interruptible(self) -> Iterator[None]:
-        self.check()
-        self._raise_now = True
-        try:
-            yield
-        finally:
-            self._raise_now = False
-
-
-STOP = StopRequests()
+from qdsearch.stopping import STOP
 
 
 class SchedulerLost(RunError):
@@ -459,43 +418,3 @@ QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
                  "distributed.admin.system-monitor.interval": "2s",
                  "distributed.admin.tick.interval": "200ms",
                  "distributed.worker.profile.enabled": False}
-
-
-class ClusterShare:
-    """What a driver's batches share: the cluster's worker threads and the runs in flight on its
-    scheduler, its own and other drivers' (the parts of an experiment that share a scheduler).
-
-    Each driver publishes its count of runs in the scheduler's metadata (Dask's own key-value
-    store, under SHARE_KEY and its client's id) and reads the others', at most every `every`
-    seconds rather than for every batch: workers and drivers come and go, and a stale count
-    only sizes the chunks, never changes a result. A driver that stopped publishing for
-    `stale_after` seconds (killed, say) is no longer counted.
-    """
-
-    SHARE_KEY = "qdsearch-runs-in-flight"
-
-    def __init__(self, client, every: float = 2.0, stale_after: float = 30.0) -> None:
-        self.client, self.every, self.stale_after = client, every, stale_after
-        self.asked_at, self.worker_threads, self.other_runs = -float("inf"), 1, 0
-
-    def refresh(self, own_runs: int) -> None:
-        """Count the threads, publish this driver's runs and add up the other drivers'."""
-        self.asked_at = time.monotonic()
-        self.worker_threads = sum(self.client.nthreads().values())
-        now = time.time()
-        self.client.set_metadata([self.SHARE_KEY, self.client.id], [now, own_runs])
-        published = self.client.get_metadata([self.SHARE_KEY], default={})
-        self.other_runs = sum(int(runs) for driver, (at, runs) in published.items()
-                              if driver != self.client.id and now - at < self.stale_after)
-
-    def close(self) -> None:
-        """This driver's runs are done: it publishes none, if its scheduler is still there."""
-        if self.asked_at > -float("inf") and self.client.status == "running":  # not a lost scheduler
-            with contextlib.suppress(Exception):
-                self.client.set_metadata([self.SHARE_KEY, self.client.id], [time.time(), 0])
-
-    def __call__(self, own_runs: int) -> tuple[int, int]:
-        """(worker threads, runs sharing them), this driver's own runs counted as they are now."""
-        if time.monotonic() - self.asked_at > self.every:
-            self.refresh(own_runs)
-        return self.worker_threads, self.other_runs + own_runs

@@ -2,7 +2,7 @@
 final archives' score distributions on another, a table of final values, and statistics across
 seeds between settings.
 
-Runs of one setting (the same algorithm and flags, other seeds: `experiments.run_setting`) are
+Runs of one setting (the same algorithm and flags, other seeds: `experiment_folder.run_setting`) are
 repeats of one experiment; returns of different tasks share no scale, so every statistic is per
 (task, setting). Per setting: the mean with a 95% BCa bootstrap interval, the median, and the
 interquartile mean (IQM) with a 95% stratified bootstrap interval of each summarised metric.
@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import kind_of, task_of
-from qdsearch.experiments import read_experiment, run_setting
+from qdsearch.experiment_folder import read_experiment, run_setting
 from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics

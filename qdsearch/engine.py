@@ -7,18 +7,22 @@ Map:
   `chunks_per_worker`, TASK_RATE, MIN_CHUNK and MAX_CHUNK, the rollouts dealt out to them by
   `chunk_pairs`; batches flown first come, first served: FIFO_TIMEOUT), `per_terrain` and
   `averaged` (results back in solution order, averaged over terrains), `gather_with_progress`,
-  and `evaluate_batch` (a run's batch, end to end).
+  and `evaluate_batch` (a run's batch, end to end);
+- `ClusterShare`: the cluster's worker threads, and the runs in flight on its scheduler from
+  every driver (parts of an experiment may share one), which size a batch's chunks.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
+import time
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.cluster import STOP
+from qdsearch.stopping import STOP
 from qdsearch.tasks import make_env, rollout
 
 _WORKER_ENVS: dict[tuple[str, bool, int], gym.Env] = {}  # per worker thread, reused across tasks
@@ -48,36 +52,21 @@ def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str,
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
-# Two chunks per worker, three where several runs in flight each have two workers or more. A
-# run's turn between two batches (the driver's tell and ask, the batch's way to the workers, its
-# results' way back: ~25 ms) idles the workers its chunks would fill unless other runs' chunks
-# wait for them; with few runs on many workers, two a worker leave too few waiting. On real
-# schedulers, one-thread worker processes as on a cluster and tasks that sleep as long as real
-# chunks (bench_scale.py, 2026-11-25, 3 pairs, benchmarks/scale_chunks_*_runs.json): 4 runs on
-# 17 workers (one of 15 parts of 256 workers) 0.827-0.833 with 2 against 0.869-0.878 with 3 (4 a
-# worker: 0.80, 6: 0.61, one run each); 8 runs on 16 workers 0.923-0.932 against 0.961; 15 runs
-# on 16 workers 0.971-0.974 against 0.970-0.971. A lone run has no other run's chunks to fill its
-# turn: on 2 workers its lander batches took 0.96 and 0.99 of the time with 2 chunks a worker
-# that they took with 3 (benchmarks/bench_chunking.py, 30 rounds, 2026-11-25), and its walker
-# ones (60 to 1,600 steps) 0.96, 0.95 and 1.01 of the time of 2 with 1, 4 and 8 (6 rounds,
-# 2026-11-24).
-# Each task costs the scheduler ~0.5-0.9 ms: TASK_RATE bounds them.
+# Two chunks per worker; three where several runs in flight each have two workers or more, which
+# pays on real schedulers (docs/performance.md#chunks-and-the-workers-result-delay; measured by
+# benchmarks/scale/bench_scale.py, and for a lone run by benchmarks/bench_chunking.py).
 CHUNKS_PER_WORKER = 2
 CHUNKS_PER_WORKER_FEW_RUNS = 3
-MIN_CHUNK = 4  # rollouts per task at least, on big clusters: a task costs ~0.6 ms to schedule
+MIN_CHUNK = 4  # rollouts per task at least: a task costs the scheduler about a millisecond
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
-# few seconds of lander episodes (<= 1,000 steps of ~18-27 us), up to minutes of walker ones.
+# few seconds of lander episodes, up to minutes of walker ones.
 MAX_CHUNK = 1000
 # What one scheduler is asked to sustain, all its runs' batches together, in tasks a second:
-# about half of what it can (~0.5 ms of its CPU a task, docs/performance.md), so that on a big
-# cluster it never becomes what the workers wait for.
+# about half of what it can (docs/performance.md#the-driver-ask-tell-and-the-tasks-it-sends).
 TASK_RATE = 1000
-# Batches are flown first come, first served. Dask ranks the tasks of graphs sent within its
-# fifo_timeout (100 ms by default) as one generation, by their index in their own graph: every
-# batch's first chunk before any batch's second, so a batch's last chunk waits behind the other
-# batches' first ones and its run tells late. Each batch its own generation took 60 runs on 64
-# simulated workers from 0.794/0.817 to 0.883/0.887 with one part, paired (bench_scale.py,
-# 2026-11-25).
+# Batches are flown first come, first served: each batch its own generation of Dask's ranking, so
+# that a batch's last chunk never waits behind other batches' first ones (its run would tell
+# late; docs/performance.md#chunks-and-the-workers-result-delay).
 FIFO_TIMEOUT = "0ms"
 
 
@@ -133,7 +122,7 @@ def chunk_pairs(pairs: int, count: int) -> list[np.ndarray]:
     i in chunk i mod count. Dealt out so, every chunk holds some of each emitter's solutions:
     neighbours in a batch come from one emitter and often fly alike (a region of hovering
     landers, of quick crashes), so runs of neighbours make chunks of unequal length. Over the
-    300 iterations of a real search (benchmarks/episode_lengths_lander.npz), 4 chunks on 2
+    300 iterations of a real search (benchmarks/scale/episode_lengths_lander.npz), 4 chunks on 2
     workers, each taking the next chunk when free, end 1.084x as late as perfectly shared work
     when cut into runs, 1.037x when dealt out (2 chunks: 1.157x and 1.038x)."""
     return [np.arange(first, pairs, count) for first in range(count)]
@@ -177,3 +166,43 @@ def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarr
     futures = submit_flights(client, solutions, config.env_seed, config.measures,
                              config.fast_env, env_name=config.env)
     return averaged(per_terrain(client.gather(futures), config.env_seed))
+
+
+class ClusterShare:
+    """What a driver's batches share: the cluster's worker threads and the runs in flight on its
+    scheduler, its own and other drivers' (the parts of an experiment that share a scheduler).
+
+    Each driver publishes its count of runs in the scheduler's metadata (Dask's own key-value
+    store, under SHARE_KEY and its client's id) and reads the others', at most every `every`
+    seconds rather than for every batch: workers and drivers come and go, and a stale count
+    only sizes the chunks, never changes a result. A driver that stopped publishing for
+    `stale_after` seconds (killed, say) is no longer counted.
+    """
+
+    SHARE_KEY = "qdsearch-runs-in-flight"
+
+    def __init__(self, client, every: float = 2.0, stale_after: float = 30.0) -> None:
+        self.client, self.every, self.stale_after = client, every, stale_after
+        self.asked_at, self.worker_threads, self.other_runs = -float("inf"), 1, 0
+
+    def refresh(self, own_runs: int) -> None:
+        """Count the threads, publish this driver's runs and add up the other drivers'."""
+        self.asked_at = time.monotonic()
+        self.worker_threads = sum(self.client.nthreads().values())
+        now = time.time()
+        self.client.set_metadata([self.SHARE_KEY, self.client.id], [now, own_runs])
+        published = self.client.get_metadata([self.SHARE_KEY], default={})
+        self.other_runs = sum(int(runs) for driver, (at, runs) in published.items()
+                              if driver != self.client.id and now - at < self.stale_after)
+
+    def close(self) -> None:
+        """This driver's runs are done: it publishes none, if its scheduler is still there."""
+        if self.asked_at > -float("inf") and self.client.status == "running":  # not a lost scheduler
+            with contextlib.suppress(Exception):
+                self.client.set_metadata([self.SHARE_KEY, self.client.id], [time.time(), 0])
+
+    def __call__(self, own_runs: int) -> tuple[int, int]:
+        """(worker threads, runs sharing them), this driver's own runs counted as they are now."""
+        if time.monotonic() - self.asked_at > self.every:
+            self.refresh(own_runs)
+        return self.worker_threads, self.other_runs + own_runs

@@ -10,7 +10,7 @@ Map:
 - `run_experiment` and `Experiment`: the cluster, the log, and the runs driven through the one
   run loop (loop.py's Driver), their states recorded in experiment.json;
 - `resume`: the command, for a run folder (run.resume_run) or an experiment folder
-  (`resume_experiment`); `read_experiment` reads experiment.json (and its parts' states).
+  (`resume_experiment`). experiment_folder.py reads experiment.json and labels settings.
 An experiment may be split into parts (--part I/K), each driven by its own process: parts.py.
 """
 
@@ -30,7 +30,8 @@ import numpy as np
 
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
-from qdsearch.flags import UsageError, check_flags, one_of, positive_int, seed_list, shown, takes
+from qdsearch.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting
+from qdsearch.flags import UsageError, check_flags, one_of, positive_int, seed_list, takes
 from qdsearch.loop import Driver, Run
 from qdsearch.options import (
     CLUSTER_FLAGS,
@@ -39,14 +40,12 @@ from qdsearch.options import (
     check_sizes,
     checked,
     ignores,
-    own_flags,
     refuse_unused_row_flags,
     search_defaults,
     with_task,
 )
 from qdsearch.parts import (
     claim_plan,
-    merge_part_states,
     parse_part,
     part_folder,
     part_of,
@@ -54,7 +53,7 @@ from qdsearch.parts import (
     write_part_state,
 )
 from qdsearch.run import resume_run
-from qdsearch.run_config import check_run_config, load_run_state, upgrade, write_config
+from qdsearch.run_config import check_run_config, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
     check_parent_folder,
@@ -64,12 +63,10 @@ from qdsearch.run_files import (
     library_versions,
     make_logger,
     new_folder,
-    read_run_json,
     write_json,
 )
 from qdsearch.tasks import check_spaces
 
-EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
 # Which search flags an experiment sets itself (per_run) and which may take a list of values,
 # one more axis of the grid (sweep), is said by their entries in SEARCH_FLAGS. (--env_seed and
 # --measures take lists of their own: several terrains, several measures of every run.)
@@ -169,36 +166,6 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
     for setting in itertools.product(*axes.values()):  # each run's archive too (swept --cells)
         check_sizes(with_task({**common, **dict(zip(axes, setting))}))
     return axes, common, seed_list("seeds", seeds)
-
-
-def label_flags() -> list[str]:
-    """The flags that name a run's setting when they differ from their defaults, in label order."""
-    return sorted((name for name, flag in SEARCH_FLAGS.items() if flag.label),
-                  key=lambda name: SEARCH_FLAGS[name].label)
-
-
-def run_setting(config: dict) -> str:
-    """The algorithm with its own flags, and the other flags shaping it that differ from their
-    defaults: runs of one setting with different seeds are repeats of one experiment. An
-    algorithm's own flags are always named (cma_mae at 0.01 and at 0.5 are different algorithms
-    in effect), so a label means the same whatever the defaults become."""
-    defaults, changed = check_flags(SEARCH_FLAGS, search_defaults()), []
-    config = upgrade(config)  # a config.json from before a flag: what it ran with
-    with contextlib.suppress(KeyError, TypeError, UsageError):  # measures: the task's default
-        defaults = with_task({**defaults, "env": config["env"]})
-        config = with_task(config)
-    algorithm = config.get("algorithm")
-    own = own_flags(algorithm) if algorithm in ALGORITHMS else ()
-    for flag in (flag for flag in label_flags() if flag in config):
-        if algorithm in ALGORITHMS and ignores(algorithm, flag):
-            continue
-        with contextlib.suppress(UsageError):
-            value = check_flags(SEARCH_FLAGS, {flag: config[flag]})[flag]  # 52 and [52]: one terrain
-            if value is None:  # a flag of another archive kind (--grid of a CVT run)
-                continue
-            if value != defaults[flag] or flag in own:
-                changed.append(f"{flag}={','.join(map(str, value)) if isinstance(value, list) else value}")
-    return " ".join([str(config.get("algorithm", "?")), *changed])
 
 
 def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
@@ -432,38 +399,3 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
             record["drives"] = [*record.get("drives", []), resumed]
             write_part_state(folder, plan, part)
         run_experiment(folder, plan, workers, scheduler_address, split[0] if split else None)
-
-
-RUN_STATES = ("pending", "running", "done", "stopped", "failed")
-
-
-def read_experiment(folder: Path) -> dict:
-    """experiment.json, checked: every run has a plain folder name (no path: a run folder is
-    always inside its experiment), a known state, and a config with a seed and iterations."""
-    plan = read_run_json(folder, "experiment.json")
-    path = folder / "experiment.json"
-    if not (isinstance(plan, dict) and plan.get("format") == EXPERIMENT_FORMAT
-            and isinstance(plan.get("runs"), list) and plan["runs"]):
-        raise UsageError(f"{path}: not an experiment of lunar_lander.py")
-    for i, entry in enumerate(plan["runs"]):
-        config = entry.get("config") if isinstance(entry, dict) else None
-        fits = (isinstance(config, dict) and isinstance(entry.get("name"), str)
-                and re.fullmatch(r"[A-Za-z0-9._-]+", entry["name"]) and entry["name"].strip(".")
-                and entry.get("state") in RUN_STATES and isinstance(entry.get("setting"), str))
-        try:
-            if fits:
-                checked("iterations", config.get("iterations"))
-                check_flags(SEARCH_FLAGS, {"seed": config.get("seed")})
-        except UsageError as error:
-            fits, why = False, f": {error}"
-        else:
-            why = ""
-        if not fits:
-            raise UsageError(f"{path}: run {i} is not a run of this experiment's plan{why}")
-    if isinstance(plan.get("workers"), bool) or not isinstance(plan.get("workers"), int):
-        raise UsageError(f"{path}: workers is {shown(plan.get('workers'))}, not a number of workers")
-    if "parts" in plan:
-        if isinstance(plan["parts"], bool) or not isinstance(plan["parts"], int) or not plan["parts"] >= 1:
-            raise UsageError(f"{path}: parts is {shown(plan['parts'])}, not a number of parts")
-        return merge_part_states(folder, plan, RUN_STATES)
-    return plan

@@ -16,10 +16,10 @@ import os
 from pathlib import Path
 
 from qdsearch.algorithms import task_of
-from qdsearch.cluster import STOP
 from qdsearch.flags import UsageError, positive_int
 from qdsearch.metrics import load_metrics
 from qdsearch.run_config import RunConfig, load_checked_config
+from qdsearch.stopping import STOP
 from qdsearch.tasks import MEASURES
 
 REFRESH_MS = 2000  # how often the page looks at the folder's files

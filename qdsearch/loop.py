@@ -4,8 +4,8 @@ many.
 
 A run's results depend on its own asks and tells only, so a run ends bit for bit the same
 whether it is driven alone or among others, whatever the order its chunks come back in.
-The driver needs only a Dask client and the runs' entries, so it may run in any process that
-reaches the scheduler (the main one today; a worker, through distributed's worker_client, later).
+The driver runs in a process's main thread: its saves start saver processes with the stop
+signals ignored (saving.py's `Savers`), which only the main thread may set.
 
 Map:
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
@@ -33,13 +33,14 @@ from typing import Any, Callable
 import numpy as np
 
 from qdsearch.algorithms import build_scheduler
-from qdsearch.cluster import STOP, ClusterShare, SchedulerLost
-from qdsearch.engine import averaged, evaluate_batch, per_terrain, submit_flights
+from qdsearch.cluster import SchedulerLost
+from qdsearch.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
 from qdsearch.flags import UsageError, clipped
 from qdsearch.metrics import describe_progress, iteration_metrics
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.run_files import RunError, atomic_write, fault_text, write_pickle
 from qdsearch.saving import SAVER_PROCESSES, Savers
+from qdsearch.stopping import STOP
 from qdsearch.trackers import Tracking, wait_for_trackers
 
 

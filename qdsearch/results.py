@@ -27,12 +27,12 @@ import gymnasium as gym
 import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, kind_of
-from qdsearch.cluster import STOP
 from qdsearch.engine import averaged, per_terrain
 from qdsearch.flags import UsageError, check_flags, positive_int, shown, takes
 from qdsearch.options import SELECTION_FLAGS, TERRAIN_FLAGS
 from qdsearch.run_config import RunConfig, load_archive, load_checked_config
 from qdsearch.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
+from qdsearch.stopping import STOP
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly, make_env, renderer_missing, rollout
 
 

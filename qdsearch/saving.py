@@ -27,9 +27,8 @@ from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_files import atomic_write, write_csv, write_json, write_pickle
 from qdsearch.tasks import ENVIRONMENTS, MEASURES
 
-# At most this many saver processes a driver. By the scale model (docs/performance.md), the saves
-# of 400 lander runs on 512 workers in 8 parts (64 workers a part) keep 1.1 processes busy at
-# --log_every 25.
+# At most this many saver processes a driver: two keep up with the saves of the largest
+# experiments docs/performance.md#saves predicts (benchmarks/bench_saves.py measures a save).
 SAVER_PROCESSES = 2
 
 

@@ -140,7 +140,7 @@ def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks()
     flight on it, not just their own; a driver that stopped publishing, or closed, drops out."""
     from dask.distributed import Client, LocalCluster
 
-    from qdsearch.cluster import ClusterShare
+    from qdsearch.engine import ClusterShare
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as one, Client(cluster) as two:

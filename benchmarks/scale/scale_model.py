@@ -338,7 +338,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
                               machine) for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
     # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
-    # driver sends it (cluster.ClusterShare)
+    # driver sends it (engine.ClusterShare)
     sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
     own = [sum(1 for r in range(workload.runs) if r % parts == p) for p in range(parts)]  # each driver's runs
     opened = np.zeros(parts, dtype=int)  # and how many it has opened so far
