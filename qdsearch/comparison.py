@@ -139,9 +139,10 @@ def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
 QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
 # CQD score (Kent 2022, ribs.archives.cqd_score) with fixed settings, so that a number means the
 # same in every table: target points drawn uniformly in the archive's measure box with this seed,
-# penalties spread evenly over [0, 1], objectives normalised over [obj_min, obj_max], distances
-# over the box's diagonal (obj_min is the task's QD offset, obj_max its `objective_max`). Written
-# next to every comparison.
+# penalties spread evenly over [0, 1], objectives divided by obj_max - obj_min (pyribs 0.12 does
+# not subtract obj_min first, unlike Kent 2022's [0, 1] scale: tests/test_oracles.py pins it),
+# distances over the box's diagonal (obj_min is the task's QD offset, obj_max its
+# `objective_max`). Written next to every comparison.
 CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0}
 SUMMARISED = ("qd_score", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
 TESTED = ("qd_score", QD_AUC, CQD_SCORE)  # pairwise between settings: final, anytime, spread
@@ -355,7 +356,8 @@ def task_section(stats, tests, env: str) -> list[str]:
                  f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
              f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
              f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
-             f"normalised over [{task.qd_offset:g}, {task.objective_max:g}].", "",
+             f"divided by {task.objective_max:g} - ({task.qd_offset:g}) (pyribs' cqd_score with "
+             f"obj_min {task.qd_offset:g}, obj_max {task.objective_max:g}: not shifted by obj_min).", "",
              "IQM [95% stratified bootstrap interval]:", "",
              *settings_table(stats, "iqm", "iqm_low", "iqm_high"),
              "", f"IQM: the interquartile mean (the mean of the middle half of the runs, rliable's); "
