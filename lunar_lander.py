@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """Search Gymnasium's Lunar Lander for many different good landings with CMA-ME (pyribs), on Dask;
-and other Gymnasium tasks (BipedalWalker, the continuous lander) through the same tables.
+and other Gymnasium tasks through the same tables: the continuous lander, BipedalWalker (and its
+hardcore course), and MuJoCo's Hopper, Walker2d, HalfCheetah and Ant.
 
 The problem, the algorithm and the results follow the pyribs tutorial "Using CMA-ME to Land a Lunar
 Lander Like a Space Shuttle"; this script adds what a research run needs around them: a Dask
@@ -9,7 +10,7 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
     python lunar_lander.py --iterations 300 --workers 2     # search; writes outputs/<run>/
     python lunar_lander.py --algorithm cma_mae               # or map_elites; default cma_me
     python lunar_lander.py --measures fuel,flight_time --env_seed 0-4   # other axes, 5 terrains
-    python lunar_lander.py --env BipedalWalker-v3            # another task: a row of ENVIRONMENTS
+    python lunar_lander.py --env Hopper-v5                   # another task: a row of ENVIRONMENTS
     python lunar_lander.py resume outputs/RUN                # continue a run from its checkpoint
     python lunar_lander.py experiment --algorithms "[cma_me, cma_mae]" --seeds 1-5   # many runs
     python lunar_lander.py video outputs/RUN --cells "[(-0.4, -0.1)]"   # or --best, --top K
@@ -50,7 +51,7 @@ import sys
 from typing import Any, Callable
 
 from qdsearch.flags import UsageError, as_typed, one_line, shown
-from qdsearch.options import SEARCH_FLAGS
+from qdsearch.options import SEARCH_FLAGS, refuse_unused_row_flags
 from qdsearch.run_files import RunError, fault_text
 from qdsearch.stopping import STOP
 
@@ -114,6 +115,19 @@ def reject_unknown_flags(function: Callable, args: list[str]) -> None:
             given.add(name)
 
 
+def typed_flags(args: list[str]) -> dict[str, str | None]:
+    """The flags typed on the command line, each with its value as typed (None: a flag alone)."""
+    typed: dict[str, str | None] = {}
+    for i, arg in enumerate(args):
+        if arg == "--":
+            break
+        if arg.startswith("--") and arg != "--help":
+            name, _, value = arg[2:].partition("=")
+            following = args[i + 1] if i + 1 < len(args) and not args[i + 1].startswith("--") else None
+            typed[name.replace("-", "_")] = value if "=" in arg else following
+    return typed
+
+
 def main(argv: list[str]) -> int:
     import fire
 
@@ -125,6 +139,10 @@ def main(argv: list[str]) -> int:
             raise UsageError(f"unknown command {shown(name)}; commands: {', '.join(COMMANDS)}")
         function = command(name)
         reject_unknown_flags(function, args)
+        if name == "search":  # a row's own flag typed for a row that ignores it (experiment: its own check)
+            typed = typed_flags(args)
+            algorithm = typed.get("algorithm") or SEARCH_FLAGS["algorithm"].default
+            refuse_unused_row_flags([str(algorithm).strip("'\"")], list(typed))
         if "--help" in args and "--" not in args:  # else a command taking **flags reads it as one
             args = [arg for arg in args if arg != "--help"] + ["--", "--help"]
         args = as_typed(args, text_flags(function))

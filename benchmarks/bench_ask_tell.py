@@ -30,6 +30,7 @@ def one_setting(dim: int, rounds: int) -> None:
     import dataclasses
     import hashlib
 
+    import gymnasium as gym
     import numpy as np
 
     sys.path.insert(0, str(ROOT))
@@ -37,7 +38,9 @@ def one_setting(dim: int, rounds: int) -> None:
 
     # A lander row with a policy of `dim` weights: the scheduler is the search's own.
     lander = tasks.ENVIRONMENTS["LunarLander-v3"]
-    tasks.ENVIRONMENTS["bench"] = dataclasses.replace(lander, obs_dim=dim, action_dim=1)
+    bench = dataclasses.replace(lander)
+    bench.__dict__["spaces"] = (gym.spaces.Box(-1.0, 1.0, (dim,)), gym.spaces.Box(-1.0, 1.0, (1,)))
+    tasks.ENVIRONMENTS["bench"] = bench
     flags = {**options.search_defaults(), "env": "bench", "seed": 1, "measures": list(lander.measures)}
     config = run_config.check_run_config(options.with_task(flags))
     scheduler = algorithms.build_scheduler(config)

@@ -10,11 +10,13 @@ Map, a module per role, imports going down the list only:
 - pinning: a local cluster's worker per core pinned to it (a Dask worker plugin);
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
   the package shipped to workers that lack it;
-- family: what a task family declares (`Family`, `Environment`, `Measure`), the linear policy;
+- family: what a task family declares (`Family`, `Environment` with its env's spaces, `Measure`),
+  the linear policy, `require_drawing`;
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
 - lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
   each): its rows, its episode, how it is drawn;
-- tasks: the families gathered: ENVIRONMENTS, MEASURES; an episode (`fly`, `rollout`);
+- tasks: the families gathered from FAMILY_MODULES (`register_family`): ENVIRONMENTS, MEASURES;
+  an episode (`fly`, `rollout`);
 - algorithms: ALGORITHMS and `build_scheduler`;
 - engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
 - options: every command's flags, declared once, and the bounds on sizes;
@@ -29,6 +31,7 @@ Map, a module per role, imports going down the list only:
   file per part;
 - experiment_folder: experiment.json read and checked, a setting's label (what compare reads);
 - experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
+- run_folder: what the results commands read of a run folder (`load_run`, `elite_rows`);
 - results: `video`, `elites`, `trajectories`, and choosing elites;
 - evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);
 - explorer: `explore`, the page (explorer_page.html) and the poses it plays;

@@ -31,9 +31,9 @@ from qdsearch.flags import UsageError, boolean, positive_int, seed_list, takes, 
 from qdsearch.metrics import iteration_metrics, load_metrics
 from qdsearch.options import CLUSTER_FLAGS, check_rollouts, checked
 from qdsearch.plots import save_heatmap
-from qdsearch.results import elite_rows, load_run
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import check_writable, console_log, write_csv, write_json, write_pickle
+from qdsearch.run_folder import elite_rows, load_run
 from qdsearch.tasks import MEASURES
 
 ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import ALGORITHMS
-from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
+from qdsearch.cluster import scheduler_of
 from qdsearch.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting
 from qdsearch.flags import UsageError, check_flags, one_of, positive_int, seed_list, takes
 from qdsearch.loop import Driver, Run
@@ -52,7 +52,7 @@ from qdsearch.parts import (
     runs_of_part,
     write_part_state,
 )
-from qdsearch.run import resume_run
+from qdsearch.run import resume_run, session
 from qdsearch.run_config import check_run_config, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
@@ -152,7 +152,6 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
     if not names:
         raise UsageError("--algorithms is empty: the grid has no run")
     axes = {"algorithm": [one_of(ALGORITHMS)("algorithms", name) for name in names]}
-    refuse_unused_row_flags(axes["algorithm"], list(search_flags))
     common = {name: search_defaults()[name] for name in passed_on()}
     for name, value in search_flags.items():
         if SEARCH_FLAGS[name].sweep and isinstance(value, (list, tuple)):
@@ -165,6 +164,7 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
     check_spaces(common["env"])
     for setting in itertools.product(*axes.values()):  # each run's archive too (swept --cells)
         check_sizes(with_task({**common, **dict(zip(axes, setting))}))
+    refuse_unused_row_flags(axes["algorithm"], list(search_flags))  # given here: flags the user set
     return axes, common, seed_list("seeds", seeds)
 
 
@@ -189,30 +189,18 @@ def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
 def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: str | None,
                    part: int | None = None) -> None:
     """The cluster and the log of an experiment (or of one part of it), shut down however it
-    ends."""
-    from tqdm.contrib.logging import logging_redirect_tqdm
-
+    ends (run.session: a stop or a fault is one line that says how to continue)."""
     where = folder if part is None else part_folder(folder, part, plan["parts"])
-    log = make_logger(where / ("experiment.log" if part is None else "part.log"))
     again = f"python lunar_lander.py resume {folder}" + (
         "" if part is None else f" --part {part}/{plan['parts']}")
-    with logging_redirect_tqdm(loggers=[log]):
-        owned = len(runs_of_part(plan, part))
-        log.info(f"Experiment folder: {folder}: {len(plan['runs'])} runs "
-                 f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
-                 + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
-        try:
-            with dask_client(workers, scheduler_address, log) as client:
-                Experiment(folder, plan, client, log, part).drive()
-        except KeyboardInterrupt:
-            log.info(f"Stopped; every run keeps its last completed iteration; continue with: {again}")
-            raise
-        except RunsFailed:
-            raise
-        except (RunError, OSError) as error:  # of the experiment itself (experiment.json, cluster)
-            new = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
-            raise RunError(f"{fault_text(error)}; every run keeps its last checkpoint; continue "
-                           f"with: {again}{new}") from None
+    owned = len(runs_of_part(plan, part))
+    opening = (f"Experiment folder: {folder}: {len(plan['runs'])} runs "
+               f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
+               + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
+    with session(where / ("experiment.log" if part is None else "part.log"), opening, workers,
+                 scheduler_address, lambda flags: f"every run keeps its last checkpoint; continue "
+                                                  f"with: {again}{flags}", (RunsFailed,)) as (client, log):
+        Experiment(folder, plan, client, log, part).drive()
 
 
 class RunsFailed(RunError):

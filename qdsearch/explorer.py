@@ -22,12 +22,13 @@ import numpy as np
 from qdsearch.algorithms import cvt_positions, kind_of, task_of
 from qdsearch.cluster import dask_client, scheduler_of
 from qdsearch.engine import gather_with_progress, worker_env
+from qdsearch.family import require_drawing
 from qdsearch.flags import takes
 from qdsearch.metrics import load_metrics
 from qdsearch.options import CLUSTER_FLAGS, TERRAIN_FLAGS, checked
-from qdsearch.results import elite_rows, load_run, shown_terrain
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import atomic_write, check_writable, console_log
+from qdsearch.run_folder import elite_rows, load_run, shown_terrain
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly
 
 # The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
@@ -145,6 +146,7 @@ def explore(run_dir: str, **flags: Any) -> None:
     """
     env_seed, workers = flags["env_seed"], flags["workers"]
     archive, config = load_run(run_dir)
+    require_drawing(task_of(config).family, "explore")
     shown = shown_terrain(config, env_seed)
     workers, run = checked("workers", workers), Path(str(run_dir))
     metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown

@@ -2,13 +2,20 @@
 
 A family (lander.py, walker.py) is a group of Gymnasium tasks flown by one episode function and
 told apart by one set of measures. It declares itself once, as a `Family` value, and its tasks and
-measures as rows that point to it; tasks.py gathers the families' rows into the tables --env and
---measures pick from.
+measures as rows that point to it; tasks.py gathers the family modules' rows into the tables
+--env and --measures pick from. Every field is named where it is given (the types are
+keyword-only), and what a row can read from its environment is not typed by hand: the policy's
+shape and kind come from the env's spaces.
 
 Map:
-- `Family`: a family's episode function and how the results commands draw it (path points, the
-  step a path marks, poses for the explorer page, the page's scene, the trajectories picture);
-- `Environment`: a task a search can fly (a row of ENVIRONMENTS);
+- `Family`: a family's episode function and, optionally, how the results commands draw it (path
+  points, the step a path marks, poses for the explorer page, the page's scene, the
+  trajectories picture); DRAWN_BY and `require_drawing` (a command that draws what the family
+  leaves undrawn is one line);
+- `Environment`: a task a search can fly (a row of ENVIRONMENTS): `make` (gym.make's env, a
+  missing simulator or renderer in one line: `renderer_missing`, GL_PACKAGES) and `spaces`
+  (read once, on first use), whence the policy's `shape`, `continuous`, `solution_dim` and
+  `policy`;
 - `Measure`: a behaviour solutions are told apart by (a row of MEASURES);
 - `linear_policy`: the policy W @ obs every task flies.
 """
@@ -16,49 +23,77 @@ Map:
 from __future__ import annotations
 
 import dataclasses
+import functools
+import os
+import sys
 from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
 
+from qdsearch.flags import UsageError, one_line
+from qdsearch.run_files import RunError
+
 OnStep = Callable[[Any, np.ndarray], None]  # called with each step's action and observation
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
+@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Family:
-    """A family of tasks: one episode function, one set of measures, one way to be drawn.
+    """A family of tasks: one episode function, one set of measures, and how it is drawn.
 
-    Families are compared by identity: a task's measures are the rows whose `family` is its own.
+    Families are compared by identity: a task's measures are the rows whose `families` hold its
+    own. The drawing fields are optional: a family without them searches, resumes, evaluates and
+    compares as any other, and the commands that would draw it say in one line that they can't
+    (`require_drawing`); `video` needs only its env's own renderer.
     """
 
     name: str  # in --help and in messages
     title: str  # how --help introduces its measures
     fly: Callable[..., Any]  # (solution, env_seed, env, task, on_step) -> the episode's summary
-    position: Callable[[gym.Env, np.ndarray], tuple[float, float]]  # a path's point after a step
-    marked_step: Callable[[Any], int]  # the step (1-based) a path marks, from the episode's summary
-    pose: Callable[[gym.Env, Any], list[float]]  # what the explorer page draws a step from
-    pose_scale: tuple[float, ...]  # the pose's units per int16 step (metres or radians)
-    pose_angles: tuple[int, ...]  # the pose's columns that are angles (wrapped to [-pi, pi])
-    scene: Callable[[int, Environment], dict]  # the page's world and bodies (explorer_page.html)
-    draw_paths: Callable[[Any, list, int, Environment], str]  # the trajectories picture's
-    # ground and axes on a matplotlib Axes; returns its title with {} for the count and terrain
     prepare: Callable[[], None] = lambda: None  # called before one of its envs is made
+    # what `trajectories` draws:
+    position: Callable[[gym.Env, np.ndarray], tuple[float, float]] | None = None  # a path's point
+    # after a step
+    marked_step: Callable[[Any], int] | None = None  # the step (1-based) a path marks, from the
+    # episode's summary
+    draw_paths: Callable[[Any, list, int, Environment], str] | None = None  # the picture's ground
+    # and axes on a matplotlib Axes; returns its title with {} for the count and the terrain
+    # what `explore` draws:
+    pose: Callable[[gym.Env, Any], list[float]] | None = None  # what the page draws a step from
+    pose_scale: tuple[float, ...] = ()  # each pose column's units per int16 step (metres, radians)
+    pose_angles: tuple[int, ...] = ()  # the pose's columns that are angles (wrapped to [-pi, pi])
+    scene: Callable[[int, Environment], dict] | None = None  # the page's world and bodies
+    # (explorer_page.html)
+
+    def draws(self, command: str) -> bool:
+        """Whether the family declares what `command` (a key of DRAWN_BY) draws it with."""
+        return all(getattr(self, field) for field in DRAWN_BY[command])
 
 
-@dataclasses.dataclass(frozen=True)
+# What each command that draws a family's episodes needs the family to declare.
+DRAWN_BY = {"trajectories": ("position", "marked_step", "draw_paths"),
+            "explore": ("pose", "pose_scale", "scene")}
+
+
+def require_drawing(family: Family, command: str) -> None:
+    """Refuse, in one line, a command that draws (`trajectories`, `explore`) a family that does not
+    declare how; called before any episode is flown."""
+    if missing := [field for field in DRAWN_BY[command] if not getattr(family, field)]:
+        raise UsageError(f"{command}: the {family.title} family cannot be drawn (it declares no "
+                         f"{', '.join(missing)}; docs/extending.md)")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Environment:
     """A Gymnasium task a search can fly (a row of ENVIRONMENTS, picked by --env).
 
     The policy is W @ obs with no bias: `action_dim` rows of `obs_dim` weights, the solution the
-    QD algorithm searches. Its family flies the episode and gives its measures; `objective` says
-    what of the episode is maximised.
+    QD algorithm searches, both read from the env's spaces (`shape`). Its family flies the
+    episode and gives its measures; `objective` says what of the episode is maximised.
     """
 
     gym_id: str
-    kwargs: dict[str, Any]
-    obs_dim: int
-    action_dim: int
-    continuous: bool  # action = tanh(W @ obs) (a Box of [-1, 1]); else argmax(W @ obs) (Discrete)
+    kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)  # gym.make's, besides the id
     family: Family
     measures: tuple[str, ...]  # the default --measures
     qd_offset: float  # below (almost) every return: QD score counts every elite
@@ -71,12 +106,75 @@ class Environment:
     objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
     # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)
 
+    def make(self, render_mode: str | None = None, name: str | None = None) -> gym.Env:
+        """gym.make's env of the task, its family prepared. A simulator that is not installed
+        (MuJoCo), or a headless renderer whose library is missing, is one line naming the row
+        (`name`, its --env; else its gym id)."""
+        try:
+            self.family.prepare()
+            return gym.make(self.gym_id, render_mode=render_mode, **self.kwargs)
+        except gym.error.DependencyNotInstalled as error:
+            raise UsageError(f"--env {name or self.gym_id} needs a package that is not installed "
+                             f"({one_line(str(error))[:200]}): pip install -r requirements.txt") from None
+        except (ImportError, AttributeError, RuntimeError) as error:
+            if not os.environ.get("MUJOCO_GL") or "mujoco" in sys.modules:  # not MuJoCo's import failing
+                raise
+            raise renderer_missing(error) from None
+
+    @functools.cached_property
+    def spaces(self) -> tuple[gym.Space, gym.Space]:
+        """The task's observation and action spaces, from an env made on first use (once per row
+        and process): made at import, the simulators' imports would slow every command, --help
+        too. tasks.check_spaces says whether the linear policy can serve them."""
+        env = self.make()
+        try:
+            return env.observation_space, env.action_space
+        finally:
+            env.close()
+
+    @property
+    def continuous(self) -> bool:
+        """Actions in a box: tanh(W @ obs), each component in [-1, 1]; else (Discrete) the argmax
+        of W @ obs picks one of `action_dim`."""
+        return isinstance(self.spaces[1], gym.spaces.Box)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """W's shape: a row per action (a choice, or a component of the box), a column per
+        observation."""
+        obs, act = self.spaces
+        return int(act.n) if isinstance(act, gym.spaces.Discrete) else int(act.shape[0]), int(obs.shape[0])
+
+    @property
+    def action_dim(self) -> int:
+        return self.shape[0]
+
+    @property
+    def obs_dim(self) -> int:
+        return self.shape[1]
+
     @property
     def solution_dim(self) -> int:
         return self.action_dim * self.obs_dim
 
+    def policy(self, solution: np.ndarray) -> Callable:
+        """obs -> action of `solution`'s linear policy in this task."""
+        return linear_policy(solution, self.continuous, self.shape)
 
-@dataclasses.dataclass(frozen=True)
+
+# The Debian packages each of MuJoCo's headless renderers (MUJOCO_GL) needs.
+GL_PACKAGES = {"egl": "libegl1 libegl-mesa0", "osmesa": "libosmesa6"}
+
+
+def renderer_missing(error: BaseException) -> RunError:
+    """One line for a MuJoCo renderer whose library the machine lacks, naming what to install."""
+    gl = os.environ.get("MUJOCO_GL", "")
+    needs = GL_PACKAGES.get(gl, " or ".join(GL_PACKAGES.values()))
+    return RunError(f"MuJoCo cannot render headless here through MUJOCO_GL={gl} "
+                    f"({one_line(str(error))[:200]}): apt-get install -y {needs}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Measure:
     """One behaviour solutions are told apart by: its axis label, its range in the archive (values
     outside fall into the edge cells), a short name for file names, how an episode's summary gives
@@ -93,7 +191,7 @@ class Measure:
 
 def linear_policy(solution: np.ndarray, continuous: bool, shape: tuple[int, int]) -> Callable:
     """obs -> action of the policy W @ obs (no bias): argmax for discrete actions, tanh of each
-    component for continuous ones (the action box is [-1, 1] in every task here)."""
+    component for continuous ones (tasks.check_spaces holds every action box to [-1, 1])."""
     weights = np.asarray(solution, dtype=np.float64).reshape(shape)
     # W.dot(obs) makes the same BLAS call as W @ obs (same bits) for less overhead; a strided W
     # would take matmul's non-BLAS path, so it keeps matmul.

@@ -1,4 +1,5 @@
-"""A streamlined LunarLander-v3: the same episode, bit for bit, for about two thirds of the cost.
+"""A streamlined LunarLander-v3: the same episode, bit for bit, for less of the cost (what a step
+costs each way: benchmarks/bench_evaluation.py, its figures in docs/performance.md).
 
 gym.make's env spends much of each step outside Box2D: wrappers, an action-space check, numpy
 calls on 8 floats, two RNG draws, rebuilding body definitions on reset. This copy mirrors

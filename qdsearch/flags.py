@@ -176,17 +176,13 @@ def check_flags(table: dict[str, Flag], values: dict[str, Any]) -> dict[str, Any
             else table[name].check(name, value) for name, value in values.items()}
 
 
-def takes(*tables: dict[str, Flag],
-          given: Callable[[dict[str, Any], list[str]], None] | None = None) -> Callable[[Callable], Callable]:
+def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
     """Give a command that takes `**flags` the flags of `tables` as ordinary keyword arguments.
 
     The command's signature becomes its own parameters followed by the tables' flags with their
     defaults, and its docstring's Args section gains each flag's help line; Fire builds --help
     and parses the command line from both. A call binds its arguments to that signature (a
     misspelt keyword is a TypeError, as for any function) and passes every flag, defaulted.
-    `given`, if set, sees every argument and the names of those the caller gave (a flag that
-    only matters when given, like a row's own flag, is checked there; given its default, a flag
-    changes nothing, so Fire's defaulted flags do not count).
     """
     flags = {name: flag for table in tables for name, flag in table.items()}
 
@@ -201,13 +197,7 @@ def takes(*tables: dict[str, Flag],
         @functools.wraps(function)
         def command(*args: Any, **kwargs: Any) -> Any:
             bound = signature.bind(*args, **kwargs)
-            # Fire passes every flag, defaulted ones too, by position: a flag counts as given
-            # when named by keyword or when its value is not its default
-            named = [name for name, value in bound.arguments.items() if name in kwargs or (
-                name in signature.parameters and value != signature.parameters[name].default)]
             bound.apply_defaults()
-            if given is not None:
-                given(dict(bound.arguments), named)
             arguments = dict(bound.arguments)
             extra = next((arguments.pop(p.name) for p in keep if p.kind is p.VAR_KEYWORD), {})
             return function(**arguments, **extra)

@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.box2d import lunar_lander as upstream
 
-from qdsearch.family import Environment, Family, Measure, OnStep, linear_policy
+from qdsearch.family import Environment, Family, Measure, OnStep
 from qdsearch.fast_lander import (
     FPS,
     HALF_H,
@@ -72,7 +72,7 @@ def fly_lander(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environm
                on_step: OnStep | None = None) -> Flight:
     """One Lunar Lander episode of the linear policy on the terrain of `env_seed`; `on_step` is
     called with each step's action and observation."""
-    policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
+    policy = task.policy(solution)
     obs, _ = env.reset(seed=env_seed)
     flight, firings, done, continuous = Flight(), [0] * 4, False, task.continuous
     total_reward, min_y_velocity, max_tilt, touchdown, steps = 0.0, math.inf, 0.0, None, 0
@@ -133,7 +133,7 @@ def pose(env: gym.Env, action: Any) -> list[float]:
             lander.legs[0].angle, lander.legs[1].angle, *engine_powers(action)]
 
 
-# 1 mm and 0.1 mrad: ~14 bytes a step, ~9 MB for a full 300-iteration archive (~615,000 steps).
+# 1 mm and 0.1 mrad, in int16: 14 bytes a step (what a whole page weighs: README, `explore`).
 POSE_SCALE = (1e3, 1e3, 1e4, 1e4, 1e4, 1e4, 1e4)
 POSE_ANGLES = (2, 3, 4)
 
@@ -195,20 +195,22 @@ def draw_paths(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, task: Env
 
 # ---- the declarations ------------------------------------------------------------------------
 
-LANDER = Family("lander", "Lunar Lander", fly_lander, position, marked_step, pose, POSE_SCALE,
-                POSE_ANGLES, scene, draw_paths)
+LANDER = Family(name="lander", title="Lunar Lander", fly=fly_lander, position=position,
+                marked_step=marked_step, draw_paths=draw_paths, pose=pose, pose_scale=POSE_SCALE,
+                pose_angles=POSE_ANGLES, scene=scene)
 
 # Observation (x, y, vx, vy, angle, spin, leg1, leg2). The QD offsets are below the lowest
 # returns of real runs (docs/environments.md).
 ENVIRONMENTS: dict[str, Environment] = {
     # The tutorial's: 4 actions (engines off, or one of three fires).
     "LunarLander-v3": Environment(
-        "LunarLander-v3", {}, 8, 4, False, LANDER, ("impact_x", "impact_y_velocity"), -600.0,
-        "the terrain and the initial push", 200.0, fast=FastLunarLander),
+        gym_id="LunarLander-v3", family=LANDER, measures=("impact_x", "impact_y_velocity"),
+        qd_offset=-600.0, env_seed="the terrain and the initial push", solved=200.0, fast=FastLunarLander),
     # Throttles instead of switches: main engine and lateral engine, each in [-1, 1].
     "LunarLanderContinuous-v3": Environment(
-        "LunarLander-v3", {"continuous": True}, 8, 2, True, LANDER, ("impact_x", "impact_y_velocity"),
-        -1200.0, "the terrain and the initial push", 200.0),
+        gym_id="LunarLander-v3", kwargs={"continuous": True}, family=LANDER,
+        measures=("impact_x", "impact_y_velocity"), qd_offset=-1200.0,
+        env_seed="the terrain and the initial push", solved=200.0),
 }
 
 # Each measure of a run is computed per terrain and averaged over its terrains. The ranges hold
@@ -216,21 +218,25 @@ ENVIRONMENTS: dict[str, Environment] = {
 MEASURES: dict[str, Measure] = {
     # The tutorial's two: where and how fast the lander comes down (without a touchdown: its last
     # x-position and its fastest descent).
-    "impact_x": Measure("Impact x-position", (-1.0, 1.0), "x", lambda f: f.impact[0], (LANDER,)),
+    "impact_x": Measure(label="Impact x-position", range=(-1.0, 1.0), short="x",
+                        of=lambda f: f.impact[0], families=(LANDER,)),
     "impact_y_velocity": Measure(
-        "Impact y-velocity", (-3.0, 0.0), "v", descending=True, families=(LANDER,),
+        label="Impact y-velocity", range=(-3.0, 0.0), short="v", descending=True, families=(LANDER,),
         of=lambda f: f.min_y_velocity if f.touchdown is None else f.touchdown[3]),
-    "impact_x_velocity": Measure("Impact x-velocity", (-3.0, 3.0), "vx", lambda f: f.impact[2], (LANDER,)),
+    "impact_x_velocity": Measure(label="Impact x-velocity", range=(-3.0, 3.0), short="vx",
+                                 of=lambda f: f.impact[2], families=(LANDER,)),
     # Angles are not wrapped: a lander that tumbles goes past pi, into the edge cells.
-    "impact_angle": Measure("Impact angle (rad)", (-math.pi, math.pi), "angle", lambda f: f.impact[4],
-                            (LANDER,)),
+    "impact_angle": Measure(label="Impact angle (rad)", range=(-math.pi, math.pi), short="angle",
+                            of=lambda f: f.impact[4], families=(LANDER,)),
     # Fuel in main-engine firings at full power: a side firing costs a tenth of one, as in the
     # env's reward (with throttles: each firing weighed by its power).
-    "fuel": Measure("Fuel burnt (main-engine firings)", (0.0, 600.0), "fuel",
-                    lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT]), (LANDER,)),
+    "fuel": Measure(label="Fuel burnt (main-engine firings)", range=(0.0, 600.0), short="fuel",
+                    of=lambda f: f.firings[MAIN] + 0.1 * (f.firings[LEFT] + f.firings[RIGHT]),
+                    families=(LANDER,)),
     # A lander falling freely touches down after ~51 steps; one that hovers flies all 1000.
-    "flight_time": Measure("Steps to touchdown", (50.0, 1000.0), "steps",
-                           lambda f: f.steps if f.touchdown_step is None else f.touchdown_step, (LANDER,)),
-    "max_tilt": Measure("Largest tilt before touchdown (rad)", (0.0, math.pi), "tilt",
-                        lambda f: f.max_tilt, (LANDER,)),
+    "flight_time": Measure(label="Steps to touchdown", range=(50.0, 1000.0), short="steps",
+                           of=lambda f: f.steps if f.touchdown_step is None else f.touchdown_step,
+                           families=(LANDER,)),
+    "max_tilt": Measure(label="Largest tilt before touchdown (rad)", range=(0.0, math.pi), short="tilt",
+                        of=lambda f: f.max_tilt, families=(LANDER,)),
 }

@@ -12,7 +12,8 @@ Map:
 - the episode: `fly_robot` (with `feet_touching`);
 - how it is drawn: `position`, `pose` (the torso, then each capsule's ends, projected on the
   view's plane), `scene`, `draw_paths`;
-- the declarations: ROBOTS, their families (`robot_family`), ENVIRONMENTS and MEASURES rows.
+- the declarations: ROBOTS, their families (`robot_family`; ROBOT_FAMILIES), ENVIRONMENTS and
+  MEASURES rows (`foot_measures`).
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.family import Environment, Family, Measure, OnStep, linear_policy
+from qdsearch.family import Environment, Family, Measure, OnStep
 
 FLOOR = 0  # the floor is geom 0 in every robot's model
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Robot:
     """A MuJoCo robot: its name in measures, its feet (geoms, in the measures' order), and the plane
     it is seen in (planar robots from the side: x and height; the Ant from above: x and y)."""
@@ -73,7 +74,7 @@ def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environme
     draw their initial state's noise from it)."""
     import mujoco
 
-    policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
+    policy = task.policy(solution)
     obs, _ = env.reset(seed=env_seed)
     model, data = env.unwrapped.model, env.unwrapped.data
     feet = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, foot) for foot in robot.feet])
@@ -194,12 +195,12 @@ def draw_paths(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, task: Env
 # ---- the declarations ------------------------------------------------------------------------
 
 ROBOTS = {  # the feet, in the measures' order, are the geoms at the ends of the legs
-    "hopper": Robot("hopper", "Hopper", ("foot_geom",)),
-    "walker2d": Robot("walker2d", "Walker2d", ("foot_geom", "foot_left_geom")),  # right, left
-    "halfcheetah": Robot("halfcheetah", "HalfCheetah", ("bfoot", "ffoot")),  # back, front
+    "hopper": Robot(name="hopper", title="Hopper", feet=("foot_geom",)),
+    "walker2d": Robot(name="walker2d", title="Walker2d", feet=("foot_geom", "foot_left_geom")),  # right, left
+    "halfcheetah": Robot(name="halfcheetah", title="HalfCheetah", feet=("bfoot", "ffoot")),  # back, front
     # the ankles at (+x, +y), (-x, +y), (-x, -y), (+x, -y) of the torso (the Ant faces +x)
-    "ant": Robot("ant", "Ant", ("left_ankle_geom", "right_ankle_geom", "third_ankle_geom",
-                                "fourth_ankle_geom"), top=True),
+    "ant": Robot(name="ant", title="Ant", feet=("left_ankle_geom", "right_ankle_geom", "third_ankle_geom",
+                                                "fourth_ankle_geom"), top=True),
 }
 
 # The explorer's poses in centimetres: a good HalfCheetah runs ~100 m in an episode, and int16
@@ -220,11 +221,12 @@ def quiet_mujoco() -> None:
 
 
 def robot_family(robot: Robot, pose_size: int) -> Family:
+    """A robot's family: the shared functions, each told the robot."""
     return Family(
-        robot.name, robot.title, functools.partial(fly_robot, robot=robot),
-        functools.partial(position, robot=robot), marked_step, functools.partial(pose, robot=robot),
-        (POSE_SCALE_CM,) * pose_size, (), functools.partial(scene, robot=robot),
-        functools.partial(draw_paths, robot=robot), quiet_mujoco)
+        name=robot.name, title=robot.title, fly=functools.partial(fly_robot, robot=robot),
+        prepare=quiet_mujoco, position=functools.partial(position, robot=robot), marked_step=marked_step,
+        draw_paths=functools.partial(draw_paths, robot=robot), pose=functools.partial(pose, robot=robot),
+        pose_scale=(POSE_SCALE_CM,) * pose_size, scene=functools.partial(scene, robot=robot))
 
 
 # The pose's size: the torso's two coordinates and 4 per capsule (hopper 4, walker2d 7,
@@ -233,40 +235,43 @@ HOPPER = robot_family(ROBOTS["hopper"], 2 + 4 * 4)
 WALKER2D = robot_family(ROBOTS["walker2d"], 2 + 4 * 7)
 HALFCHEETAH = robot_family(ROBOTS["halfcheetah"], 2 + 4 * 8)
 ANT = robot_family(ROBOTS["ant"], 2 + 4 * 12)
-PLANAR = (HOPPER, WALKER2D, HALFCHEETAH)
+ROBOT_FAMILIES = (HOPPER, WALKER2D, HALFCHEETAH, ANT)
 
 ANT_KWARGS = {"include_cfrc_ext_in_observation": False}  # 27 observations, as in the QD-RL tasks
 
 # Every policy is tanh(W @ obs): each task's action box is [-1, 1]. The QD offsets are below the
 # lowest returns of real runs (docs/locomotion.md); "solved" and CQD's top are Gymnasium's reward
-# thresholds (Walker2d has none: 5,000, as the others' scale).
-# The heatmaps' colours top out at 1,500: the best returns of 300-iteration runs here were 947 to
-# 1,320 (docs/locomotion.md), and a fixed range keeps a run's snapshots comparable.
+# thresholds (Walker2d has none: 5,000, as the others' scale). The heatmaps' colours top out at
+# 1,500, above the best returns of 300-iteration runs (docs/locomotion.md): a fixed range keeps a
+# run's snapshots comparable.
 NOISE = "the reset's noise"  # what --env_seed seeds in a MuJoCo task
 ENVIRONMENTS: dict[str, Environment] = {
-    "Hopper-v5": Environment("Hopper-v5", {}, 11, 3, True, HOPPER, ("hopper_foot1",), -100.0,
-                             NOISE, 3800.0, heat=(-100.0, 1500.0), objective_max=3800.0),
-    "Walker2d-v5": Environment("Walker2d-v5", {}, 17, 6, True, WALKER2D,
-                               ("walker2d_foot1", "walker2d_foot2"), -100.0, NOISE, 5000.0,
-                               heat=(-100.0, 1500.0), objective_max=5000.0),
-    "HalfCheetah-v5": Environment("HalfCheetah-v5", {}, 17, 6, True, HALFCHEETAH,
-                                  ("halfcheetah_foot1", "halfcheetah_foot2"), -4000.0, NOISE, 4800.0,
-                                  heat=(-1000.0, 1500.0), objective_max=4800.0),
-    "Ant-v5": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT,
-                          ("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), -5000.0, NOISE, 6000.0,
-                          heat=(-1000.0, 1500.0), archive="cvt", objective_max=6000.0),
+    "Hopper-v5": Environment(
+        gym_id="Hopper-v5", family=HOPPER, measures=("hopper_foot1",), qd_offset=-100.0, env_seed=NOISE,
+        solved=3800.0, heat=(-100.0, 1500.0), objective_max=3800.0),
+    "Walker2d-v5": Environment(
+        gym_id="Walker2d-v5", family=WALKER2D, measures=("walker2d_foot1", "walker2d_foot2"),
+        qd_offset=-100.0, env_seed=NOISE, solved=5000.0, heat=(-100.0, 1500.0), objective_max=5000.0),
+    "HalfCheetah-v5": Environment(
+        gym_id="HalfCheetah-v5", family=HALFCHEETAH, measures=("halfcheetah_foot1", "halfcheetah_foot2"),
+        qd_offset=-4000.0, env_seed=NOISE, solved=4800.0, heat=(-1000.0, 1500.0), objective_max=4800.0),
+    "Ant-v5": Environment(
+        gym_id="Ant-v5", kwargs=ANT_KWARGS, family=ANT,
+        measures=("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), qd_offset=-5000.0, env_seed=NOISE,
+        solved=6000.0, heat=(-1000.0, 1500.0), archive="cvt", objective_max=6000.0),
     # The Ant in every direction: the final position as measures, no reward for going forward.
-    "ant_omni": Environment("Ant-v5", ANT_KWARGS, 27, 8, True, ANT, ("final_x", "final_y"), -4000.0,
-                            NOISE, 1000.0, heat=(-1000.0, 1000.0), objective_max=1000.0,
-                            objective=without_forward_reward),
+    "ant_omni": Environment(
+        gym_id="Ant-v5", kwargs=ANT_KWARGS, family=ANT, measures=("final_x", "final_y"), qd_offset=-4000.0,
+        env_seed=NOISE, solved=1000.0, heat=(-1000.0, 1000.0), objective_max=1000.0,
+        objective=without_forward_reward),
 }
 
 
 def foot_measures(family: Family, robot: Robot, names: tuple[str, ...]) -> dict[str, Measure]:
     """A robot's foot-contact measures: the share of steps each foot touches the floor."""
     return {f"{robot.name}_foot{i + 1}": Measure(
-        f"Share of steps the {robot.title}'s {name} touches the floor", (0.0, 1.0),
-        f"{robot.name[0]}f{i + 1}", lambda stride, i=i: stride.share(i), (family,))
+        label=f"Share of steps the {robot.title}'s {name} touches the floor", range=(0.0, 1.0),
+        short=f"{robot.name[0]}f{i + 1}", of=lambda stride, i=i: stride.share(i), families=(family,))
         for i, name in enumerate(names)}
 
 
@@ -277,11 +282,13 @@ MEASURES: dict[str, Measure] = {
     **foot_measures(ANT, ROBOTS["ant"], ("foot 1 (+x,+y)", "foot 2 (-x,+y)", "foot 3 (-x,-y)",
                                          "foot 4 (+x,-y)")),
     # ant_omni's: where the torso ends, x and y, in QDax's [-30, 30] m
-    "final_x": Measure("Final x of the torso (m)", (-30.0, 30.0), "x", lambda s: s.end[0], (ANT,)),
-    "final_y": Measure("Final y of the torso (m)", (-30.0, 30.0), "y", lambda s: s.end[1], (ANT,)),
+    "final_x": Measure(label="Final x of the torso (m)", range=(-30.0, 30.0), short="x",
+                       of=lambda s: s.end[0], families=(ANT,)),
+    "final_y": Measure(label="Final y of the torso (m)", range=(-30.0, 30.0), short="y",
+                       of=lambda s: s.end[1], families=(ANT,)),
     # Cheap and telling for every robot: how far forward, and how high the torso is carried.
-    "forward_distance": Measure("Distance the torso moved along x (m)", (-10.0, 50.0), "dx",
-                                lambda s: s.end[0] - s.start[0], (HOPPER, WALKER2D, HALFCHEETAH, ANT)),
-    "torso_height": Measure("Mean height of the torso (m)", (0.0, 2.0), "z",
-                            lambda s: s.heights / max(s.steps, 1), (HOPPER, WALKER2D, HALFCHEETAH, ANT)),
+    "forward_distance": Measure(label="Distance the torso moved along x (m)", range=(-10.0, 50.0),
+                                short="dx", of=lambda s: s.end[0] - s.start[0], families=ROBOT_FAMILIES),
+    "torso_height": Measure(label="Mean height of the torso (m)", range=(0.0, 2.0), short="z",
+                            of=lambda s: s.heights / max(s.steps, 1), families=ROBOT_FAMILIES),
 }

@@ -2,9 +2,8 @@
 explorer page is explorer.py's). None of these commands changes the run's archive.
 
 Map:
-- `load_run`: a run folder's archive and config, checked against each other;
 - choosing elites (SELECTION_FLAGS of options.py): `parse_cells`, `parse_indices`,
-  `select_elites`, `load_chosen_elites`, `shown_terrain`;
+  `select_elites`, `load_chosen_elites` (the run read by run_folder.py's readers);
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
   `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family).
@@ -30,22 +29,11 @@ from qdsearch.algorithms import ARCHIVES, kind_of
 from qdsearch.engine import averaged, per_terrain
 from qdsearch.flags import UsageError, check_flags, positive_int, shown, takes
 from qdsearch.options import SELECTION_FLAGS, TERRAIN_FLAGS
-from qdsearch.run_config import RunConfig, load_archive, load_checked_config
+from qdsearch.run_config import RunConfig
 from qdsearch.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
+from qdsearch.run_folder import elite_rows, load_run, shown_terrain
 from qdsearch.stopping import STOP
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly, make_env, renderer_missing, rollout
-
-
-def load_run(run_dir: Any) -> tuple[Any, RunConfig]:
-    """A run folder's archive and config (checked against each other). Folders written before
-    --measures and --grid existed load with the tutorial's measures on a 50x50 grid."""
-    path = Path(str(run_dir))
-    if not path.is_dir():
-        raise UsageError(f"{path}: no such run folder")
-    if not (path / "archive.pkl").is_file():
-        raise UsageError(f"{path / 'archive.pkl'}: no such file (is {path} a run folder of lunar_lander.py?)")
-    config = load_checked_config(path)
-    return load_archive(path / "archive.pkl", config), config
 
 
 def is_number(value: Any) -> bool:
@@ -93,13 +81,6 @@ def check_in_archive(archive, point: tuple[float, ...], measures: list[str]) -> 
                        zip(measures, archive.lower_bounds, archive.upper_bounds))
     if not all(lo <= p <= hi for p, lo, hi in zip(point, archive.lower_bounds, archive.upper_bounds)):
         raise UsageError(f"cell {point_text(point)} is outside the archive: {ranges}")
-
-
-def elite_rows(archive) -> dict[str, np.ndarray]:
-    """Every elite (solution, objective, measures, index), best first; ties by cell index."""
-    data = archive.data(["solution", "objective", "measures", "index"])
-    order = np.lexsort((data["index"], -data["objective"]))
-    return {field: values[order] for field, values in data.items()}
 
 
 def pick(rows: dict[str, np.ndarray], i: int, name: str) -> dict:
@@ -216,6 +197,8 @@ def rendered(env: gym.Env) -> np.ndarray:
     """The env's frame; a MuJoCo renderer whose library is missing is one line naming it."""
     try:
         return env.render()
+    except gym.error.DependencyNotInstalled as error:  # pygame, say, for a Box2D or classic env
+        raise UsageError(f"cannot draw {env.spec.id if env.spec else 'the env'}: {error}") from None
     except (ImportError, AttributeError, RuntimeError, OSError) as error:
         if not hasattr(env.unwrapped, "mujoco_renderer"):
             raise
@@ -230,20 +213,6 @@ def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[RunConfig, 
     selection = {name: flags[name] for name in SELECTION_FLAGS}
     check_writable(Path(str(run_dir)))  # before any elite is flown
     return config, select_elites(archive, **selection, measures=config.measures), shown
-
-
-def shown_terrain(config: RunConfig, env_seed: Any) -> int:
-    """The terrain a results command shows a run on: --env_seed, one of the run's terrains (its
-    elites' objectives and measures were flown there), by default the run's first."""
-    if env_seed is None:
-        return config.env_seed[0]
-    terrain = check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
-    if terrain not in config.env_seed:
-        terrains = ",".join(map(str, config.env_seed))
-        raise UsageError(f"--env_seed {terrain} is not a terrain of this run (it was flown on "
-                         f"{terrains}); to fly its elites on other terrains, use: "
-                         f"python lunar_lander.py evaluate RUN --env_seeds {terrain}")
-    return terrain
 
 
 def reflown(elite: dict, config: RunConfig) -> tuple[float, list[float]]:

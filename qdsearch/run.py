@@ -3,8 +3,9 @@ folder), both driving it through the one run loop (loop.py's OneRun).
 
 Map:
 - `search`, `resume_run`;
-- what they share: `run_session` (the Dask client and the log, and the one line a stop or a
-  fault ends with: `checkpoint_state`), `where_to_look` (the end of a finished search).
+- what they share with experiments: `session` (the Dask client and the log, and the one line a
+  stop or a fault ends with), `run_session` (a run folder's: `checkpoint_state`), `where_to_look`
+  (the end of a finished search).
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ import secrets
 import shlex
 import sys
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
 from qdsearch.flags import UsageError, check_flags, takes
 from qdsearch.loop import OneRun, Run
-from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, checked, refuse_unused_row_flags, with_task
+from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, checked, with_task
 from qdsearch.run_config import check_run_config, load_archive, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
@@ -34,7 +35,7 @@ from qdsearch.run_files import (
 from qdsearch.tasks import check_spaces
 
 
-@takes(SEARCH_FLAGS, given=lambda flags, named: refuse_unused_row_flags([flags["algorithm"]], named))
+@takes(SEARCH_FLAGS)
 def search(**flags: Any) -> None:
     """Search a task (--env; Lunar Lander's landings by default) with a QD algorithm and write a
     run folder.
@@ -110,26 +111,38 @@ def where_to_look(run_dir: Path) -> str:
 
 
 @contextlib.contextmanager
-def run_session(run_dir: Path, workers: int, scheduler_address: str | None) -> Iterator[tuple]:
-    """The Dask client and the log of a command writing `run_dir`, shut down however it ends.
+def session(log_path: Path, opening: str, workers: int, scheduler_address: str | None,
+            state: Callable[[str], str], passing: tuple[type[BaseException], ...] = ()) -> Iterator[tuple]:
+    """The Dask client and the log of a command that writes run folders (search, resume,
+    experiment), shut down however it ends.
 
-    A stop or a fault (a full disk, a lost cluster) ends with one line that says which iteration
-    the folder's checkpoint holds and the command that continues from it.
+    A stop or a fault (a full disk, a lost cluster) ends with one line: `state(flags)` says what
+    the folders hold and the command that continues them (with `flags`, such as a new cluster's).
+    Faults of `passing` kinds have said their own line already and go through as they are.
     """
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    log = make_logger(run_dir / "run.log")
+    log = make_logger(log_path)
     with logging_redirect_tqdm(loggers=[log]):
-        log.info(f"Run folder: {run_dir}")
+        log.info(opening)
         try:
             with dask_client(workers, scheduler_address, log) as client:
                 yield client, log
         except KeyboardInterrupt:
-            log.info(f"Stopped; {checkpoint_state(run_dir)}")
+            log.info(f"Stopped; {state('')}")
+            raise
+        except passing:
             raise
         except (RunError, OSError) as error:
             elsewhere = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
-            raise RunError(f"{fault_text(error)}; {checkpoint_state(run_dir, elsewhere)}") from None
+            raise RunError(f"{fault_text(error)}; {state(elsewhere)}") from None
+
+
+def run_session(run_dir: Path, workers: int, scheduler_address: str | None):
+    """A run folder's session: its log is run.log, and a stop or a fault says which iteration its
+    checkpoint holds and how to continue."""
+    return session(run_dir / "run.log", f"Run folder: {run_dir}", workers, scheduler_address,
+                   lambda flags: checkpoint_state(run_dir, flags))
 
 
 def checkpoint_state(run_dir: Path, flags: str = "") -> str:

@@ -1,40 +1,70 @@
-"""The tasks a search can fly: every family's rows gathered into the tables --env and --measures
-pick from, and one episode of any of them.
+"""The tasks a search can fly: every family module's rows gathered into the tables --env and
+--measures pick from, and one episode of any of them.
 
-A family lives in a module of its own (lander.py, walker.py; family.py says what one declares).
-To add one, write its module and add it to FAMILIES.
+A family lives in a module of its own (lander.py, walker.py, locomotion.py; family.py says what
+one declares). To add one, write its module and name it in FAMILY_MODULES: its families, tasks
+and measures are gathered from it (docs/extending.md lists every step).
 
 Map:
+- the registration: FAMILY_MODULES, `register_family` (a module's rows into the tables, checked);
 - the tables: FAMILIES, ENVIRONMENTS (--env), MEASURES (--measures), DEFAULT_ENV,
   TUTORIAL_MEASURES; `family_measures`;
-- the environment: `make_env` (`plain_env`: gym.make's), `check_spaces`; `renderer_missing`
-  (GL_PACKAGES: what MuJoCo's headless renderers need);
+- the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (the linear policy can
+  serve the env's spaces); `renderer_missing` (family.py's, for the video command);
 - an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
   measures).
 """
 
 from __future__ import annotations
 
-import os
-import sys
+import importlib
+import warnings
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from qdsearch import lander, locomotion, walker
-from qdsearch.family import Environment, Family, Measure, OnStep
-from qdsearch.flags import UsageError, one_line
-from qdsearch.run_files import RunError
+from qdsearch.family import Environment, Family, Measure, OnStep, require_drawing
+from qdsearch.family import renderer_missing as renderer_missing  # results.py's video imports it here
+from qdsearch.flags import UsageError
 
-FAMILIES: tuple[Family, ...] = (lander.LANDER, walker.WALKER, *locomotion.PLANAR, locomotion.ANT)
-FAMILY_MODULES = (lander, walker, locomotion)  # each declares ENVIRONMENTS and MEASURES rows
+# The family modules, by import name: the one place a family is registered. Each declares its
+# ENVIRONMENTS and MEASURES rows (family.py); a module outside the package must be importable
+# wherever the search runs (its driver, its Dask workers and saver processes).
+FAMILY_MODULES = ("qdsearch.lander", "qdsearch.walker", "qdsearch.locomotion")
 
-# The tasks (--env) and the measures (--measures picks 1 to 3 of its task's family, in order).
-ENVIRONMENTS: dict[str, Environment] = {
-    name: row for module in FAMILY_MODULES for name, row in module.ENVIRONMENTS.items()}
-MEASURES: dict[str, Measure] = {
-    name: row for module in FAMILY_MODULES for name, row in module.MEASURES.items()}
+# The tables, gathered from FAMILY_MODULES in their order (and each module's rows in theirs).
+FAMILIES: list[Family] = []  # each in the order its module's rows first name it
+ENVIRONMENTS: dict[str, Environment] = {}  # the tasks (--env)
+MEASURES: dict[str, Measure] = {}  # the measures (--measures picks 1 to 3 of its task's family)
+
+
+def register_family(module_name: str) -> None:
+    """Gather a family module's ENVIRONMENTS and MEASURES rows, and the families they name, into
+    the tables. By name, so that a process can be told to (Dask's client.run on the workers).
+    A module whose rows are all there already changes nothing; a row named as another module's,
+    or a task whose default measures are not its family's, is refused at once."""
+    module = importlib.import_module(module_name)
+    tasks, measures = module.ENVIRONMENTS, module.MEASURES
+    if all(ENVIRONMENTS.get(name) is row for name, row in tasks.items()) and all(
+            MEASURES.get(name) is row for name, row in measures.items()):
+        return
+    if taken := sorted((tasks.keys() & ENVIRONMENTS.keys()) | (measures.keys() & MEASURES.keys())):
+        raise ValueError(f"{module_name}: {', '.join(taken)} already named by another family module")
+    known = {**MEASURES, **measures}
+    for name, task in tasks.items():
+        if wrong := [m for m in task.measures if m not in known or task.family not in known[m].families]:
+            raise ValueError(f"{module_name}: --env {name}'s default measures {', '.join(wrong)} "
+                             f"are not measures of its family {task.family.name}")
+    ENVIRONMENTS.update(tasks)
+    MEASURES.update(measures)
+    named = [task.family for task in tasks.values()] + [f for m in measures.values() for f in m.families]
+    FAMILIES.extend(dict.fromkeys(family for family in named if family not in FAMILIES))
+
+
+for _module in FAMILY_MODULES:
+    register_family(_module)
+
 DEFAULT_ENV = "LunarLander-v3"  # the tutorial's, and what run folders from before --env flew
 TUTORIAL_MEASURES = ENVIRONMENTS[DEFAULT_ENV].measures  # what old run folders used
 
@@ -53,48 +83,35 @@ def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str
 
 
 def plain_env(env_name: str, render_mode: str | None = None) -> gym.Env:
-    """gym.make's env of the task; a simulator that is not installed (MuJoCo) is one line."""
+    """gym.make's env of the task; a simulator that is not installed (MuJoCo), or frames its env
+    can't render (a family's own env may draw nothing: the video command), is one line."""
     task = ENVIRONMENTS[env_name]
-    try:
-        task.family.prepare()
-        return gym.make(task.gym_id, render_mode=render_mode, **task.kwargs)
-    except gym.error.DependencyNotInstalled as error:
-        raise UsageError(f"--env {env_name} needs a package that is not installed "
-                         f"({one_line(str(error))[:200]}): pip install -r requirements.txt") from None
-    except (ImportError, AttributeError, RuntimeError) as error:
-        if not os.environ.get("MUJOCO_GL") or "mujoco" in sys.modules:  # not MuJoCo's import failing
-            raise
-        raise renderer_missing(error) from None
-
-
-# The Debian packages each of MuJoCo's headless renderers (MUJOCO_GL) needs.
-GL_PACKAGES = {"egl": "libegl1 libegl-mesa0", "osmesa": "libosmesa6"}
-
-
-def renderer_missing(error: BaseException) -> RunError:
-    """One line for a MuJoCo renderer whose library the machine lacks, naming what to install."""
-    gl = os.environ.get("MUJOCO_GL", "")
-    needs = GL_PACKAGES.get(gl, " or ".join(GL_PACKAGES.values()))
-    return RunError(f"MuJoCo cannot render headless here through MUJOCO_GL={gl} "
-                    f"({one_line(str(error))[:200]}): apt-get install -y {needs}")
+    with warnings.catch_warnings():  # Gymnasium's warning of frames the env can't render: refused below
+        warnings.filterwarnings("ignore", ".*not in the possible render_modes")
+        env = task.make(render_mode, env_name)
+    if render_mode is not None and render_mode not in env.metadata.get("render_modes", ()):
+        env.close()
+        raise UsageError(f"--env {env_name} cannot be drawn: {task.gym_id} renders no {render_mode} frames")
+    return env
 
 
 def check_spaces(env_name: str) -> None:
-    """Refuse a row whose task the linear policy can't serve: its observation must be a vector of
-    obs_dim numbers, its actions action_dim choices, or a box of action_dim numbers in [-1, 1]."""
+    """Refuse a row whose task the linear policy can't serve. Its shape is read from the env's
+    spaces, so only their kinds can be wrong: the observation must be a vector (a 1-D box), the
+    actions a choice among n (Discrete from 0: argmax) or a vector in [-1, 1] (a 1-D box: tanh).
+    The env is made through `plain_env` first: a missing simulator is one line naming --env."""
     task = ENVIRONMENTS[env_name]
-    env = plain_env(env_name)
-    obs, act = env.observation_space, env.action_space
-    env.close()
-    fits = isinstance(obs, gym.spaces.Box) and obs.shape == (task.obs_dim,) and (
-        isinstance(act, gym.spaces.Box) and act.shape == (task.action_dim,)
-        and bool(np.all(act.low >= -1.0)) and bool(np.all(act.high <= 1.0))
-        if task.continuous else isinstance(act, gym.spaces.Discrete) and act.n == task.action_dim)
-    if not fits:
-        policy = "tanh(W @ obs)" if task.continuous else "argmax(W @ obs)"
-        raise UsageError(f"--env {env_name}: the linear policy {policy} of {task.action_dim} x "
-                         f"{task.obs_dim} weights can't serve {task.gym_id}'s observations {obs} "
-                         f"and actions {act}")
+    plain_env(env_name).close()
+    obs, act = task.spaces
+
+    def vector(space: gym.Space) -> bool:
+        return isinstance(space, gym.spaces.Box) and len(space.shape) == 1
+
+    choice = isinstance(act, gym.spaces.Discrete) and int(act.start) == 0
+    box = vector(act) and bool(np.all(act.low >= -1.0)) and bool(np.all(act.high <= 1.0))
+    if not (vector(obs) and (choice or box)):
+        raise UsageError(f"--env {env_name}: the linear policy (argmax or tanh of W @ obs) can't serve "
+                         f"{task.gym_id}'s observations {obs} and actions {act}")
 
 
 def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
@@ -102,11 +119,14 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
     """Fly the task's linear policy for one episode on the terrain of `env_seed`; its summary.
 
     With a `trajectory` list, each step's point of the family's path is appended to it (the
-    lander's normalised (x, y), the walker's hull in metres); `on_step` is called with each
-    step's action and observation (the explorer records poses with it).
+    lander's normalised (x, y), the walker's hull in metres; a family that declares no path is
+    refused in one line); `on_step` is called with each step's action and observation (the
+    explorer records poses with it).
     """
     task = ENVIRONMENTS[env_name]
     if trajectory is not None:
+        require_drawing(task.family, "trajectories")
+
         def on_step(action: Any, obs: np.ndarray) -> None:
             trajectory.append(task.family.position(env, obs))
     return task.family.fly(solution, env_seed, env, task, on_step)

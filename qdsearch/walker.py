@@ -19,7 +19,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.box2d import bipedal_walker as upstream
 
-from qdsearch.family import Environment, Family, Measure, OnStep, linear_policy
+from qdsearch.family import Environment, Family, Measure, OnStep
 
 
 @dataclasses.dataclass
@@ -40,8 +40,8 @@ class Walk:
 def renew_world(walker: Any) -> None:
     """Give a BipedalWalker a new Box2D world before its reset. Its reset only destroys the last
     episode's bodies, and a world that has held them solves contacts in another order: episodes
-    in a reused env differed from a fresh env's (measured). With a new world they are the same,
-    bit for bit."""
+    in a reused env differed from a fresh env's. With a new world they are the same, bit for bit
+    (tests/test_environments.py flies both)."""
     walker._destroy()
     walker.world = Box2D.b2World()
 
@@ -49,7 +49,7 @@ def renew_world(walker: Any) -> None:
 def fly_walker(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
                on_step: OnStep | None = None) -> Walk:
     """One BipedalWalker episode of the linear policy on the terrain of `env_seed`."""
-    policy = linear_policy(solution, task.continuous, (task.action_dim, task.obs_dim))
+    policy = task.policy(solution)
     renew_world(env.unwrapped)
     obs, _ = env.reset(seed=env_seed)
     hull, walk, done = env.unwrapped.hull, Walk(), False
@@ -146,33 +146,35 @@ def draw_paths(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, task: Env
 
 # ---- the declarations ------------------------------------------------------------------------
 
-WALKER = Family("walker", "BipedalWalker", fly_walker, position, marked_step, pose, POSE_SCALE,
-                POSE_ANGLES, scene, draw_paths)
+WALKER = Family(name="walker", title="BipedalWalker", fly=fly_walker, position=position,
+                marked_step=marked_step, draw_paths=draw_paths, pose=pose, pose_scale=POSE_SCALE,
+                pose_angles=POSE_ANGLES, scene=scene)
 
 # Hull angle, speeds, 4 joints' angles and speeds, 2 foot contacts, 10 lidar readings; 4 torques.
 # The QD offsets are below the lowest returns of real runs (docs/environments.md).
 ENVIRONMENTS: dict[str, Environment] = {
     # An episode ends when the hull touches the ground, or after 1,600 steps.
     "BipedalWalker-v3": Environment(
-        "BipedalWalker-v3", {}, 24, 4, True, WALKER, ("foot1_contact", "foot2_contact"), -300.0,
-        "the grassland's heights", 300.0),
+        gym_id="BipedalWalker-v3", family=WALKER, measures=("foot1_contact", "foot2_contact"),
+        qd_offset=-300.0, env_seed="the grassland's heights", solved=300.0),
     # The same walker among stumps, pits and stairs, for up to 2,000 steps.
     "BipedalWalkerHardcore-v3": Environment(
-        "BipedalWalkerHardcore-v3", {}, 24, 4, True, WALKER, ("foot1_contact", "foot2_contact"),
-        -350.0, "the obstacles and the grassland", 300.0),
+        gym_id="BipedalWalkerHardcore-v3", family=WALKER, measures=("foot1_contact", "foot2_contact"),
+        qd_offset=-350.0, env_seed="the obstacles and the grassland", solved=300.0),
 }
 
 MEASURES: dict[str, Measure] = {
     # The QD literature's walker measures (Cully et al. 2015's duty factor): the share of steps
     # each foot touches the ground.
-    "foot1_contact": Measure("Share of steps foot 1 touches the ground", (0.0, 1.0), "foot1",
-                             lambda w: w.share(0), (WALKER,)),
-    "foot2_contact": Measure("Share of steps foot 2 touches the ground", (0.0, 1.0), "foot2",
-                             lambda w: w.share(1), (WALKER,)),
+    "foot1_contact": Measure(label="Share of steps foot 1 touches the ground", range=(0.0, 1.0),
+                             short="foot1", of=lambda w: w.share(0), families=(WALKER,)),
+    "foot2_contact": Measure(label="Share of steps foot 2 touches the ground", range=(0.0, 1.0),
+                             short="foot2", of=lambda w: w.share(1), families=(WALKER,)),
     # How far, and how fast: the course is ~88 m from the start to its end.
-    "distance": Measure("Distance walked (m)", (-10.0, 90.0), "dist", lambda w: w.distance, (WALKER,)),
-    "speed": Measure("Mean speed (m/s)", (-1.0, 3.0), "speed",
-                     lambda w: w.distance * 50 / max(w.steps, 1), (WALKER,)),  # 50 steps a second
-    "hull_angle": Measure("Mean hull angle (rad)", (-1.0, 1.0), "hull",
-                          lambda w: w.hull_angles / max(w.steps, 1), (WALKER,)),
+    "distance": Measure(label="Distance walked (m)", range=(-10.0, 90.0), short="dist",
+                        of=lambda w: w.distance, families=(WALKER,)),
+    "speed": Measure(label="Mean speed (m/s)", range=(-1.0, 3.0), short="speed",
+                     of=lambda w: w.distance * 50 / max(w.steps, 1), families=(WALKER,)),  # 50 steps a second
+    "hull_angle": Measure(label="Mean hull angle (rad)", range=(-1.0, 1.0), short="hull",
+                          of=lambda w: w.hull_angles / max(w.steps, 1), families=(WALKER,)),
 }

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from qdsearch import evaluation, experiments, run
+from qdsearch import evaluation, experiments, options, run
 from qdsearch.parts import runs_of_part
 from util import assert_one_line_error, folder_state, load_pickle, tiny_flags
 
@@ -44,15 +44,18 @@ def test_values_that_would_fail_late_are_refused_before_anything_is_written(run_
     assert not (tmp_path / "out").exists() and not (tmp_path / "outputs").exists()
 
 
-def test_a_rows_own_flag_is_taken_where_a_row_uses_it(run_cli, tmp_path):
-    """The refusal is of unused flags only: cma_mae takes --learning_rate, an experiment of rows
-    one of which uses it takes it too (the other runs ignore it), and a flag at its default is
-    no flag given."""
-    for args in (["--algorithm", "cma_mae", "--learning_rate", "0.2"],
-                 ["--algorithm", "cma_me", "--learning_rate", "0.5"]):  # the default: changes nothing
-        result = run_cli(*args, "--iterations", "1", "--workers", "1", "--n_emitters", "1",
-                         "--batch_size", "2", "--outdir", tmp_path / args[1])
-        assert result.returncode == 0, result.stderr
+def test_a_rows_own_flag_is_taken_where_a_row_uses_it(run_cli, tmp_path, dask_cluster):
+    """The refusal is of flags typed for rows that ignore them: cma_mae takes --learning_rate;
+    an experiment of rows one of which uses it takes it too (the other runs ignore it); and a
+    run's recorded config, every flag in it, starts its twin (search called with it)."""
+    result = run_cli("--algorithm=cma_mae", "--learning_rate", "0.2", "--iterations", "1", "--workers", "1",
+                     "--n_emitters", "1", "--batch_size", "2", "--outdir", tmp_path / "mae")
+    assert result.returncode == 0, result.stderr
+    recorded = json.loads((tmp_path / "mae" / "config.json").read_text())
+    flags = {k: v for k, v in recorded.items() if k in options.search_defaults()}
+    run.search(**{**flags, "algorithm": "cma_me", "outdir": str(tmp_path / "me"),
+                  "scheduler_address": dask_cluster.scheduler_address})
+    assert json.loads((tmp_path / "me" / "config.json").read_text())["learning_rate"] == 0.2
     assert experiments.experiment_grid("cma_me,cma_mae", "1", {"learning_rate": [0.1]})[0] == {
         "algorithm": ["cma_me", "cma_mae"], "learning_rate": [0.1]}
 

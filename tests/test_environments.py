@@ -262,8 +262,8 @@ def test_unknown_tasks_and_other_tasks_measures_are_refused(run_cli, tmp_path, a
 
 def test_a_row_the_linear_policy_cannot_serve_is_refused(run_cli, tmp_path, monkeypatch):
     """Pendulum's torque is a box of [-2, 2]: tanh(W @ obs) can't reach it."""
-    row = family.Environment("Pendulum-v1", {}, 3, 1, True, walker.WALKER, ("foot1_contact",),
-                             -2000.0, "nothing", 0.0)
+    row = family.Environment(gym_id="Pendulum-v1", family=walker.WALKER, measures=("foot1_contact",),
+                             qd_offset=-2000.0, env_seed="nothing", solved=0.0)
     monkeypatch.setitem(tasks.ENVIRONMENTS, "Pendulum-v1", row)
     for command in ([], ["experiment", "--seeds", "1"]):
         result = run_cli(*command, "--env", "Pendulum-v1", "--iterations", "1",
