@@ -35,11 +35,10 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import kind_of, task_of
-from qdsearch.experiment_folder import read_experiment, run_setting
+from qdsearch.experiment_folder import read_experiment, run_setting, unfinished_note
 from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics
-from qdsearch.parts import part_of
 from qdsearch.plots import save_metric_panels
 from qdsearch.run_config import RunConfig, load_checked_config
 from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, read_run_json, write_csv
@@ -467,22 +466,6 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
             ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
     plt.close(fig)
-
-
-def unfinished_note(folder: Path, plan: dict) -> str | None:
-    """What a comparison of an unfinished experiment should be told: its runs not done (and the
-    parts that drive them), which of them are left out for want of metrics, and how to finish."""
-    unfinished = [(index, entry) for index, entry in enumerate(plan["runs"]) if entry["state"] != "done"]
-    if not unfinished:
-        return None
-    absent = [entry for _, entry in unfinished if not (folder / entry["name"] / "metrics.json").is_file()]
-    named = ", ".join(f"{entry['name']} ({entry['state']})" for _, entry in unfinished[:6])
-    parts = sorted({part_of(plan, index) for index, _ in unfinished} - {None})
-    finish = (" and ".join(f"python lunar_lander.py resume {folder} --part {part}/{plan['parts']}"
-                           for part in parts) if parts else f"python lunar_lander.py resume {folder}")
-    return (f"note: {folder}: {len(unfinished)} of {len(plan['runs'])} runs of its plan are not done: "
-            f"{named}{', ...' if len(unfinished) > 6 else ''}; {len(absent)} of them have no metrics "
-            f"and are left out, the others are compared as far as they got; finish with: {finish}")
 
 
 def expand_folders(paths: list[Path]) -> list[Path]:

@@ -4,7 +4,7 @@ run's setting.
 
 Map: EXPERIMENT_FORMAT, RUN_STATES; `label_flags`, `run_setting` (a setting's label, shared by the
 runs of an experiment and compare's groups); `read_experiment` (experiment.json checked, with its
-parts' states merged).
+parts' states merged); `unfinished_note` (what a reader of an unfinished plan is told).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.flags import UsageError, check_flags, shown
 from qdsearch.options import SEARCH_FLAGS, checked, ignores, own_flags, search_defaults, with_task
-from qdsearch.parts import merge_part_states
+from qdsearch.parts import merge_part_states, part_of
 from qdsearch.run_config import upgrade
 from qdsearch.run_files import read_run_json
 
@@ -86,3 +86,19 @@ def read_experiment(folder: Path) -> dict:
             raise UsageError(f"{path}: parts is {shown(plan['parts'])}, not a number of parts")
         return merge_part_states(folder, plan, RUN_STATES)
     return plan
+
+
+def unfinished_note(folder: Path, plan: dict) -> str | None:
+    """What a comparison of an unfinished experiment should be told: its runs not done (and the
+    parts that drive them), which of them are left out for want of metrics, and how to finish."""
+    unfinished = [(index, entry) for index, entry in enumerate(plan["runs"]) if entry["state"] != "done"]
+    if not unfinished:
+        return None
+    absent = [entry for _, entry in unfinished if not (folder / entry["name"] / "metrics.json").is_file()]
+    named = ", ".join(f"{entry['name']} ({entry['state']})" for _, entry in unfinished[:6])
+    parts = sorted({part_of(plan, index) for index, _ in unfinished} - {None})
+    finish = (" and ".join(f"python lunar_lander.py resume {folder} --part {part}/{plan['parts']}"
+                           for part in parts) if parts else f"python lunar_lander.py resume {folder}")
+    return (f"note: {folder}: {len(unfinished)} of {len(plan['runs'])} runs of its plan are not done: "
+            f"{named}{', ...' if len(unfinished) > 6 else ''}; {len(absent)} of them have no metrics "
+            f"and are left out, the others are compared as far as they got; finish with: {finish}")
