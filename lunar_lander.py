@@ -98,34 +98,31 @@ def text_flags(function: Callable) -> set[str]:
     return {name for name, flag in entries.items() if flag.text}
 
 
-def reject_unknown_flags(function: Callable, args: list[str]) -> None:
-    """Fire would print a page of usage for a mistyped flag; one line naming it is clearer. A
-    flag given twice is refused too."""
-    known, given = known_flags(function), set()
-    for arg in args:
-        if arg == "--":
-            return
-        if arg.startswith("--") and arg != "--help":
-            name = arg[2:].split("=", 1)[0].replace("-", "_")
-            if name not in known:
-                raise UsageError(f"unknown flag --{name}; valid flags: "
-                                 + ", ".join(f"--{flag}" for flag in known))
-            if name in given:  # Fire would silently keep the last
-                raise UsageError(f"--{name} is given twice; give each flag once")
-            given.add(name)
-
-
-def typed_flags(args: list[str]) -> dict[str, str | None]:
-    """The flags typed on the command line, each with its value as typed (None: a flag alone)."""
-    typed: dict[str, str | None] = {}
+def typed_flags(args: list[str]) -> list[tuple[str, str | None]]:
+    """The flags typed on the command line, in order, each with its value as typed (None: a flag
+    alone); nothing after `--`."""
+    typed = []
     for i, arg in enumerate(args):
         if arg == "--":
             break
         if arg.startswith("--") and arg != "--help":
-            name, _, value = arg[2:].partition("=")
+            name, equals, value = arg[2:].partition("=")
             following = args[i + 1] if i + 1 < len(args) and not args[i + 1].startswith("--") else None
-            typed[name.replace("-", "_")] = value if "=" in arg else following
+            typed.append((name.replace("-", "_"), value if equals else following))
     return typed
+
+
+def reject_unknown_flags(function: Callable, args: list[str]) -> None:
+    """Fire would print a page of usage for a mistyped flag; one line naming it is clearer. A
+    flag given twice is refused too."""
+    known, given = known_flags(function), set()
+    for name, _ in typed_flags(args):
+        if name not in known:
+            raise UsageError(f"unknown flag --{name}; valid flags: "
+                             + ", ".join(f"--{flag}" for flag in known))
+        if name in given:  # Fire would silently keep the last
+            raise UsageError(f"--{name} is given twice; give each flag once")
+        given.add(name)
 
 
 def main(argv: list[str]) -> int:
@@ -140,7 +137,7 @@ def main(argv: list[str]) -> int:
         function = command(name)
         reject_unknown_flags(function, args)
         if name == "search":  # a row's own flag typed for a row that ignores it (experiment: its own check)
-            typed = typed_flags(args)
+            typed = dict(typed_flags(args))
             algorithm = typed.get("algorithm") or SEARCH_FLAGS["algorithm"].default
             refuse_unused_row_flags([str(algorithm).strip("'\"")], list(typed))
         if "--help" in args and "--" not in args:  # else a command taking **flags reads it as one

@@ -65,9 +65,12 @@ class Family:
     scene: Callable[[int, Environment], dict] | None = None  # the page's world and bodies
     # (explorer_page.html)
 
+    def undeclared(self, command: str) -> list[str]:
+        """The fields `command` (a key of DRAWN_BY) draws the family with that it leaves unset."""
+        return [field for field in DRAWN_BY[command] if not getattr(self, field)]
+
     def draws(self, command: str) -> bool:
-        """Whether the family declares what `command` (a key of DRAWN_BY) draws it with."""
-        return all(getattr(self, field) for field in DRAWN_BY[command])
+        return not self.undeclared(command)
 
 
 # What each command that draws a family's episodes needs the family to declare.
@@ -78,7 +81,7 @@ DRAWN_BY = {"trajectories": ("position", "marked_step", "draw_paths"),
 def require_drawing(family: Family, command: str) -> None:
     """Refuse, in one line, a command that draws (`trajectories`, `explore`) a family that does not
     declare how; called before any episode is flown."""
-    if missing := [field for field in DRAWN_BY[command] if not getattr(family, field)]:
+    if missing := family.undeclared(command):
         raise UsageError(f"{command}: the {family.title} family cannot be drawn (it declares no "
                          f"{', '.join(missing)}; docs/extending.md)")
 

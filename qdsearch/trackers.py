@@ -275,9 +275,10 @@ class Tracking:
             return True, action(*args)
         except Exception as error:  # a server down, a full disk, a library's own fault
             (self.open or {}).pop(name, None)
-            root = error  # a library's own wrapper may say less than what it wraps
-            while (inner := root.__cause__ or root.__context__) is not None and inner is not error:
+            root, seen = error, {id(error)}  # a library's own wrapper may say less than what it wraps
+            while (inner := root.__cause__ or root.__context__) is not None and id(inner) not in seen:
                 root = inner
+                seen.add(id(inner))
             because = "" if root is error else f"; cause: {type(root).__name__}: {clipped(fault_text(root))}"
             self.log.warning(f"tracker {name} failed ({type(error).__name__}: {clipped(fault_text(error))}"
                              f"{because}); it is off for this run, which goes on")
