@@ -5,6 +5,8 @@ Map:
 - the ARCHIVES table (--archive): how each kind of archive is made (`grid_archives`,
   `cvt_archives`: a CVT's centroids made once per run, by k-means from the run's seed), where its
   cells lie (`cell_positions`) and an empty archive of the same cells (`empty_like`);
+- the DQD rows (`gradient_arborescence`), `evaluations_per_iteration`, and what a row's
+  emitters and archives hold in memory (ES_BYTES, `memory_needed`);
 - `task_of`, `derive_seeds` (the archive's and each emitter's seed, from the run's),
   `archive_shape` and `build_scheduler` (a run's pyribs Scheduler, from its config).
 """
@@ -17,6 +19,7 @@ from typing import Any, Callable
 import numpy as np
 
 from qdsearch.family import Environment
+from qdsearch.policies import policy_of
 from qdsearch.tasks import ENVIRONMENTS, MEASURES
 
 
@@ -28,6 +31,7 @@ class Emitters:
 
     kind: str
     kwargs: Callable[[Any], dict[str, Any]]
+    es: str | None = None  # the evolution strategy each keeps over the solution's weights, if any
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,20 +53,21 @@ class Algorithm:
     emitters_on_result: bool = False  # the search archive keeps no elites to sample (DDS)
     bandit: bool = False  # pyribs' BanditScheduler picks n_emitters of the pool (UCB1)
     flags: tuple[str, ...] = ()  # the flags of SEARCH_FLAGS only this row (and others) use
+    dqd: bool = False  # its emitters need gradients: ask_dqd and tell_dqd, estimated (gradients.py)
 
 
 def evolution_strategy(ranker: str, selection_rule: str = "filter", restart_rule: str = "no_improvement",
                        es: str | None = None, sigma_scale: float = 1.0) -> Emitters:
     """EvolutionStrategyEmitters (CMA-ES by default) starting at sigma_scale * --sigma0."""
     extra = {} if es is None else {"es": es}
-    return Emitters("EvolutionStrategyEmitter", lambda config: {
+    return Emitters("EvolutionStrategyEmitter", es=es or "cma_es", kwargs=lambda config: {
         "sigma0": sigma_scale * config.sigma0, "ranker": ranker, "selection_rule": selection_rule,
         "restart_rule": restart_rule, **extra})
 
 
 def iso_line(iso_scale: float = 1.0, line_scale: float = 1.0) -> Emitters:
     """IsoLineEmitters: iso_sigma iso_scale * --sigma0, line_sigma line_scale * --line_sigma."""
-    return Emitters("IsoLineEmitter", lambda config: {"iso_sigma": iso_scale * config.sigma0,
+    return Emitters("IsoLineEmitter", kwargs=lambda config: {"iso_sigma": iso_scale * config.sigma0,
                                                       "line_sigma": line_scale * config.line_sigma})
 
 
@@ -129,7 +134,7 @@ ALGORITHMS: dict[str, Algorithm] = {
     # argmax(W @ obs) ignores W's scale, so there only sigma relative to the elites' weights
     # matters; tanh(W @ obs) does not ignore it.)
     "map_elites": Algorithm("MAP-Elites", (
-        Emitters("GaussianEmitter", lambda config: {"sigma": config.sigma0}),)),
+        Emitters("GaussianEmitter", kwargs=lambda config: {"sigma": config.sigma0}),)),
     # Iso+line variation (Vassiliades & Mouret 2018), line_sigma 0.2 as in sphere.py.
     "line_map_elites": Algorithm("MAP-Elites (line)", (iso_line(),), flags=("line_sigma",)),
     # Multi-emitter MAP-Elites (sphere.py's me_map_elites): a BanditScheduler keeps n_emitters
@@ -168,6 +173,53 @@ for _name, _es in (("sep_cma_mae", "sep_cma_es"), ("lm_ma_mae", "lm_ma_es")):
                                             emitters=(evolution_strategy("imp", "mu", "basic", es=_es),))
 
 
+def gradient_arborescence(ranker: str, restart_rule: str, selection_rule: str) -> Emitters:
+    """GradientArborescenceEmitters (CMA-MEGA): a CMA-ES over the coefficients of the objective's
+    and measures' normalised gradients, at --sigma0 (dqd-rl's sigma_g 1.0), branching the point
+    that then steps by plain gradient ascent at lr 1.0 (dqd-rl's and sphere.py's)."""
+    return Emitters("GradientArborescenceEmitter", kwargs=lambda config: {
+        "sigma0": config.sigma0, "lr": 1.0, "ranker": ranker, "grad_opt": "gradient_ascent",
+        "selection_rule": selection_rule, "restart_rule": restart_rule})
+
+
+# The DQD rows, their gradients estimated from episodes (gradients.py: --es_samples mirrored
+# samples at --es_sigma around each emitter's point). cma_mega_es is dqd-rl's CMA-MEGA (ES):
+# selection "mu", restarts when no elite improves; cma_maega_es is sphere.py's cma_maega (ranker
+# "imp", basic restarts, a soft archive and a result archive), its gradients estimated alike.
+ALGORITHMS["cma_mega_es"] = Algorithm(
+    "CMA-MEGA (ES gradients)", (gradient_arborescence("2imp", "no_improvement", "mu"),),
+    flags=("es_samples", "es_sigma"), dqd=True)
+ALGORITHMS["cma_maega_es"] = Algorithm(
+    "CMA-MAEGA (ES gradients)", (gradient_arborescence("imp", "basic", "filter"),), archive=soft_archive,
+    result_archive=True, flags=("learning_rate", "es_samples", "es_sigma"), dqd=True)
+
+
+def evaluations_per_iteration(config: Any) -> int:
+    """The solutions an iteration flies: every emitter's batch, and for a DQD row each emitter's
+    point and its gradient samples too (what metrics.json's `evaluations` counts)."""
+    row, emitters = ALGORITHMS[config.algorithm], config.n_emitters
+    return emitters * config.batch_size + (emitters * (1 + config.es_samples) if row.dqd else 0)
+
+
+# Bytes of memory an emitter's evolution strategy holds at its peak, as a function of the
+# solution's weights n: tracemalloc's peak over two iterations at n = 1,000 and batch 30 (pyribs
+# 0.12): CMA-ES keeps n x n matrices (7.2 n^2 doubles at the peak), sep-CMA-ES and LM-MA-ES a few
+# vectors (170 n and 260 n doubles, the batch's included).
+ES_BYTES: dict[str, Callable[[int], float]] = {"cma_es": lambda n: 8 * 7.2 * n * n,
+                                               "sep_cma_es": lambda n: 8 * 180 * n,
+                                               "lm_ma_es": lambda n: 8 * 270 * n}
+
+
+def memory_needed(config: Any, solution_dim: int) -> float:
+    """Bytes the driver holds for a run: each emitter's evolution strategy (ES_BYTES; the other
+    emitters keep a batch) and each archive's solutions (its cells, at most, times the weights)."""
+    row = ALGORITHMS[config.algorithm]
+    emitters = sum(ES_BYTES[group.es](solution_dim) if group.es else 8.0 * config.batch_size * solution_dim
+                   for group in row.emitters) * config.n_emitters
+    cells = config.grid ** len(config.measures) if config.archive == "grid" else config.cells
+    return emitters + 8.0 * cells * solution_dim * (1 + row.result_archive)
+
+
 def task_of(config: Any) -> Environment:
     """The run's row of ENVIRONMENTS (config: a RunConfig, run_config.py)."""
     return ENVIRONMENTS[config.env]
@@ -179,10 +231,11 @@ def derive_seeds(seed: int, count: int) -> list[int]:
 
 
 def archive_shape(config: Any) -> dict[str, Any]:
-    """What every archive of the run shares: the solution size, the measures' ranges, the offset."""
+    """What every archive of the run shares: the solution size (its policy's weights), the
+    measures' ranges, the offset."""
     task = task_of(config)
-    return dict(solution_dim=task.solution_dim, ranges=[MEASURES[name].range for name in config.measures],
-                qd_score_offset=task.qd_offset)
+    return dict(solution_dim=policy_of(config).size(task.shape),
+                ranges=[MEASURES[name].range for name in config.measures], qd_score_offset=task.qd_offset)
 
 
 def grid_archives(config: Any) -> Callable[..., Any]:
@@ -255,7 +308,8 @@ def kind_of(archive: Any) -> str | None:
 def build_scheduler(config: Any, x0: np.ndarray | None = None):
     """The archives, emitters and scheduler of `config.algorithm`, seeded from `config.seed`.
 
-    The emitters start from `x0` (default: zeros, as in the tutorial).
+    The emitters start from `x0` (default: the policy's start, zeros for the linear policy as in
+    the tutorial).
     """
     from ribs import emitters as ribs_emitters
     from ribs.schedulers import BanditScheduler, Scheduler
@@ -271,7 +325,7 @@ def build_scheduler(config: Any, x0: np.ndarray | None = None):
     else:
         result_archive = make(seed=result_seed)
         archive = row.search_archive(config, result_archive, archive_seed)
-    start = np.zeros(task_of(config).solution_dim) if x0 is None else x0
+    start = policy_of(config).start(task_of(config).shape, config.seed) if x0 is None else x0
     sampled = result_archive if row.emitters_on_result else archive
     seeds = iter(emitter_seeds)
     emitters = [getattr(ribs_emitters, group.kind)(sampled, x0=start, batch_size=config.batch_size,

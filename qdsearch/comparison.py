@@ -21,7 +21,7 @@ Map:
   `aggregate_statistics` (across tasks);
 - output: `comparison_outputs` (file names), `format_table`, `markdown_report` (`task_section`,
   `settings_table`, `aggregate_section`), `save_score_distributions`;
-- `compare`: the command.
+- `cut_at` (compare --at_evaluations), `compare`: the command.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 from qdsearch.algorithms import kind_of, task_of
 from qdsearch.experiment_folder import read_experiment, run_setting, unfinished_note
 from qdsearch.family import Environment
-from qdsearch.flags import UsageError, boolean, shown
+from qdsearch.flags import UsageError, boolean, shown, whole_number_up_to
 from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics
 from qdsearch.plots import save_metric_panels
 from qdsearch.run_config import RunConfig, load_checked_config
@@ -192,10 +192,13 @@ def normalised_qd_score(qd_score: float, config: RunConfig) -> float:
 
 
 def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunConfig],
-                     runs: list[list[dict]], corrected: list[dict] | None = None):
+                     runs: list[list[dict]], corrected: list[dict] | None = None,
+                     cut: list[bool] | None = None):
     """One row per run: its final metrics (or its `corrected` ones), with the task, algorithm and
     seed that produced them; and each run's final objectives (None without a readable archive),
-    for the score distributions. QD-score AUC is always from metrics.json: a curve."""
+    for the score distributions. QD-score AUC is always from metrics.json: a curve. A run `cut`
+    short of its end (compare --at_evaluations) has no archive of that row: its archive's figures
+    are left out (NaN)."""
     import pandas as pd
 
     pickle_name, csv_name = ARCHIVE_FILES[corrected is not None]
@@ -203,13 +206,15 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunC
     for i, (label, run_dir, config, metrics) in enumerate(zip(labels, run_dirs, configs, runs)):
         final = metrics[-1] if corrected is None else {**metrics[-1], **{
             key: corrected[i][key] for key in CORRECTED}}
-        task, archive = task_of(config), final_archive(run_dir / pickle_name)
+        task = task_of(config)
+        archive = None if cut and cut[i] else final_archive(run_dir / pickle_name)
         objectives.append(None if archive is None else archive.data("objective"))
         rows.append({"run": label, "folder": str(run_dir), "task": config.env,
                      "setting": run_setting(config.to_json()), "seed": config.seed,
                      "iterations": metrics[-1]["iteration"], **{key: final[key] for key in COMPARED},
                      NORMALISED: normalised_qd_score(final["qd_score"], config),
-                     SOLVED_CELLS: solved_cells(run_dir / csv_name, task), QD_AUC: qd_auc(metrics),
+                     SOLVED_CELLS: None if cut and cut[i] else solved_cells(run_dir / csv_name, task),
+                     QD_AUC: qd_auc(metrics),
                      CQD_SCORE: None if archive is None else cqd(archive, task)})
     table = pd.DataFrame(rows)
     for column in (SOLVED_CELLS, CQD_SCORE):
@@ -521,8 +526,27 @@ def check_fresh(fixes: list[dict], runs: list[list[dict]], paths: list[Path]) ->
                              f"evaluate {path} --corrected` again")
 
 
+def cut_at(runs: list[list[dict]], paths: list[Path], budget: Any,
+           corrected: bool) -> tuple[list[list[dict]], list[bool]]:
+    """Each run's metrics up to its last row within `budget` evaluations (None: whole), and
+    whether that cut it short. A run whose first iteration is past the budget is refused."""
+    if budget is None:
+        return runs, [False] * len(runs)
+    budget = whole_number_up_to(10**12)("at_evaluations", budget)
+    if corrected:
+        raise UsageError("--at_evaluations and --corrected: corrected figures are of a run's end")
+    kept = []
+    for path, metrics in zip(paths, runs):
+        first = next((row for row in metrics if row["iteration"] > 0), metrics[-1])
+        if first["evaluations"] > budget:
+            raise UsageError(f"{path}: its first iteration flew {first['evaluations']:,} evaluations, "
+                             f"more than --at_evaluations {budget:,}")
+        kept.append([row for row in metrics if row["evaluations"] <= budget])
+    return kept, [len(k) < len(m) for k, m in zip(kept, runs)]
+
+
 def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, corrected: bool = False,
-            baseline: str | None = None) -> None:
+            baseline: str | None = None, at_evaluations: int | None = None) -> None:
     """Compare runs: QD score, coverage and best objective against evaluations on one PNG, the
     final archives' score distributions on another (OUT_scores.png), and a table of their final
     values (printed, and written as CSV next to the PNG).
@@ -535,8 +559,8 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     final QD score, QD-score AUC (how soon it got there) and CQD score, Holm-adjusted, with
     Vargha-Delaney A12 = P(A>B) and its interval (OUT_tests.csv); and both as Markdown (OUT.md).
     Runs of several tasks are also aggregated per setting on the normalised QD score and coverage
-    (OUT_aggregate.csv). Runs of the same batch, iterations and env seed give an equal-budget
-    comparison.
+    (OUT_aggregate.csv). Runs that end at equal evaluations (--evaluations) give an equal-budget
+    comparison; --at_evaluations cuts longer runs to one.
 
     Args:
         run_dirs: Run folders or experiment folders written by this script.
@@ -548,6 +572,11 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
         baseline: Test only this setting against each other one (its label as the tables show
             it, or its algorithm if only one setting has it, e.g. cma_me), instead of every pair:
             with many settings, Holm's adjustment over every pair leaves the tests little power.
+        at_evaluations: Compare each run as of its last iteration within this many evaluations
+            (the metrics' `evaluations`, a DQD row's gradient samples included), so that rows
+            that fly different numbers per iteration meet at one budget. The archive's figures
+            (solved cells, CQD, the score distributions) are only of a run's end: a run cut
+            short leaves them out.
     """
     if not run_dirs:
         raise UsageError("compare needs at least one run folder: "
@@ -557,13 +586,14 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     if not paths:
         raise UsageError(f"no run with metrics in {', '.join(map(str, run_dirs))}")
     configs, runs = zip(*(load_run_metrics(path) for path in paths))
+    runs, cut = cut_at(list(runs), paths, at_evaluations, corrected)
     fixes = [read_corrected(path) for path in paths] if corrected else None
     if fixes is not None:
         check_fresh(fixes, list(runs), paths)
     baseline = check_baseline(baseline, list(dict.fromkeys(run_setting(c.to_json()) for c in configs)))
     files = comparison_outputs(None if out is None else str(out), overwrite)
     labels = run_labels(paths, list(configs))
-    table, objectives = comparison_table(labels, paths, list(configs), list(runs), fixes)
+    table, objectives = comparison_table(labels, paths, list(configs), runs, fixes, cut)
     several = table["task"].nunique() > 1
     keys = table["task"] + ": " + table["setting"] if several else table["setting"]
     grouped = several or keys.duplicated().any()

@@ -4,17 +4,16 @@ Map:
 - on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a chunk of
   (solution, terrain) rollouts);
 - in the driver: `submit_flights` (the chunks, as many as `chunk_count` says from
-  `chunks_per_worker`, TASK_RATE, MIN_CHUNK and MAX_CHUNK, the rollouts dealt out to them by
+  `chunks_per_worker`, MIN_CHUNK and MAX_CHUNK, the rollouts dealt out to them by
   `chunk_pairs`; batches flown first come, first served: FIFO_TIMEOUT), `per_terrain` and
   `averaged` (results back in solution order, averaged over terrains), `gather_with_progress`,
   and `evaluate_batch` (a run's batch, end to end);
-- `ClusterShare`: the cluster's worker threads, and the runs in flight on its scheduler from
-  every driver (parts of an experiment may share one), which size a batch's chunks.
+- `ClusterShare`: the cluster's worker threads (asked every few seconds), which with the
+  driver's runs in flight size a batch's chunks.
 """
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
 from typing import Any
@@ -22,48 +21,48 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from qdsearch.policies import LINEAR, Policy, policy_of
 from qdsearch.stopping import STOP
-from qdsearch.tasks import make_env, rollout
+from qdsearch.tasks import TASKS_OWN, Episode, episode_of, make_env, rollout
 
-_WORKER_ENVS: dict[tuple[str, bool, int], gym.Env] = {}  # per worker thread, reused across tasks
+_WORKER_ENVS: dict[tuple[str, bool, Episode, int], gym.Env] = {}  # per worker thread, reused across tasks
 
 
-def worker_env(env_name: str, fast: bool = True) -> gym.Env:
+def worker_env(env_name: str, fast: bool = True, episode: Episode = TASKS_OWN) -> gym.Env:
     """This thread's environment of the task: reset(seed) gives the same episode bit for bit as
     a fresh environment, without paying for gym.make each time. One per thread: the threads of a
     worker started with --nthreads above 1 fly at once, and an environment shared between two
     would mix their episodes."""
-    key = (env_name, fast, threading.get_ident())
+    key = (env_name, fast, episode, threading.get_ident())
     if key not in _WORKER_ENVS:
-        _WORKER_ENVS[key] = make_env(fast, env_name=env_name)
+        _WORKER_ENVS[key] = make_env(fast, env_name=env_name, episode=episode)
     return _WORKER_ENVS[key]
 
 
 def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str, ...],
-              fast_env: bool, env_name: str) -> np.ndarray:
-    """Runs on a worker: fly solutions[i] on terrain env_seeds[i]; rows of (objective, *measures).
+              fast_env: bool, env_name: str, policy: Policy = LINEAR,
+              episode: Episode = TASKS_OWN) -> np.ndarray:
+    """Runs on a worker: fly solutions[i] as `policy` on terrain env_seeds[i], by the `episode`
+    rules; rows of (objective, *measures).
 
     A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
     small next to the rollouts, and the environment is kept between tasks (worker_env).
     """
-    env = worker_env(env_name, fast_env)
-    rows = [rollout(solution, int(seed), env, measures, env_name=env_name)
+    env = worker_env(env_name, fast_env, episode)
+    rows = [rollout(solution, int(seed), env, measures, env_name=env_name, policy=policy)
             for solution, seed in zip(solutions, env_seeds)]
     return np.array(rows).reshape(-1, 1 + len(measures))
 
 
-# Two chunks per worker; three where several runs in flight each have two workers or more, which
-# pays on real schedulers (docs/performance.md#chunks-and-the-workers-result-delay; measured by
-# benchmarks/scale/bench_scale.py, and for a lone run by benchmarks/bench_chunking.py).
+# Two chunks per worker; three where several runs in flight each have two workers or more: it paid
+# 0.87 against 0.83 of an ideal cluster for 4 runs on 17 real worker processes
+# (docs/performance.md#chunks-and-the-workers-result-delay, benchmarks/scale/bench_scale.py).
 CHUNKS_PER_WORKER = 2
 CHUNKS_PER_WORKER_FEW_RUNS = 3
 MIN_CHUNK = 4  # rollouts per task at least: a task costs the scheduler about a millisecond
 # Rollouts per task at most, so that big batches (evaluate's, say) report progress as they go: a
 # few seconds of lander episodes, up to minutes of walker ones.
 MAX_CHUNK = 1000
-# What one scheduler is asked to sustain, all its runs' batches together, in tasks a second:
-# about half of what it can (docs/performance.md#the-driver-ask-tell-and-the-tasks-it-sends).
-TASK_RATE = 1000
 # Batches are flown first come, first served: each batch its own generation of Dask's ranking, so
 # that a batch's last chunk never waits behind other batches' first ones (its run would tell
 # late; docs/performance.md#chunks-and-the-workers-result-delay).
@@ -77,43 +76,38 @@ def chunks_per_worker(workers: int, sharing: int) -> int:
     return CHUNKS_PER_WORKER_FEW_RUNS if 2 <= sharing <= workers / 2 else CHUNKS_PER_WORKER
 
 
-def chunk_count(pairs: int, workers: int, sharing: int = 1, cycle_s: float | None = None,
-                per_worker: int | None = None, rate: float | None = None) -> int:
+def chunk_count(pairs: int, workers: int, sharing: int = 1, per_worker: int | None = None) -> int:
     """How many chunks a batch of `pairs` rollouts is split into: `per_worker` chunks for each
-    worker (by default `chunks_per_worker`'s), shared among the `sharing` runs in flight on the
-    scheduler (fewer, larger tasks when runs outnumber workers); at most the run's share of
-    `rate` over its last cycle (`cycle_s`, from one batch to the next); never under MIN_CHUNK
-    rollouts nor over MAX_CHUNK."""
+    worker (by default `chunks_per_worker`'s), shared among the `sharing` runs in flight (fewer,
+    larger tasks when runs outnumber workers); never under MIN_CHUNK rollouts nor over
+    MAX_CHUNK."""
     per_worker = chunks_per_worker(workers, sharing) if per_worker is None else per_worker
-    rate = TASK_RATE if rate is None else rate
     fewest = -(-pairs // MAX_CHUNK)
     wanted = -(-per_worker * workers // max(1, sharing))
-    if cycle_s is not None:
-        wanted = min(wanted, int(rate * cycle_s / max(1, sharing)))
     return max(1, min(max(wanted, fewest), pairs // MIN_CHUNK))
 
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
                    fast_env: bool, sharing: int = 1, threads: int | None = None, *,
-                   env_name: str, cycle_s: float | None = None) -> list:
+                   env_name: str, policy: Policy = LINEAR, episode: Episode = TASKS_OWN) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
 
     The work is the (solution, terrain) pairs, dealt out into chunks of about equal count
     whatever the number of terrains (chunk_pairs), so the workers stay evenly loaded. A batch
     alone on the cluster is split in `chunks_per_worker` chunks per worker; when `sharing` runs
     keep the workers busy together, each batch needs only its share of that, and fewer tasks
-    cost the scheduler less (`chunk_count`; `cycle_s`, the run's last cycle, keeps the
-    scheduler's load in bounds). The chunks go in one message (client.map), ranked after every
+    cost the scheduler less (`chunk_count`). The chunks go in one message (client.map), ranked after every
     batch sent before them (FIFO_TIMEOUT); tasks of a dead worker are retried. `threads`, the
     cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
     """
     workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
     pairs = len(solutions) * len(env_seeds)
-    chunks = chunk_pairs(pairs, chunk_count(pairs, workers, sharing, cycle_s))
+    chunks = chunk_pairs(pairs, chunk_count(pairs, workers, sharing))
     seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
     return client.map(fly_chunk, [solutions[chunk // len(env_seeds)] for chunk in chunks],
                       [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
-                      [fast_env] * len(chunks), [env_name] * len(chunks), pure=False, retries=3,
+                      [fast_env] * len(chunks), [env_name] * len(chunks), [policy] * len(chunks),
+                      [episode] * len(chunks), pure=False, retries=3,
                       fifo_timeout=FIFO_TIMEOUT)
 
 
@@ -163,46 +157,25 @@ def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarr
     Results come back in the order of the solutions whatever the number of workers, so a fixed
     seed gives the same archive on 1 or 100 workers.
     """
-    futures = submit_flights(client, solutions, config.env_seed, config.measures,
-                             config.fast_env, env_name=config.env)
+    futures = submit_flights(client, solutions, config.env_seed, config.measures, config.fast_env,
+                             env_name=config.env, policy=policy_of(config), episode=episode_of(config))
     return averaged(per_terrain(client.gather(futures), config.env_seed))
 
 
 class ClusterShare:
-    """What a driver's batches share: the cluster's worker threads and the runs in flight on its
-    scheduler, its own and other drivers' (the parts of an experiment that share a scheduler).
+    """The cluster's worker threads, which size a driver's chunks: asked of the scheduler at most
+    every `every` seconds rather than for every batch (a round trip), since workers come and go
+    and a stale count only sizes the chunks, never changes a result. Runs of other drivers on
+    the same scheduler are not counted: no measurement showed that counting them pays (the
+    recipes give each part its own scheduler)."""
 
-    Each driver publishes its count of runs in the scheduler's metadata (Dask's own key-value
-    store, under SHARE_KEY and its client's id) and reads the others', at most every `every`
-    seconds rather than for every batch: workers and drivers come and go, and a stale count
-    only sizes the chunks, never changes a result. A driver that stopped publishing for
-    `stale_after` seconds (killed, say) is no longer counted.
-    """
-
-    SHARE_KEY = "qdsearch-runs-in-flight"
-
-    def __init__(self, client, every: float = 2.0, stale_after: float = 30.0) -> None:
-        self.client, self.every, self.stale_after = client, every, stale_after
-        self.asked_at, self.worker_threads, self.other_runs = -float("inf"), 1, 0
-
-    def refresh(self, own_runs: int) -> None:
-        """Count the threads, publish this driver's runs and add up the other drivers'."""
-        self.asked_at = time.monotonic()
-        self.worker_threads = sum(self.client.nthreads().values())
-        now = time.time()
-        self.client.set_metadata([self.SHARE_KEY, self.client.id], [now, own_runs])
-        published = self.client.get_metadata([self.SHARE_KEY], default={})
-        self.other_runs = sum(int(runs) for driver, (at, runs) in published.items()
-                              if driver != self.client.id and now - at < self.stale_after)
-
-    def close(self) -> None:
-        """This driver's runs are done: it publishes none, if its scheduler is still there."""
-        if self.asked_at > -float("inf") and self.client.status == "running":  # not a lost scheduler
-            with contextlib.suppress(Exception):
-                self.client.set_metadata([self.SHARE_KEY, self.client.id], [time.time(), 0])
+    def __init__(self, client, every: float = 2.0) -> None:
+        self.client, self.every = client, every
+        self.asked_at, self.worker_threads = -float("inf"), 1
 
     def __call__(self, own_runs: int) -> tuple[int, int]:
-        """(worker threads, runs sharing them), this driver's own runs counted as they are now."""
+        """(worker threads, runs sharing them): the driver's own runs, as they are now."""
         if time.monotonic() - self.asked_at > self.every:
-            self.refresh(own_runs)
-        return self.worker_threads, self.other_runs + own_runs
+            self.asked_at = time.monotonic()
+            self.worker_threads = sum(self.client.nthreads().values())
+        return self.worker_threads, own_runs

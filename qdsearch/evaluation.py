@@ -31,10 +31,11 @@ from qdsearch.flags import UsageError, boolean, positive_int, seed_list, takes, 
 from qdsearch.metrics import iteration_metrics, load_metrics
 from qdsearch.options import CLUSTER_FLAGS, check_rollouts, checked
 from qdsearch.plots import save_heatmap
+from qdsearch.policies import policy_of
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import check_writable, console_log, write_csv, write_json, write_pickle
 from qdsearch.run_folder import elite_rows, load_run
-from qdsearch.tasks import MEASURES
+from qdsearch.tasks import MEASURES, episode_of
 
 ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default
 DEFAULT_REPEATS = 10  # seeds of a corrected archive (QDax's examples re-evaluate 10 to 100 times)
@@ -56,7 +57,8 @@ def fly_elites(solutions: np.ndarray, seeds: list[int], measures: tuple[str, ...
     (solutions, seeds, 1 + measures), the objective first."""
     workers = checked("workers", flags["workers"])
     with dask_client(workers, scheduler_of(flags), console_log()) as client:
-        futures = submit_flights(client, solutions, seeds, measures, config.fast_env, env_name=config.env)
+        futures = submit_flights(client, solutions, seeds, measures, config.fast_env, env_name=config.env,
+                                 policy=policy_of(config), episode=episode_of(config))
         return per_terrain(gather_with_progress(client, futures), seeds)
 
 

@@ -37,11 +37,13 @@ from qdsearch.options import (
     CLUSTER_FLAGS,
     RESUME_FLAGS,
     SEARCH_FLAGS,
+    check_memory,
     check_sizes,
     checked,
     ignores,
     refuse_unused_row_flags,
     search_defaults,
+    with_budget,
     with_task,
 )
 from qdsearch.parts import (
@@ -162,8 +164,10 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
             common[name] = value
     common = with_task(check_flags(SEARCH_FLAGS, common))
     check_spaces(common["env"])
-    for setting in itertools.product(*axes.values()):  # each run's archive too (swept --cells)
-        check_sizes(with_task({**common, **dict(zip(axes, setting))}))
+    for setting in itertools.product(*axes.values()):  # each run's archive and memory too (swept --cells)
+        config = with_task({**common, **dict(zip(axes, setting))})
+        check_sizes(config)
+        check_memory(config)
     refuse_unused_row_flags(axes["algorithm"], list(search_flags))  # given here: flags the user set
     return axes, common, seed_list("seeds", seeds)
 
@@ -178,7 +182,7 @@ def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
             settings.append(setting)
     for setting in settings:
         for seed in seeds:
-            config = {**common, **setting, "seed": seed}
+            config = with_budget({**common, **setting, "seed": seed})  # its iterations, of --evaluations
             label = run_setting(config)
             name = re.sub(r"[^A-Za-z0-9.]+", "_", label) + f"_seed{seed}"
             runs.append({"name": name, "setting": label, "seed": seed, "config": config,
@@ -278,7 +282,7 @@ class Experiment(Driver):
                     "versions": library_versions()}))
             config, checkpoint = load_run_state(run_dir)
             if config.iterations < entry["config"]["iterations"]:  # the experiment was extended
-                config = config.replace(iterations=entry["config"]["iterations"])
+                config = config.replace(iterations=entry["config"]["iterations"], evaluations=None)
                 write_config(run_dir, config)
             log = make_logger(run_dir / "run.log", f"lunar_lander.run.{entry['name']}", console=False)
             leaving.callback(close_logger, log)
@@ -371,7 +375,7 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
                                  f"be at least that")
             for entry in plan["runs"]:
                 if iterations > entry["config"]["iterations"]:
-                    entry["config"]["iterations"] = iterations
+                    entry["config"]["iterations"], entry["config"]["evaluations"] = iterations, None
                     entry["state"] = "pending"
         which = f"part {split[0]} of {split[1]} of {folder}" if split else str(folder)
         if all(entry["state"] == "done" for entry in mine):

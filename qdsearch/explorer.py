@@ -26,10 +26,11 @@ from qdsearch.family import require_drawing
 from qdsearch.flags import takes
 from qdsearch.metrics import load_metrics
 from qdsearch.options import CLUSTER_FLAGS, TERRAIN_FLAGS, checked
+from qdsearch.policies import LINEAR, Policy, policy_of
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import atomic_write, check_writable, console_log
 from qdsearch.run_folder import elite_rows, load_run, shown_terrain
-from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly
+from qdsearch.tasks import ENVIRONMENTS, MEASURES, TASKS_OWN, Episode, episode_of, fly
 
 # The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
 # fills in its /*DATA*/ (the run's data) and /*POLICY*/ (its Content-Security-Policy).
@@ -61,19 +62,21 @@ def explorer_page(data: dict) -> str:
 # family's `pose_scale`: units per metre or radian; its `pose_angles` wrapped to [-pi, pi]) and
 # sent as base64; the page decodes them into an Int16Array.
 
-def record_poses(solutions: np.ndarray, env_seed: int, env_name: str) -> list[np.ndarray]:
+def record_poses(solutions: np.ndarray, env_seed: int, env_name: str, policy: Policy = LINEAR,
+                 episode: Episode = TASKS_OWN) -> list[np.ndarray]:
     """Runs on a worker: each solution's episode as quantised poses (steps + 1, pose size), the
-    reset's pose first, flown in the env `rollout` flies it in."""
-    env = worker_env(env_name, True)
-    return [record_flight(solution, env_seed, env, env_name) for solution in solutions]
+    reset's pose first, flown as `policy` in the env `rollout` flies it in."""
+    env = worker_env(env_name, True, episode)
+    return [record_flight(solution, env_seed, env, env_name, policy) for solution in solutions]
 
 
-def record_flight(solution: np.ndarray, env_seed: int, env: gym.Env, env_name: str) -> np.ndarray:
+def record_flight(solution: np.ndarray, env_seed: int, env: gym.Env, env_name: str,
+                  policy: Policy = LINEAR) -> np.ndarray:
     family = ENVIRONMENTS[env_name].family
     env.reset(seed=env_seed)
     poses = [family.pose(env, None)]  # reset's; fly resets again, to the same pose
     fly(solution, env_seed, env, on_step=lambda action, obs: poses.append(family.pose(env, action)),
-        env_name=env_name)
+        env_name=env_name, policy=policy)
     values = np.array(poses)
     angles = list(family.pose_angles)
     values[:, angles] = (values[:, angles] + np.pi) % (2 * np.pi) - np.pi
@@ -155,7 +158,8 @@ def explore(run_dir: str, **flags: Any) -> None:
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
-        futures = [client.submit(record_poses, chunk, shown, config.env, pure=False, retries=3)
+        futures = [client.submit(record_poses, chunk, shown, config.env, policy_of(config),
+                                 episode_of(config), pure=False, retries=3)
                    for chunk in chunks]
         flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
     data = explorer_data(archive, config, rows, flights, shown, run, metrics)

@@ -5,7 +5,8 @@ told apart by one set of measures. It declares itself once, as a `Family` value,
 measures as rows that point to it; tasks.py gathers the family modules' rows into the tables
 --env and --measures pick from. Every field is named where it is given (the types are
 keyword-only), and what a row can read from its environment is not typed by hand: the policy's
-shape and kind come from the env's spaces.
+shape and kind come from the env's spaces. A family flies whatever policy it is given
+(policies.py), as an `act` from observation to action.
 
 Map:
 - `Family`: a family's episode function and, optionally, how the results commands draw it (path
@@ -14,10 +15,9 @@ Map:
   leaves undrawn is one line);
 - `Environment`: a task a search can fly (a row of ENVIRONMENTS): `make` (gym.make's env, a
   missing simulator or renderer in one line: `renderer_missing`, GL_PACKAGES) and `spaces`
-  (read once, on first use), whence the policy's `shape`, `continuous`, `solution_dim` and
-  `policy`;
-- `Measure`: a behaviour solutions are told apart by (a row of MEASURES);
-- `linear_policy`: the policy W @ obs every task flies.
+  (read once, on first use), whence the policy's `shape`, `continuous`, `solution_dim` (of the
+  linear policy) and `policy` (any policy's act);
+- `Measure`: a behaviour solutions are told apart by (a row of MEASURES).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import gymnasium as gym
 import numpy as np
 
 from qdsearch.flags import UsageError, one_line
+from qdsearch.policies import LINEAR, Policy
 from qdsearch.run_files import RunError
 
 OnStep = Callable[[Any, np.ndarray], None]  # called with each step's action and observation
@@ -49,7 +50,8 @@ class Family:
 
     name: str  # in --help and in messages
     title: str  # how --help introduces its measures
-    fly: Callable[..., Any]  # (solution, env_seed, env, task, on_step) -> the episode's summary
+    fly: Callable[..., Any]  # (act, env_seed, env, task, on_step) -> the episode's summary; act:
+    # obs -> action, the policy flown
     prepare: Callable[[], None] = lambda: None  # called before one of its envs is made
     # what `trajectories` draws:
     position: Callable[[gym.Env, np.ndarray], tuple[float, float]] | None = None  # a path's point
@@ -90,9 +92,10 @@ def require_drawing(family: Family, command: str) -> None:
 class Environment:
     """A Gymnasium task a search can fly (a row of ENVIRONMENTS, picked by --env).
 
-    The policy is W @ obs with no bias: `action_dim` rows of `obs_dim` weights, the solution the
-    QD algorithm searches, both read from the env's spaces (`shape`). Its family flies the
-    episode and gives its measures; `objective` says what of the episode is maximised.
+    A policy maps its `obs_dim` observations to `action_dim` actions, both read from the env's
+    spaces (`shape`); the linear policy W @ obs has `solution_dim` weights (policies.py has the
+    others). Its family flies the episode and gives its measures; `objective` says what of the
+    episode is maximised.
     """
 
     gym_id: str
@@ -109,13 +112,14 @@ class Environment:
     objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
     # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)
 
-    def make(self, render_mode: str | None = None, name: str | None = None) -> gym.Env:
-        """gym.make's env of the task, its family prepared. A simulator that is not installed
+    def make(self, render_mode: str | None = None, name: str | None = None, **rules: Any) -> gym.Env:
+        """gym.make's env of the task, its family prepared (`rules`: gym.make's keywords for a run's
+        episodes, tasks.Episode's). A simulator that is not installed
         (MuJoCo), or a headless renderer whose library is missing, is one line naming the row
         (`name`, its --env; else its gym id)."""
         try:
             self.family.prepare()
-            return gym.make(self.gym_id, render_mode=render_mode, **self.kwargs)
+            return gym.make(self.gym_id, render_mode=render_mode, **{**self.kwargs, **rules})
         except gym.error.DependencyNotInstalled as error:
             raise UsageError(f"--env {name or self.gym_id} needs a package that is not installed "
                              f"({one_line(str(error))[:200]}): pip install -r requirements.txt") from None
@@ -158,11 +162,12 @@ class Environment:
 
     @property
     def solution_dim(self) -> int:
+        """The linear policy's weights (a run's own policy: `Policy.size(task.shape)`)."""
         return self.action_dim * self.obs_dim
 
-    def policy(self, solution: np.ndarray) -> Callable:
-        """obs -> action of `solution`'s linear policy in this task."""
-        return linear_policy(solution, self.continuous, self.shape)
+    def policy(self, solution: np.ndarray, policy: Policy = LINEAR) -> Callable:
+        """obs -> action of `solution` as `policy` (default: the linear one) in this task."""
+        return policy.act(solution, self.shape, self.continuous)
 
 
 # The Debian packages each of MuJoCo's headless renderers (MUJOCO_GL) needs.
@@ -190,15 +195,3 @@ class Measure:
     families: tuple[Family, ...]
     descending: bool = False  # its axis drawn from the lower bound at the top (the tutorial puts the
     # fastest impacts, the most negative y-velocities, on top)
-
-
-def linear_policy(solution: np.ndarray, continuous: bool, shape: tuple[int, int]) -> Callable:
-    """obs -> action of the policy W @ obs (no bias): argmax for discrete actions, tanh of each
-    component for continuous ones (tasks.check_spaces holds every action box to [-1, 1])."""
-    weights = np.asarray(solution, dtype=np.float64).reshape(shape)
-    # W.dot(obs) makes the same BLAS call as W @ obs (same bits) for less overhead; a strided W
-    # would take matmul's non-BLAS path, so it keeps matmul.
-    scores = weights.dot if weights.flags.c_contiguous else weights.__matmul__
-    if continuous:
-        return lambda obs: np.tanh(scores(obs))
-    return lambda obs: int(scores(obs).argmax())

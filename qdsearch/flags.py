@@ -130,6 +130,12 @@ def one_line(text: str) -> str:
                    ("Cc", "Zl", "Zp") else char for char in text)
 
 
+def setting(config: Any, name: str) -> Any:
+    """A flag's value in a run's config, a RunConfig or a dict (None: not recorded, as in runs from
+    before the flag)."""
+    return config.get(name) if isinstance(config, dict) else getattr(config, name, None)
+
+
 def shown(value: Any, limit: int = 80) -> str:
     """A value as an error message quotes it: its repr, cut to `limit` characters, on one line."""
     text = repr(value)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
@@ -68,16 +68,15 @@ def burn(firings: list[float], action: np.ndarray) -> None:
         firings[RIGHT if action[1] > 0 else LEFT] += min(abs(float(action[1])), 1.0)
 
 
-def fly_lander(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
+def fly_lander(act: Callable, env_seed: int, env: gym.Env, task: Environment,
                on_step: OnStep | None = None) -> Flight:
-    """One Lunar Lander episode of the linear policy on the terrain of `env_seed`; `on_step` is
+    """One Lunar Lander episode of the policy `act` on the terrain of `env_seed`; `on_step` is
     called with each step's action and observation."""
-    policy = task.policy(solution)
     obs, _ = env.reset(seed=env_seed)
     flight, firings, done, continuous = Flight(), [0] * 4, False, task.continuous
     total_reward, min_y_velocity, max_tilt, touchdown, steps = 0.0, math.inf, 0.0, None, 0
     while not done:
-        action = policy(obs)
+        action = act(obs)
         if continuous:
             burn(firings, action)
         else:

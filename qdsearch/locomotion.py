@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
@@ -61,29 +61,34 @@ class Stride:
         return self.contacts[foot] / max(self.steps, 1)
 
 
-def feet_touching(data: Any, feet: np.ndarray) -> np.ndarray:
-    """Which feet (geom ids) touch the floor in this step's contacts."""
-    pairs = data.contact.geom[:data.ncon]
-    touching = np.concatenate([pairs[pairs[:, 0] == FLOOR, 1], pairs[pairs[:, 1] == FLOOR, 0]])
-    return np.isin(feet, touching)
+def feet_touching(data: Any, feet: list[int]) -> list[bool]:
+    """Which feet (geom ids) touch the floor in this step's contacts. A loop over the step's few
+    contacts: numpy's isin over them cost ~24 us a step, a fifth of a HalfCheetah step; this ~2."""
+    touching = set()
+    if data.ncon:
+        for first, second in data.contact.geom[:data.ncon].tolist():
+            if first == FLOOR:
+                touching.add(second)
+            elif second == FLOOR:
+                touching.add(first)
+    return [foot in touching for foot in feet]
 
 
-def fly_robot(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
+def fly_robot(act: Callable, env_seed: int, env: gym.Env, task: Environment,
               on_step: OnStep | None = None, *, robot: Robot) -> Stride:
-    """One episode of the linear policy tanh(W @ obs) from the reset of `env_seed` (MuJoCo's tasks
+    """One episode of the policy `act` from the reset of `env_seed` (MuJoCo's tasks
     draw their initial state's noise from it)."""
     import mujoco
 
-    policy = task.policy(solution)
     obs, _ = env.reset(seed=env_seed)
     model, data = env.unwrapped.model, env.unwrapped.data
-    feet = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, foot) for foot in robot.feet])
+    feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, foot) for foot in robot.feet]
     scratch, torso = mujoco.MjData(model), mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
     stride = Stride(contacts=[0] * len(feet), start=tuple(torso_at(model, data, scratch, torso)))
     done = False
     total, forward, heights, steps, contacts = 0.0, 0.0, 0.0, 0, np.zeros(len(feet), dtype=np.int64)
     while not done:
-        action = policy(obs)
+        action = act(obs)
         obs, reward, terminated, truncated, info = env.step(action)
         done = terminated or truncated
         steps += 1

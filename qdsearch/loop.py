@@ -32,15 +32,18 @@ from typing import Any, Callable
 
 import numpy as np
 
-from qdsearch.algorithms import build_scheduler
+from qdsearch.algorithms import ALGORITHMS, build_scheduler
 from qdsearch.cluster import SchedulerLost
 from qdsearch.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
 from qdsearch.flags import UsageError, clipped
+from qdsearch.gradients import estimate, noise, sample_points
 from qdsearch.metrics import describe_progress, iteration_metrics
+from qdsearch.policies import policy_of
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.run_files import RunError, atomic_write, fault_text, write_pickle
 from qdsearch.saving import SAVER_PROCESSES, Savers
 from qdsearch.stopping import STOP
+from qdsearch.tasks import episode_of
 from qdsearch.trackers import Tracking, wait_for_trackers
 
 
@@ -69,7 +72,10 @@ class Run:
         self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
         self.target = config.iterations  # where this drive stops (resume may stop it sooner)
         self.tracking = Tracking(run_dir, config, log)  # --track: fed after each save (trackers.py)
-        self._asked_at, self.cycle_s = 0.0, None
+        self._asked_at = 0.0
+        self.policy, self.episode = policy_of(config), episode_of(config)
+        self.gradients: np.ndarray | None = None  # a DQD row's sample draws, while its gradients fly
+        self.sampled = 0  # solutions flown for this iteration's gradients (told: its branches fly)
 
     @classmethod
     def start(cls, run_dir: Path, config: RunConfig, client, log: logging.Logger,
@@ -113,10 +119,16 @@ class Run:
         return self.metrics[-1]["iteration"] if self.metrics else 0  # a warm start has iteration 0
 
     def ask(self) -> np.ndarray:
-        now = time.perf_counter()
-        # the run's cycle, from one batch to the next: it bounds the tasks its batches send
-        self.cycle_s = now - self._asked_at if self._asked_at else None
-        self._asked_at = now
+        """The next batch to fly. A DQD row's iteration has two: first its emitters' points with
+        the samples that estimate their gradients (gradients.py), then the solutions branched
+        along those gradients (pyribs' ask_dqd, tell_dqd, then ask and tell)."""
+        if not self.sampled:  # the iteration's first batch
+            self._asked_at = time.perf_counter()  # elapsed_s counts from here to the tell
+        if not self.sampled and ALGORITHMS[self.config.algorithm].dqd:
+            points = self.scheduler.ask_dqd()
+            self.gradients = noise(self.config.seed, self.iteration, len(points),
+                                   self.config.es_samples, points.shape[1])
+            return sample_points(points, self.gradients, self.config.es_sigma)
         return self.scheduler.ask()
 
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
@@ -124,7 +136,7 @@ class Run:
         config = self.config
         futures = submit_flights(client, self.ask(), config.env_seed, config.measures,
                                  config.fast_env, sharing=sharing, threads=threads,
-                                 env_name=config.env, cycle_s=self.cycle_s)
+                                 env_name=config.env, policy=self.policy, episode=self.episode)
         self.chunks, self.waiting = [None] * len(futures), len(futures)
         return futures
 
@@ -134,21 +146,30 @@ class Run:
         self.waiting -= 1
         return self.waiting == 0
 
-    def tell_batch(self) -> dict:
+    def tell_batch(self) -> dict | None:
         """Tell the whole batch, each solution averaged over its terrains (a chunk that failed
-        raises its fault); the new row of metrics."""
+        raises its fault); the new row of metrics, or None where the iteration has a batch to go
+        (a DQD row's gradients are told)."""
         chunks, self.chunks = self.chunks, []
         if failed := next((chunk for chunk in chunks if isinstance(chunk, BaseException)), None):
             raise failed
-        return self.tell(*averaged(per_terrain(chunks, self.config.env_seed)))
+        objectives, measures = averaged(per_terrain(chunks, self.config.env_seed))
+        if self.gradients is not None:
+            flown = np.column_stack([objectives, measures])
+            self.scheduler.tell_dqd(*estimate(flown, self.gradients, self.config.es_sigma))
+            self.gradients, self.sampled = None, len(objectives)
+            return None
+        return self.tell(objectives, measures)
 
     def tell(self, objectives: np.ndarray, measures: np.ndarray) -> dict:
-        """Record the evaluated batch; returns the new row of metrics."""
+        """Record the evaluated batch; returns the new row of metrics, whose evaluations count
+        the iteration's every solution flown (a DQD row's gradient samples too)."""
         self.scheduler.tell(objectives, measures)
         self.snapshot = pickle.dumps(self.scheduler, protocol=pickle.HIGHEST_PROTOCOL)
         last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
+        spent, self.sampled = len(objectives) + self.sampled, 0
         self.metrics.append(iteration_metrics(
-            self.scheduler.result_archive, self.iteration + 1, last["evaluations"] + len(objectives),
+            self.scheduler.result_archive, self.iteration + 1, last["evaluations"] + spent,
             last["elapsed_s"] + time.perf_counter() - self._asked_at))
         return self.metrics[-1]
 
@@ -285,7 +306,6 @@ class Driver:
             raise
         finally:
             self.savers.close()
-            self.share.close()
             self.bar.close()
             wait_for_trackers(self.log)
 
@@ -330,6 +350,9 @@ class Driver:
         """The run's batch is whole: tell it, save it at its log interval, send again or finish."""
         try:
             row = run.tell_batch()
+            if row is None:  # the iteration's next batch (a DQD row's branched solutions)
+                self.send(run)
+                return
             run.settle(wait=False)  # a fault of the last save (a full disk) stops the run now
             self.latest[run.name] = row
             self.told += 1

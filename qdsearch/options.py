@@ -13,9 +13,17 @@ Map:
 from __future__ import annotations
 
 import dataclasses
+import os
+from types import SimpleNamespace
 from typing import Any
 
-from qdsearch.algorithms import ALGORITHMS, ARCHIVES, CVT_SAMPLES
+from qdsearch.algorithms import (
+    ALGORITHMS,
+    ARCHIVES,
+    CVT_SAMPLES,
+    evaluations_per_iteration,
+    memory_needed,
+)
 from qdsearch.family import Family
 from qdsearch.flags import (
     Flag,
@@ -29,9 +37,19 @@ from qdsearch.flags import (
     positive_int,
     seed_list,
     seed_number,
+    shown,
     whole_number_up_to,
 )
-from qdsearch.tasks import DEFAULT_ENV, ENVIRONMENTS, FAMILIES, MEASURES, family_measures
+from qdsearch.policies import POLICIES, policy_of
+from qdsearch.tasks import (
+    DEFAULT_ENV,
+    ENVIRONMENTS,
+    FAMILIES,
+    MEASURES,
+    check_episode,
+    episode_of,
+    family_measures,
+)
 from qdsearch.trackers import TRACKERS, check_tracks
 
 # Every size a user gives is bounded before anything is allocated or written (check_sizes and the
@@ -52,6 +70,32 @@ MAX_WORKERS = 1_024  # worker processes of a local cluster (and what memory hold
 # scale (zeros, steps of 1); 1e300 overflows the first ask, and iso+line steps compound from
 # elite to elite, so a step far past any useful one is refused before a run starts.
 MAX_STEP = 1_000.0
+DEFAULT_HIDDEN = (128, 128)  # dqd-rl's MLP (QDax's examples: 64,64)
+MAX_LAYERS, MAX_UNITS = 8, 4_096  # hidden layers, and units in each
+MAX_EPISODE = 100_000  # steps in an episode (the tasks' own: 1,000 to 2,000)
+MAX_ES_SAMPLES = 10_000  # gradient samples per emitter and iteration
+MAX_EVALUATIONS = 10**12  # --evaluations: solutions flown in a run
+
+
+def layer_widths(name: str, value: Any) -> list[int]:
+    """Hidden layers' sizes: 128,128 (Fire may have made a number or a tuple of it already)."""
+    parts = list(value) if isinstance(value, (tuple, list)) else str(value).split(",")
+    try:
+        widths = [int(str(part).strip()) for part in parts]
+    except ValueError:
+        widths = []
+    if (isinstance(value, bool) or not 1 <= len(widths) <= MAX_LAYERS
+            or not all(1 <= width <= MAX_UNITS for width in widths)):
+        raise UsageError(f"--{name} takes 1 to {MAX_LAYERS} layer sizes from 1 to {MAX_UNITS:,}, such as "
+                         f"128,128; got {shown(value)}")
+    return widths
+
+
+def even_samples(name: str, value: Any) -> int:
+    """Mirrored samples come in pairs: an even count, 2 at least."""
+    if whole_number_up_to(MAX_ES_SAMPLES)(name, value) % 2 or value < 2:
+        raise UsageError(f"--{name} must be even (mirrored pairs) and at least 2, got {shown(value)}")
+    return value
 
 
 def default_measures(family: Family) -> tuple[str, ...]:
@@ -72,7 +116,10 @@ def ignores(algorithm: str, flag: str) -> bool:
 
 def refuse_unused_row_flags(algorithms: list[str], given: list[str]) -> None:
     """A row's own flag (cma_mae's --learning_rate) given to algorithms none of which use it is
-    refused, as an unknown flag is: it would be recorded and silently change nothing."""
+    refused, as an unknown flag is: it would be recorded and silently change nothing. So are two
+    budgets: --evaluations sets the iterations."""
+    if "iterations" in given and "evaluations" in given:
+        raise UsageError("--iterations and --evaluations are two budgets; give one")
     algorithms = [algorithm for algorithm in algorithms if algorithm in ALGORITHMS]  # others: refused later
     for flag in given:
         if algorithms and flag in ROW_FLAGS and all(ignores(algorithm, flag) for algorithm in algorithms):
@@ -85,8 +132,10 @@ def refuse_unused_row_flags(algorithms: list[str], given: list[str]) -> None:
 
 def check_sizes(config: dict) -> None:
     """The sizes that flags make together are bounded too: the archive's cells, the solutions
-    asked per iteration and the rollouts they are flown in."""
+    asked per iteration (a DQD row's gradient batch too) and the rollouts they are flown in."""
     solutions = config["n_emitters"] * config["batch_size"]
+    if ALGORITHMS[config["algorithm"]].dqd:
+        solutions = max(solutions, config["n_emitters"] * (1 + config["es_samples"]))
     if config["archive"] == "grid" and (cells := config["grid"] ** len(config["measures"])) > MAX_CELLS:
         raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
                          f"{cells:,} cells; at most {MAX_CELLS:,}")
@@ -130,6 +179,11 @@ CLUSTER_FLAGS: dict[str, Flag] = {  # every command that flies policies on a clu
 SEARCH_FLAGS: dict[str, Flag] = {
     "iterations": Flag(300, f"Number of ask-evaluate-tell iterations (at most {MAX_ITERATIONS:,}).",
                        whole_number_up_to(MAX_ITERATIONS)),
+    "evaluations": Flag(None, "A budget in evaluations (solutions flown, a DQD row's gradient samples "
+                              "included) instead of --iterations: the run stops at the last "
+                              "iteration within it, so rows that fly different numbers per "
+                              "iteration compare at equal budgets.", whole_number_up_to(MAX_EVALUATIONS),
+                        sweep=True, label=13),
     "workers": CLUSTER_FLAGS["workers"],
     "seed": Flag(None, "Seed of the archive and emitters; drawn and recorded in config.json if "
                        "omitted. The same seed gives the same archive whatever the number of "
@@ -140,6 +194,18 @@ SEARCH_FLAGS: dict[str, Flag] = {
                          "list (3,5,8) or both (0-4,10). With several terrains the objective is "
                          "the mean return over them, and each measure is its per-terrain values "
                          "averaged.", seed_list, label=1, text=True),
+    "policy": Flag("linear", "The policy a solution's numbers make, a row of POLICIES: " + "; ".join(
+        f"{name} ({row.summary})" for name, row in POLICIES.items()) + ".", one_of(POLICIES),
+        sweep=True, label=14, before="linear"),
+    "hidden": Flag(None, f"--policy mlp: the hidden layers' sizes, comma-separated; default "
+                         f"{','.join(map(str, DEFAULT_HIDDEN))}.", layer_widths, label=15, text=True),
+    "episode_length": Flag(None, "Steps an episode lasts at most (gym.make's max_episode_steps); "
+                                 "default: the task's own (1,000; BipedalWalker's 1,600). QDax's "
+                                 "examples fly 100 to 1,000 (docs/locomotion.md).",
+                           whole_number_up_to(MAX_EPISODE), sweep=True, label=16),
+    "terminate_when_unhealthy": Flag(None, "Hopper-v5, Walker2d-v5, Ant-v5: whether a robot that "
+                                           "falls ends its episode (Gymnasium's flag); default: "
+                                           "the task's own (true).", boolean, label=17),
     "measures": Flag(None, f"1 to {MAX_GRID_MEASURES} rows (with --archive cvt up to {MAX_MEASURES}) "
                            "of the MEASURES table of the task's family, "
                            "comma-separated, as the archive's axes; default: the task's own. "
@@ -184,6 +250,11 @@ SEARCH_FLAGS: dict[str, Flag] = {
                                      "0.037).", positive_float, sweep=True, label=11),
     "bandwidth": Flag(0.05, "dds: the KDE's bandwidth, as a fraction of the measures' mean span "
                             "(pyribs' dds: 25.6 of 512, 0.05).", positive_float, sweep=True, label=12),
+    "es_samples": Flag(100, "The DQD rows (cma_mega_es, cma_maega_es): mirrored samples flown around "
+                            "each emitter's point per iteration to estimate its gradients, an even "
+                            "number (dqd-rl's 100).", even_samples, sweep=True, label=18),
+    "es_sigma": Flag(0.02, "The DQD rows: the samples' standard deviation around the point (dqd-rl's "
+                           f"0.02; at most {MAX_STEP:g}).", number_up_to(MAX_STEP), sweep=True, label=19),
     "log_every": Flag(25, "Log a line and refresh the run folder every this many iterations.",
                       positive_int),
     "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "
@@ -264,7 +335,59 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
         if cells < 2 ** len(measures):
             raise UsageError(f"--cells {cells} is too few for {len(measures)} measures: a CVT archive "
                              f"needs at least 2^{len(measures)} = {2 ** len(measures)} cells")
-    return {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
+    config = {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
+    check_episode(env, episode_of(config))
+    return with_budget(with_policy(config))
+
+
+def with_policy(config: dict[str, Any]) -> dict[str, Any]:
+    """The config's --hidden: DEFAULT_HIDDEN for a network unless given, refused for a policy
+    without hidden layers (it would be recorded and change nothing)."""
+    kind, hidden = config.get("policy") or "linear", config.get("hidden")
+    if "hidden" not in POLICIES[kind].flags:
+        if hidden is not None:
+            raise UsageError(f"--hidden is a flag of --policy mlp; --policy {kind} has no hidden layers")
+        return config
+    return {**config, "hidden": list(DEFAULT_HIDDEN if hidden is None else hidden)}
+
+
+def with_budget(config: dict[str, Any]) -> dict[str, Any]:
+    """With --evaluations, the iterations are the most whose evaluations fit in it (every
+    iteration of a row flies as many: evaluations_per_iteration)."""
+    if config.get("evaluations") is None or config.get("algorithm") is None:  # (an experiment's
+        return config  # flags common to its algorithms: each run's config has its own)
+    per_iteration = evaluations_per_iteration(SimpleNamespace(**config))
+    if config["evaluations"] < per_iteration:
+        raise UsageError(f"--evaluations {config['evaluations']:,} is less than one iteration of "
+                         f"--algorithm {config['algorithm']}, which flies {per_iteration:,}")
+    return {**config, "iterations": min(config["evaluations"] // per_iteration, MAX_ITERATIONS)}
+
+
+def check_memory(config: dict[str, Any]) -> None:
+    """Refuse, before anything is written, a row whose emitters and archives would not fit in the
+    machine's memory with this policy (a full CMA-ES covariance grows as the weights squared:
+    ~3.5 GB at Ant-v5's 21,000 weights of a 128x128 network), naming the rows that fit."""
+    weights = policy_of(config).size(ENVIRONMENTS[config["env"]].shape)
+    room = MEMORY_SHARE * physical_memory()
+
+    def needs(algorithm: str) -> float:
+        return memory_needed(SimpleNamespace(**{**config, "algorithm": algorithm}), weights)
+
+    if (needed := needs(config["algorithm"])) <= room:
+        return
+    fits = [name for name in ALGORITHMS if needs(name) <= room]
+    raise UsageError(f"--algorithm {config['algorithm']} would hold ~{needed / 1e9:,.1f} GB for "
+                     f"{weights:,} weights ({config['n_emitters']} emitters), more than "
+                     f"{MEMORY_SHARE:.0%} of this machine's {room / MEMORY_SHARE / 1e9:.1f} GB; rows "
+                     f"that fit: {', '.join(fits) or 'none'} (or fewer emitters, a smaller --hidden)")
+
+
+MEMORY_SHARE = 0.5  # of the machine's memory a run's driver may plan to hold
+
+
+def physical_memory() -> float:
+    """The machine's memory in bytes."""
+    return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
 def search_defaults() -> dict[str, Any]:

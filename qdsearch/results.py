@@ -29,11 +29,22 @@ from qdsearch.algorithms import ARCHIVES, kind_of
 from qdsearch.engine import averaged, per_terrain
 from qdsearch.flags import UsageError, check_flags, positive_int, shown, takes
 from qdsearch.options import SELECTION_FLAGS, TERRAIN_FLAGS
+from qdsearch.policies import LINEAR, Policy, policy_of
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
 from qdsearch.run_folder import elite_rows, load_run, shown_terrain
 from qdsearch.stopping import STOP
-from qdsearch.tasks import ENVIRONMENTS, MEASURES, fly, make_env, renderer_missing, rollout
+from qdsearch.tasks import (
+    ENVIRONMENTS,
+    MEASURES,
+    TASKS_OWN,
+    Episode,
+    episode_of,
+    fly,
+    make_env,
+    renderer_missing,
+    rollout,
+)
 
 
 def is_number(value: Any) -> bool:
@@ -218,22 +229,25 @@ def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[RunConfig, 
 def reflown(elite: dict, config: RunConfig) -> tuple[float, list[float]]:
     """The elite flown again in its run's setting (every terrain, averaged as the engine does):
     rollouts are deterministic, so this is exactly its stored objective and measures."""
-    env, seeds = make_env(config.fast_env, env_name=config.env), config.env_seed
-    rows = [np.array([rollout(elite["solution"], seed, env, config.measures, env_name=config.env)
-                      for seed in seeds])]
+    env = make_env(config.fast_env, env_name=config.env, episode=episode_of(config))
+    seeds, policy = config.env_seed, policy_of(config)
+    rows = [np.array([rollout(elite["solution"], seed, env, config.measures, env_name=config.env,
+                              policy=policy) for seed in seeds])]
     objectives, measures = averaged(per_terrain(rows, seeds))
     return float(objectives[0]), measures[0].tolist()
 
 
-def record_video(solution: np.ndarray, env_seed: int, path: Path, env_name: str) -> None:
+def record_video(solution: np.ndarray, env_seed: int, path: Path, env_name: str, policy: Policy = LINEAR,
+                 episode: Episode = TASKS_OWN) -> None:
     """Fly a policy on the plain env, rendered headless (rgb_array) into an mp4 of episode length
     + 1 frames (the reset's frame first); written aside and moved into place whole."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=path.parent, prefix=".recording.") as tmp:
-            env = Mp4Recorder(make_env(False, "rgb_array", env_name=env_name), Path(tmp) / "flight.mp4")
+            env = Mp4Recorder(make_env(False, "rgb_array", env_name=env_name, episode=episode),
+                              Path(tmp) / "flight.mp4")
             try:
-                fly(solution, env_seed, env, env_name=env_name)
+                fly(solution, env_seed, env, env_name=env_name, policy=policy)
             finally:
                 env.close()
             os.replace(env.path, path)
@@ -262,7 +276,7 @@ def video(run_dir: str, **flags: Any) -> None:
     for elite in chosen:
         STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
         path = folder / f"{elite['name']}.mp4"
-        record_video(elite["solution"], shown, path, config.env)
+        record_video(elite["solution"], shown, path, config.env, policy_of(config), episode_of(config))
         print(f"{path}: {describe_elite(elite, measures)}")
         objective, values = reflown(elite, config)
         reproduced = objective == elite["objective"] and values == list(elite["measures"])
@@ -312,14 +326,15 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
     print(f"{len(table)} of {len(archive)} elites; written to {path}")
 
 
-def fly_paths(chosen: list[dict], env_seed: int, env_name: str) -> list[tuple[np.ndarray, int]]:
+def fly_paths(chosen: list[dict], env_seed: int, env_name: str, policy: Policy = LINEAR,
+              episode: Episode = TASKS_OWN) -> list[tuple[np.ndarray, int]]:
     """Each elite's path and the step marked on it, as its task's family draws them (the lander's
     (x, y) per step and its touchdown; the walker's hull and its last step)."""
-    env, paths, family = make_env(env_name=env_name), [], ENVIRONMENTS[env_name].family
+    env, paths, family = make_env(env_name=env_name, episode=episode), [], ENVIRONMENTS[env_name].family
     for elite in chosen:
         STOP.check()
         path: list = []
-        summary = fly(elite["solution"], env_seed, env, path, env_name=env_name)
+        summary = fly(elite["solution"], env_seed, env, path, env_name=env_name, policy=policy)
         paths.append((np.array(path), family.marked_step(summary) - 1))
     return paths
 
@@ -367,7 +382,8 @@ def trajectories(run_dir: str, **flags: Any) -> None:
     """
     config, chosen, shown = load_chosen_elites(run_dir, flags)
     path = Path(str(run_dir)) / "trajectories.png"
-    save_trajectory_plot(chosen, fly_paths(chosen, shown, config.env), shown, path, config.env)
+    paths = fly_paths(chosen, shown, config.env, policy_of(config), episode_of(config))
+    save_trajectory_plot(chosen, paths, shown, path, config.env)
     for elite in chosen:
         print(f"{elite['name']}: {describe_elite(elite, config.measures)}")
     print(f"written to {path}")

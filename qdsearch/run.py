@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator
 from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
 from qdsearch.flags import UsageError, check_flags, takes
 from qdsearch.loop import OneRun, Run
-from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, checked, with_task
+from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, check_memory, checked, with_task
 from qdsearch.run_config import check_run_config, load_archive, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
@@ -48,6 +48,7 @@ def search(**flags: Any) -> None:
     """
     flags = with_task(check_flags(SEARCH_FLAGS, flags))
     check_spaces(flags["env"])
+    check_memory(flags)
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
     # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
@@ -87,7 +88,9 @@ def resume_run(run_dir: str, **flags: Any) -> None:
             raise UsageError(f"{path} is already at iteration {done}; --iterations must be at least that")
         seed_archive = load_archive(Path(config.from_archive), config) if (
             checkpoint is None and config.from_archive) else None
-        config = config.replace(iterations=max(iterations, config.iterations), resumed=[
+        extended = iterations > config.iterations  # a budget in evaluations no longer holds it
+        config = config.replace(iterations=max(iterations, config.iterations),
+                                evaluations=None if extended else config.evaluations, resumed=[
             *config.resumed, {"at": datetime.datetime.now().isoformat(), "from_iteration": done,
                               "to_iteration": iterations, "workers": workers}])
         write_config(path, config)

@@ -111,8 +111,9 @@ def load_checked_config(run_dir: Path) -> RunConfig:
 
 
 # Flags that config.json may hold apart from its checkpoint: resume writes a larger --iterations
-# into config.json before the run's next checkpoint records it.
-MAY_DIFFER = ("iterations",)
+# (and no --evaluations, which set the old ones) into config.json before the run's next
+# checkpoint records it.
+MAY_DIFFER = ("iterations", "evaluations")  # (--evaluations: the budget that set the iterations)
 
 
 def load_run_state(run_dir: Path) -> tuple[RunConfig, dict | None]:

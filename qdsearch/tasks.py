@@ -9,15 +9,20 @@ Map:
 - the registration: FAMILY_MODULES, `register_family` (a module's rows into the tables, checked);
 - the tables: FAMILIES, ENVIRONMENTS (--env), MEASURES (--measures), DEFAULT_ENV,
   TUTORIAL_MEASURES; `family_measures`;
-- the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (the linear policy can
-  serve the env's spaces); `renderer_missing` (family.py's, for the video command);
+- the episode's rules: `Episode` (--episode_length, --terminate_when_unhealthy; `episode_of` a
+  config's), `check_episode`;
+- the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (a policy can serve the
+  env's spaces); `renderer_missing` (family.py's, for the video command);
 - an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
-  measures).
+  measures), of any policy (policies.py).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import importlib
+import inspect
 import warnings
 from typing import Any
 
@@ -26,7 +31,8 @@ import numpy as np
 
 from qdsearch.family import Environment, Family, Measure, OnStep, require_drawing
 from qdsearch.family import renderer_missing as renderer_missing  # results.py's video imports it here
-from qdsearch.flags import UsageError
+from qdsearch.flags import UsageError, setting
+from qdsearch.policies import LINEAR, Policy
 
 # The family modules, by import name: the one place a family is registered. Each declares its
 # ENVIRONMENTS and MEASURES rows (family.py); a module outside the package must be importable
@@ -73,22 +79,67 @@ def family_measures(family: Family) -> list[str]:
     return [name for name, measure in MEASURES.items() if family in measure.families]
 
 
-def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str) -> gym.Env:
-    """The environment rollouts fly in: the task's streamlined copy if it has one (fast_lander.py),
-    or gym.make's plain one (needed to render, and the reference the copy is tested against)."""
+@dataclasses.dataclass(frozen=True)
+class Episode:
+    """The rules of a run's episodes where they are not the task's own (None: the task's): how many
+    steps at most (gym.make's max_episode_steps), and whether a robot that falls (MuJoCo's
+    "unhealthy" state) ends its episode."""
+
+    length: int | None = None
+    terminate_when_unhealthy: bool | None = None
+
+    def kwargs(self) -> dict[str, Any]:
+        """gym.make's keyword arguments for these rules."""
+        return {**({} if self.length is None else {"max_episode_steps": self.length}),
+                **({} if self.terminate_when_unhealthy is None
+                   else {"terminate_when_unhealthy": self.terminate_when_unhealthy})}
+
+
+TASKS_OWN = Episode()
+
+
+def episode_of(config: Any) -> Episode:
+    """A run's episode rules, from its config (a RunConfig or a dict); runs from before the flags
+    flew the task's own."""
+    return Episode(setting(config, "episode_length"), setting(config, "terminate_when_unhealthy"))
+
+
+@functools.cache
+def has_unhealthy_state(env_name: str) -> bool:
+    """Whether the task's env takes terminate_when_unhealthy (MuJoCo's Hopper, Walker2d, Ant)."""
+    entry = gym.spec(ENVIRONMENTS[env_name].gym_id).entry_point
+    if isinstance(entry, str):
+        module, _, name = entry.partition(":")
+        entry = getattr(importlib.import_module(module), name)
+    return "terminate_when_unhealthy" in inspect.signature(entry).parameters
+
+
+def check_episode(env_name: str, episode: Episode) -> None:
+    """Refuse rules the task can't follow: a fall that ends an episode needs a task that falls."""
+    if episode.terminate_when_unhealthy is not None and not has_unhealthy_state(env_name):
+        able = [name for name in ENVIRONMENTS if has_unhealthy_state(name)]
+        raise UsageError(f"--terminate_when_unhealthy: --env {env_name} has no unhealthy state; "
+                         f"the tasks that do: {', '.join(able)}")
+
+
+def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str,
+             episode: Episode = TASKS_OWN) -> gym.Env:
+    """The environment rollouts fly in: the task's streamlined copy if it has one (fast_lander.py)
+    and the episodes follow the task's own rules, or gym.make's plain one (needed to render, to
+    change the rules, and the reference the copy is tested against)."""
     task = ENVIRONMENTS[env_name]
-    if fast and render_mode is None and task.fast is not None:
+    if fast and render_mode is None and task.fast is not None and episode == TASKS_OWN:
         return task.fast()
-    return plain_env(env_name, render_mode)
+    return plain_env(env_name, render_mode, episode)
 
 
-def plain_env(env_name: str, render_mode: str | None = None) -> gym.Env:
+def plain_env(env_name: str, render_mode: str | None = None, episode: Episode = TASKS_OWN) -> gym.Env:
     """gym.make's env of the task; a simulator that is not installed (MuJoCo), or frames its env
     can't render (a family's own env may draw nothing: the video command), is one line."""
     task = ENVIRONMENTS[env_name]
     with warnings.catch_warnings():  # Gymnasium's warning of frames the env can't render: refused below
         warnings.filterwarnings("ignore", ".*not in the possible render_modes")
-        env = task.make(render_mode, env_name)
+        env = task.make(render_mode, env_name, **episode.kwargs())
     if render_mode is not None and render_mode not in env.metadata.get("render_modes", ()):
         env.close()
         raise UsageError(f"--env {env_name} cannot be drawn: {task.gym_id} renders no {render_mode} frames")
@@ -96,7 +147,7 @@ def plain_env(env_name: str, render_mode: str | None = None) -> gym.Env:
 
 
 def check_spaces(env_name: str) -> None:
-    """Refuse a row whose task the linear policy can't serve. Its shape is read from the env's
+    """Refuse a row whose task the policies can't serve. Its shape is read from the env's
     spaces, so only their kinds can be wrong: the observation must be a vector (a 1-D box), the
     actions a choice among n (Discrete from 0: argmax) or a vector in [-1, 1] (a 1-D box: tanh).
     The env is made through `plain_env` first: a missing simulator is one line naming --env."""
@@ -110,13 +161,14 @@ def check_spaces(env_name: str) -> None:
     choice = isinstance(act, gym.spaces.Discrete) and int(act.start) == 0
     box = vector(act) and bool(np.all(act.low >= -1.0)) and bool(np.all(act.high <= 1.0))
     if not (vector(obs) and (choice or box)):
-        raise UsageError(f"--env {env_name}: the linear policy (argmax or tanh of W @ obs) can't serve "
+        raise UsageError(f"--env {env_name}: the policies (an argmax or a tanh of their outputs) can't serve "
                          f"{task.gym_id}'s observations {obs} and actions {act}")
 
 
 def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
-        on_step: OnStep | None = None, *, env_name: str) -> Any:
-    """Fly the task's linear policy for one episode on the terrain of `env_seed`; its summary.
+        on_step: OnStep | None = None, *, env_name: str, policy: Policy = LINEAR) -> Any:
+    """Fly `solution` as `policy` (default: linear) for one episode on the terrain of `env_seed`;
+    its summary.
 
     With a `trajectory` list, each step's point of the family's path is appended to it (the
     lander's normalised (x, y), the walker's hull in metres; a family that declares no path is
@@ -129,13 +181,14 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
 
         def on_step(action: Any, obs: np.ndarray) -> None:
             trajectory.append(task.family.position(env, obs))
-    return task.family.fly(solution, env_seed, env, task, on_step)
+    return task.family.fly(task.policy(solution, policy), env_seed, env, task, on_step)
 
 
 def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
-            trajectory: list | None = None, *, env_name: str) -> tuple[float, ...]:
+            trajectory: list | None = None, *, env_name: str, policy: Policy = LINEAR) -> tuple[float, ...]:
     """(objective, *measures) of one episode (default: the task's measures): the objective is the
     task's (its total reward, for every task but ant_omni)."""
-    flight, task = fly(solution, env_seed, env, trajectory, env_name=env_name), ENVIRONMENTS[env_name]
+    task = ENVIRONMENTS[env_name]
+    flight = fly(solution, env_seed, env, trajectory, env_name=env_name, policy=policy)
     measures = task.measures if measures is None else measures
     return (float(task.objective(flight)), *(float(MEASURES[name].of(flight)) for name in measures))

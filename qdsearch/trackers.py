@@ -11,7 +11,8 @@ note of it (tracking.json), the tracker's own record is read back on resume (Ten
 later steps; MLflow's history says its last step; W&B ignores steps it has). A tracker that fails
 is reported once, in one line, and switched off for the run; the search goes on.
 
-- TensorBoard: event files in RUN/tensorboard (tensorboardX: no TensorFlow, no torch);
+- TensorBoard: event files in RUN/tensorboard (tensorboardX: no TensorFlow, no torch), and the
+  scalars against evaluations in RUN/tensorboard/by_evaluations;
 - Weights & Biases: offline unless WANDB_MODE says otherwise, its files in RUN/wandb (`wandb
   sync RUN/wandb/offline-run-*` uploads them); one W&B run per run, resumed by its id;
 - MLflow: MLFLOW_TRACKING_URI, or a SQLite store beside the run (the experiment's folder for an
@@ -42,6 +43,10 @@ from qdsearch.flags import UsageError, clipped, shown
 from qdsearch.run_files import fault_text, write_json
 
 SCALARS = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective", "evaluations")
+# Each scalar is also logged against the evaluations spent (TensorBoard's by_evaluations folder,
+# MLflow's by_evaluations/ metrics, their steps the evaluations; W&B's charts take qd/evaluations
+# as their x): rows of different algorithms meet at equal budgets.
+BY_EVALUATIONS = "by_evaluations"
 PICTURES = ("heatmap.png", "progress.png")
 NOTES = "tracking.json"  # per tracker: how far it has tracked, and its run's id
 
@@ -84,19 +89,37 @@ class TensorBoard:
         if not through:
             self.writer.add_text("config", "\n".join(f"    {k}: {v}" for k, v in config.to_json().items()), 0)
         self.note = {"through": through}
+        self.logdir, self.by_evaluations = run_dir / "tensorboard" / BY_EVALUATIONS, None
+
+    def evaluations_writer(self, first: dict):
+        """The scalars against evaluations, in a folder of their own (a run of its own in
+        TensorBoard): their steps are evaluations, so their purge on resume starts at the first
+        row to be written again, not at an iteration."""
+        from tensorboardX import SummaryWriter
+
+        if self.by_evaluations is None:
+            self.by_evaluations = SummaryWriter(
+                logdir=str(self.logdir), flush_secs=30,
+                purge_step=first["evaluations"] if self.note["through"] else None)
+        return self.by_evaluations
 
     def log(self, rows: list[dict], seconds: list[float], pictures: dict[str, Any]) -> None:
+        by_evaluations = self.evaluations_writer(rows[0])
         for row, spent in zip(rows, seconds):
             for name in SCALARS:
                 if row[name] is not None:
                     self.writer.add_scalar(f"qd/{name}", row[name], row["iteration"])
+                    by_evaluations.add_scalar(f"qd/{name}", row[name], row["evaluations"])
             self.writer.add_scalar("time/seconds_per_iteration", spent, row["iteration"])
         for name, image in pictures.items():
             self.writer.add_image(name, image, rows[-1]["iteration"], dataformats="HWC")
         self.writer.flush()
+        by_evaluations.flush()
 
     def close(self) -> None:
         self.writer.close()
+        if self.by_evaluations is not None:
+            self.by_evaluations.close()
 
 
 class Wandb:
@@ -113,6 +136,7 @@ class Wandb:
                               config=config.to_json(), mode=os.environ.get("WANDB_MODE", "offline"),
                               resume="allow", reinit="create_new",
                               settings=wandb.Settings(silent=True, console="off"))
+        self.run.define_metric("qd/*", step_metric="qd/evaluations")  # its charts' x: evaluations
         self.note = {"through": note.get("through", 0), "id": run_id}
 
     def log(self, rows: list[dict], seconds: list[float], pictures: dict[str, Any]) -> None:
@@ -179,6 +203,8 @@ class Mlflow:
         now = int(time.time() * 1000)
         metrics = [Metric(name, float(row[name]), now, row["iteration"])
                    for row in rows for name in SCALARS if row[name] is not None]
+        metrics += [Metric(f"{BY_EVALUATIONS}/{name}", float(row[name]), now, row["evaluations"])
+                    for row in rows for name in SCALARS if row[name] is not None]
         metrics += [Metric("seconds_per_iteration", spent, now, row["iteration"])
                     for row, spent in zip(rows, seconds)]
         for start in range(0, len(metrics), 1000):

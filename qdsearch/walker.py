@@ -12,7 +12,7 @@ Map:
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 import Box2D
 import gymnasium as gym
@@ -46,16 +46,15 @@ def renew_world(walker: Any) -> None:
     walker.world = Box2D.b2World()
 
 
-def fly_walker(solution: np.ndarray, env_seed: int, env: gym.Env, task: Environment,
+def fly_walker(act: Callable, env_seed: int, env: gym.Env, task: Environment,
                on_step: OnStep | None = None) -> Walk:
-    """One BipedalWalker episode of the linear policy on the terrain of `env_seed`."""
-    policy = task.policy(solution)
+    """One BipedalWalker episode of the policy `act` on the terrain of `env_seed`."""
     renew_world(env.unwrapped)
     obs, _ = env.reset(seed=env_seed)
     hull, walk, done = env.unwrapped.hull, Walk(), False
     start_x, contacts, total_reward, angles, steps = hull.position.x, [0, 0], 0.0, 0.0, 0
     while not done:
-        action = policy(obs)
+        action = act(obs)
         obs, reward, terminated, truncated, _ = env.step(action)
         done = terminated or truncated
         steps += 1

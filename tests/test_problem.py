@@ -135,33 +135,29 @@ def test_a_batchs_rollouts_are_dealt_out_to_its_chunks_and_come_back_in_order():
     assert np.array_equal(engine.per_terrain(chunks, [52, 7]), rows.reshape(6, 2, 2))
 
 
-def test_drivers_on_one_scheduler_count_each_others_runs_when_they_size_chunks():
-    """Parts of an experiment that share a scheduler split their batches for all the runs in
-    flight on it, not just their own; a driver that stopped publishing, or closed, drops out."""
+def test_a_drivers_runs_in_flight_share_the_chunks_and_never_change_the_results():
+    """ClusterShare counts the cluster's worker threads (a worker that joins is counted at the next
+    refresh) and the driver's own runs; more runs in flight split each batch into fewer chunks, and
+    the rows come back the same."""
     from dask.distributed import Client, LocalCluster
 
     from qdsearch.engine import ClusterShare
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as one, Client(cluster) as two:
-        first, second = ClusterShare(one), ClusterShare(two)
-        assert first(3) == (2, 3)  # 2 worker threads; nobody else has published yet
-        assert second(5) == (2, 8)
-        first.refresh(3)
-        assert first(4) == (2, 9)  # its own runs as they are now, the other's as last published
-        assert ClusterShare(one, stale_after=0.0)(3) == (2, 3)
+            Client(cluster) as client:
+        share = ClusterShare(client, every=0.0)
+        assert share(3) == (2, 3)
+        cluster.scale(3)
+        client.wait_for_workers(3)
+        assert share(1) == (3, 1)
         solutions = np.zeros((150, tasks.ENVIRONMENTS[LANDER].solution_dim))
-        threads, sharing = first(3)
-        alone = engine.submit_flights(one, solutions, [52], (), True, sharing=3, threads=threads,
+        alone = engine.submit_flights(client, solutions, [52], (), True, sharing=1, threads=2,
                                       env_name=LANDER)
-        shared = engine.submit_flights(one, solutions, [52], (), True, sharing=sharing, threads=threads,
+        shared = engine.submit_flights(client, solutions, [52], (), True, sharing=4, threads=2,
                                        env_name=LANDER)
-        assert len(alone) == 2 and len(shared) == 1  # ceil(2 x 2 / runs) chunks
-        assert np.array_equal(engine.per_terrain(one.gather(alone), [52]),
-                              engine.per_terrain(one.gather(shared), [52]))
-        second.close()
-        first.refresh(3)
-        assert first(3) == (2, 3)
+        assert len(alone) == 4 and len(shared) == 1  # ceil(2 chunks x 2 workers / runs)
+        assert np.array_equal(engine.per_terrain(client.gather(alone), [52]),
+                              engine.per_terrain(client.gather(shared), [52]))
 
 
 def test_a_worker_of_several_threads_flies_as_a_worker_of_one():

@@ -36,11 +36,7 @@ def test_a_batch_is_split_as_the_engine_splits_it():
     assert sum(scale_model.chunk_sizes(150, 512, 1)) == 150
     assert min(scale_model.chunk_sizes(150, 512, 1)) >= 4  # MIN_CHUNK rollouts at least
     assert len(scale_model.chunk_sizes(150, 64, 60)) == 3  # 60 runs share the workers: ceil(2 x 64 / 60)
-    # the scheduler's rate: 60 runs cycling every 0.15 s may send 1,000 tasks a second among them
-    rate = scale_model.engine.TASK_RATE
-    assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=0.15)) == int(rate * 0.15 / 60)
-    assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=0.01)) == 1  # one chunk at least
-    assert len(scale_model.chunk_sizes(150, 256, 60, cycle_s=10.0)) == 13  # a long cycle: no bound
+    assert len(scale_model.chunk_sizes(150, 256, 60)) == 13  # 60 runs, 4.3 workers each: ceil(3 x 256 / 60)
 
 
 def test_a_busy_driver_is_the_limit_and_parts_lift_it():

@@ -56,8 +56,8 @@ def metrics_of(run_dir):
     return json.loads((run_dir / "metrics.json").read_text())
 
 
-def tensorboard_of(run_dir):
-    events = EventAccumulator(str(run_dir / "tensorboard"), size_guidance={"scalars": 0, "images": 0})
+def tensorboard_of(run_dir, folder="tensorboard"):
+    events = EventAccumulator(str(run_dir / folder), size_guidance={"scalars": 0, "images": 0})
     events.Reload()
     return events
 
@@ -74,7 +74,7 @@ def test_every_tracker_holds_every_iterations_metrics_once(tracked):
     rows = metrics_of(run_dir)
     steps = [row["iteration"] for row in rows]
     assert run_archive(run_dir).equals(run_archive(plain))  # tracking changes no result
-    events = tensorboard_of(run_dir)
+    events, by_evaluations = tensorboard_of(run_dir), tensorboard_of(run_dir / "tensorboard", "by_evaluations")
     history = [h for h in wandb_history(run_dir) if "qd/qd_score" in h]
     client, run_id = mlflow_of(run_dir)
     for name in trackers.SCALARS:
@@ -85,6 +85,17 @@ def test_every_tracker_holds_every_iterations_metrics_once(tracked):
         assert [h["_step"] for h in history] == steps and [h[f"qd/{name}"] for h in history] == values
         logged = client.get_metric_history(run_id, name)
         assert [m.step for m in logged] == steps and [m.value for m in logged] == values
+        # and against the evaluations spent: TensorBoard's by_evaluations run, MLflow's metric
+        spent = [row["evaluations"] for row in rows]
+        board = by_evaluations.Scalars(f"qd/{name}")
+        assert [e.step for e in board] == spent
+        assert [e.value for e in board] == pytest.approx(values, rel=1e-6)
+        logged = client.get_metric_history(run_id, f"{trackers.BY_EVALUATIONS}/{name}")
+        assert [m.step for m in logged] == spent and [m.value for m in logged] == values
+    assert spent == [12 * step for step in steps]  # 2 emitters x 6 solutions an iteration
+    # W&B draws every qd/ metric against qd/evaluations
+    [metric] = [m for m in wandb_records(run_dir, "metric") if m.glob_name == "qd/*"]
+    assert metric.step_metric == "qd/evaluations"
 
 
 @pytest.mark.slow  # real tracked searches
@@ -120,6 +131,8 @@ def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_clu
 
     steps = list(range(1, 31))
     assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == steps
+    assert [e.step for e in tensorboard_of(run_dir / "tensorboard", "by_evaluations").Scalars(
+        "qd/qd_score")] == [row["evaluations"] for row in metrics_of(run_dir)]
     assert [h["_step"] for h in wandb_history(run_dir) if "qd/qd_score" in h] == steps
     assert len(list(run_dir.glob("wandb/offline-run-*"))) == 2  # one W&B run, resumed by its id
     assert len({record.run_id for record in wandb_records(run_dir, "run")}) == 1

@@ -453,7 +453,7 @@ def main(workers: tuple = (16, 64, 256, 512), runs: int = 60, iterations: int = 
     run_files.write_json(Path(out), {
         "date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "env": env,
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
-        "chunks": {"per_worker": None, "task_rate": engine.TASK_RATE},  # None: the engine's rule
+        "chunks": {"per_worker": None},  # None: the engine's rule
         "episodes": {"source": source, "lengths": lengths, "count": len(pool),
                      "mean_steps": float(np.mean(pool)),
                      "us_per_step": round(1e6 * step_s, 2)}, "rows": rows})

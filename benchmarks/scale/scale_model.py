@@ -123,8 +123,7 @@ class Costs:
     # the spread of the driver's turns: each run-iteration's driver_iteration_s is scaled by one of
     # these, drawn at random (a measured turn's quantiles over their mean; empty: every turn the mean)
     driver_spread: tuple[float, ...] = ()
-    chunks_per_worker: int | None = None  # None: the engine's own (CHUNKS_PER_WORKER, TASK_RATE)
-    task_rate: float | None = None
+    chunks_per_worker: int | None = None  # None: the engine's own rule (chunks_per_worker)
     log_every: int = 0  # 0: no saves (bench_scale.py's runs save only at their end)
     save_s: float = 0.0  # the driver's time per save
     draw_s: float = 0.0  # 0: the CSV and pictures are drawn in the driver (part of save_s)
@@ -170,10 +169,9 @@ class Workload:
         return out
 
 
-def chunk_sizes(batch: int, workers: int, sharing: int, cycle_s: float | None = None,
-                per_worker: int | None = None, rate: float | None = None) -> list[int]:
+def chunk_sizes(batch: int, workers: int, sharing: int, per_worker: int | None = None) -> list[int]:
     """The engine's split of a batch (one terrain) into chunks: its own chunk_count."""
-    count = engine.chunk_count(batch, workers, sharing, cycle_s, per_worker, rate)
+    count = engine.chunk_count(batch, workers, sharing, per_worker)
     return [len(c) for c in np.array_split(np.arange(batch), count)]
 
 
@@ -337,9 +335,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
     pools = [worker_processes(workers // schedulers + (i < workers % schedulers), threads, c, sim,
                               machine) for i in range(schedulers)]
     waiting: list[deque] = [deque() for _ in range(schedulers)]  # tasks ready, no slot yet
-    # the runs a batch's chunks are sized for: every run in flight on its scheduler, whichever
-    # driver sends it (engine.ClusterShare)
-    sharing = [sum(1 for r in range(workload.runs) if r % parts % schedulers == s) for s in range(schedulers)]
+    # the runs a batch's chunks are sized for: its driver's own in flight (engine.ClusterShare)
     own = [sum(1 for r in range(workload.runs) if r % parts == p) for p in range(parts)]  # each driver's runs
     opened = np.zeros(parts, dtype=int)  # and how many it has opened so far
     split: dict[str, list[float]] = {key: [] for key in (*SPLIT, *OUT, *BACK, *FIRST)}
@@ -361,13 +357,12 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         """The driver tells the run its batch `done` (None: opens it) and sends the next one."""
         part, k = run % parts, (done["k"] + 1 if done else 0)
         pool = pools[part % schedulers]
-        cycle = ready - state["told"][run] if k > 1 else None  # the run's last cycle, as loop.Run keeps it
-        # a run's first batch is sized for the runs its driver has opened so far (and the other
-        # parts' on its scheduler): loop.Driver.start_more sends each as it opens it
+        # a run's first batch is sized for the runs its driver has opened so far:
+        # loop.Driver.start_more sends each as it opens it
         opened[part] += k == 0
-        runs_in_flight = sharing[part % schedulers] - (own[part] - opened[part] if k == 0 else 0)
-        sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), runs_in_flight, cycle,
-                            c.chunks_per_worker, c.task_rate) if k < workload.iterations else []
+        runs_in_flight = opened[part] if k == 0 else own[part]
+        sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), runs_in_flight,
+                            c.chunks_per_worker) if k < workload.iterations else []
         service = (c.driver_iteration_s * turns.choice(spread) + c.client_task_s * len(sizes)
                    + (c.run_open_s if k == 0 else 0.0))
         told = drivers[part].serve(ready, service, lambda t: send(run, k, sizes, told, t) if sizes else None)

@@ -72,8 +72,7 @@ def measured_costs(row: dict, step_s: float, cores: int, chunks: dict) -> Costs:
                  driver_spread=tuple(row.get("driver_turn_spread", ())),
                  part_starts=tuple(row.get("driver_starts_s", ())),
                  first_task_waits=tuple(row.get("first_task_starts_s", ())),
-                 chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]),
-                 task_rate=chunks["task_rate"])
+                 chunks_per_worker=row.get("chunks_per_worker", chunks["per_worker"]))
 
 
 def scheduler_costs(row: dict) -> dict[str, float]:
