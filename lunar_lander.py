@@ -130,6 +130,9 @@ def main(argv: list[str]) -> int:
 
     name = argv[0] if argv and not argv[0].startswith("-") else "search"
     args = argv[1:] if argv and not argv[0].startswith("-") else argv
+    # -h is help, as everywhere (Fire would read it as a flag's short name: --hidden)
+    cut = args.index("--") if "--" in args else len(args)
+    args = ["--help" if arg == "-h" else arg for arg in args[:cut]] + args[cut:]
     STOP.install()
     try:
         if name not in COMMANDS:

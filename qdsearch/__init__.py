@@ -10,14 +10,16 @@ Map, a module per role, imports going down the list only:
 - pinning: a local cluster's worker per core pinned to it (a Dask worker plugin);
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
   the package shipped to workers that lack it;
+- policies: the policies a solution makes (POLICIES: linear, mlp; `Policy`);
+- gradients: the DQD rows' gradients, estimated from mirrored samples flown around a point;
 - family: what a task family declares (`Family`, `Environment` with its env's spaces, `Measure`),
-  the linear policy, `require_drawing`;
+  `require_drawing`;
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
 - lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
   each): its rows, its episode, how it is drawn;
 - tasks: the families gathered from FAMILY_MODULES (`register_family`): ENVIRONMENTS, MEASURES;
-  an episode (`fly`, `rollout`);
-- algorithms: ALGORITHMS and `build_scheduler`;
+  the episode's rules (`Episode`); an episode of any policy (`fly`, `rollout`);
+- algorithms: ALGORITHMS (the DQD rows too), what a row holds in memory, and `build_scheduler`;
 - engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
 - options: every command's flags, declared once, and the bounds on sizes;
 - metrics: a run's metrics rows;
@@ -37,6 +39,7 @@ Map, a module per role, imports going down the list only:
 - explorer: `explore`, the page (explorer_page.html) and the poses it plays;
 - live: `watch`, a live page of a run (Bokeh), redrawn from its files;
 - stats: statistics across seeds (BCa, rliable's IQM and P(A>B) with stratified bootstrap, Holm);
+- compared_runs: what `compare` reads of its runs (corrected metrics, a cut at a budget);
 - comparison: `compare` and its statistics.
 """
 

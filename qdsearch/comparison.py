@@ -13,15 +13,15 @@ that every task shares (the QD score normalised by the archive's cells and the t
 range, coverage), as rliable aggregates over tasks (qdsearch/stats.py).
 
 Map:
-- reading runs: `expand_folders` (an experiment folder is its runs), `load_run_metrics`,
-  `read_corrected` (compare --corrected: corrected.json), `final_archive`;
+- reading runs: compared_runs.py's (an experiment folder is its runs, corrected.json, a cut at a
+  budget), `final_archive`;
 - a run's figures: `solved_cells`, `qd_auc`, `cqd` (pyribs' cqd_score with fixed settings, CQD),
   `archive_cells`, `normalised_qd_score`;
 - `comparison_table` (a row per run), `setting_statistics`, `pairwise_tests` (per task),
   `aggregate_statistics` (across tasks);
 - output: `comparison_outputs` (file names), `format_table`, `markdown_report` (`task_section`,
   `settings_table`, `aggregate_section`), `save_score_distributions`;
-- `cut_at` (compare --at_evaluations), `compare`: the command.
+- `compare`: the command.
 """
 
 from __future__ import annotations
@@ -35,13 +35,20 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import kind_of, task_of
-from qdsearch.experiment_folder import read_experiment, run_setting, unfinished_note
+from qdsearch.compared_runs import (
+    CORRECTED,
+    check_fresh,
+    cut_at,
+    expand_folders,
+    load_run_metrics,
+    read_corrected,
+)
+from qdsearch.experiment_folder import run_setting
 from qdsearch.family import Environment
-from qdsearch.flags import UsageError, boolean, shown, whole_number_up_to
-from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics
+from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.plots import save_metric_panels
-from qdsearch.run_config import RunConfig, load_checked_config
-from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, read_run_json, write_csv
+from qdsearch.run_config import RunConfig
+from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, write_csv
 from qdsearch.stats import (
     RESAMPLES,
     bootstrap_interval,
@@ -54,7 +61,6 @@ from qdsearch.stats import (
 from qdsearch.tasks import ENVIRONMENTS
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
-CORRECTED = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective")  # --corrected's
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task
 NORMALISED = "normalised_qd_score"  # QD score over its most: comparable between tasks
 # The files a run's final figures come from: its own, or (--corrected) those `evaluate --corrected` wrote.
@@ -73,32 +79,6 @@ def solved_cells(path: Path, task: Environment) -> int | None:
         return int((objectives >= task.solved).sum())
     except (OSError, ValueError):
         return None
-
-
-def load_run_metrics(run_dir: Path) -> tuple[RunConfig, list[dict]]:
-    """A run's config and its metrics rows (at least one, each field of its type), both checked
-    as every command checks them."""
-    metrics = load_metrics(run_dir)
-    return load_checked_config(run_dir), metrics
-
-
-def read_corrected(run_dir: Path) -> dict:
-    """A run's corrected metrics (corrected.json, written by `evaluate RUN --corrected`: its
-    elites flown again on new seeds), each of CORRECTED of its metrics.json type, and `repeats`."""
-    path = run_dir / "corrected.json"
-    if not path.is_file():
-        raise UsageError(f"{run_dir} has no corrected.json: run `python lunar_lander.py evaluate "
-                         f"{run_dir} --corrected` first")
-    recorded = read_run_json(run_dir, "corrected.json")
-    if not isinstance(recorded, dict):
-        raise UsageError(f"{path}: holds a {type(recorded).__name__}, not corrected metrics")
-    for field in (*CORRECTED, "repeats"):
-        kinds = METRIC_FIELDS.get(field, (int,))
-        if field not in recorded or not holds(recorded[field], kinds):
-            raise UsageError(f"{path}: {field} is {shown(recorded.get(field))}, not "
-                             f"{' or '.join(kind.__name__ for kind in kinds)}; run `python "
-                             f"lunar_lander.py evaluate {run_dir} --corrected` again")
-    return recorded
 
 
 def run_labels(run_dirs: list[Path], configs: list[RunConfig]) -> list[str]:
@@ -473,27 +453,6 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
     plt.close(fig)
 
 
-def expand_folders(paths: list[Path]) -> list[Path]:
-    """Run folders, each experiment folder replaced by its runs that have metrics; a run given
-    twice (a folder named twice, or a run and its experiment) is counted once, and a note says so."""
-    expanded: dict[Path, Path] = {}
-    for path in paths:
-        if (path / "experiment.json").is_file():
-            plan = read_experiment(path)
-            runs = [path / entry["name"] for entry in plan["runs"]]
-            runs = [run for run in runs if (run / "metrics.json").is_file()]
-            if note := unfinished_note(path, plan):
-                print(note)
-        else:
-            runs = [path]
-        for run in runs:
-            if (key := run.resolve()) in expanded:
-                print(f"note: {run} is given twice (the same run as {expanded[key]}); counted once")
-            else:
-                expanded[key] = run
-    return list(expanded.values())
-
-
 def values_used(corrected: list[dict] | None) -> str:
     """The one line that says which final values the comparison is of."""
     if corrected is None:
@@ -515,34 +474,6 @@ def check_baseline(baseline: Any, settings: list[str]) -> str | None:
         return by_algorithm[0]
     raise UsageError(f"--baseline {shown(baseline)} is not a setting of these runs; they are: "
                      + ", ".join(repr(setting) for setting in settings))
-
-
-def check_fresh(fixes: list[dict], runs: list[list[dict]], paths: list[Path]) -> None:
-    """A run's corrected.json must be of its last iteration: a run extended since needs it again."""
-    for fix, metrics, path in zip(fixes, runs, paths):
-        if fix.get("iteration") != metrics[-1]["iteration"]:
-            raise UsageError(f"{path / 'corrected.json'} is of iteration {shown(fix.get('iteration'))}, "
-                             f"the run is at {metrics[-1]['iteration']}: run `python lunar_lander.py "
-                             f"evaluate {path} --corrected` again")
-
-
-def cut_at(runs: list[list[dict]], paths: list[Path], budget: Any,
-           corrected: bool) -> tuple[list[list[dict]], list[bool]]:
-    """Each run's metrics up to its last row within `budget` evaluations (None: whole), and
-    whether that cut it short. A run whose first iteration is past the budget is refused."""
-    if budget is None:
-        return runs, [False] * len(runs)
-    budget = whole_number_up_to(10**12)("at_evaluations", budget)
-    if corrected:
-        raise UsageError("--at_evaluations and --corrected: corrected figures are of a run's end")
-    kept = []
-    for path, metrics in zip(paths, runs):
-        first = next((row for row in metrics if row["iteration"] > 0), metrics[-1])
-        if first["evaluations"] > budget:
-            raise UsageError(f"{path}: its first iteration flew {first['evaluations']:,} evaluations, "
-                             f"more than --at_evaluations {budget:,}")
-        kept.append([row for row in metrics if row["evaluations"] <= budget])
-    return kept, [len(k) < len(m) for k, m in zip(kept, runs)]
 
 
 def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, corrected: bool = False,
@@ -605,7 +536,8 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     write_csv(files["csv"], table)
     print(format_table(table.drop(columns=["task", "setting"])))  # the run's label names them
     if (table.groupby("task")["evaluations"].nunique() > 1).any():
-        print("note: the runs of a task end at different numbers of evaluations; compare at an equal budget")
+        print("note: the runs of a task end at different numbers of evaluations; compare them at an "
+              "equal budget with --at_evaluations N")
     used = values_used(fixes)
     if not grouped:  # else the report says it
         print(used)

@@ -180,7 +180,7 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "iterations": Flag(300, f"Number of ask-evaluate-tell iterations (at most {MAX_ITERATIONS:,}).",
                        whole_number_up_to(MAX_ITERATIONS)),
     "evaluations": Flag(None, "A budget in evaluations (solutions flown, a DQD row's gradient samples "
-                              "included) instead of --iterations: the run stops at the last "
+                              "included) instead of --iterations. The run stops at the last "
                               "iteration within it, so rows that fly different numbers per "
                               "iteration compare at equal budgets.", whole_number_up_to(MAX_EVALUATIONS),
                         sweep=True, label=13),

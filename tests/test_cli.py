@@ -16,6 +16,13 @@ def test_help_documents_every_flag(run_cli):
         assert f"--{flag}" in result.stdout + result.stderr, flag
 
 
+def test_minus_h_is_help_not_a_flags_short_name(run_cli):
+    """Fire names --hidden -h; -h stays help, as everywhere."""
+    for command in ([], ["compare"]):
+        result = run_cli(*command, "-h")
+        assert result.returncode == 0 and "NAME" in result.stdout + result.stderr, result.stderr
+
+
 @pytest.mark.parametrize("flag, value", [
     ("iterations", 0), ("iterations", -3), ("iterations", "ten"), ("workers", 0),
     ("batch_size", 0), ("n_emitters", 0), ("log_every", 0), ("sigma0", 0), ("seed", -1),
