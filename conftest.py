@@ -26,8 +26,8 @@ SCRIPT = ROOT / "lunar_lander.py"
 # pytest-xdist hands whole files to its workers in collection order (see pyproject.toml): the long
 # ones first keeps the two workers' loads even, as the short files fill in at the end.
 LONGEST_FIRST = ["test_clusters.py", "test_faults.py", "test_resume.py", "test_experiment.py",
-                 "test_qdrl.py", "test_run_folder.py", "test_parsers.py", "test_fast_lander.py", "test_scale_out.py",
-                 "test_hostile_input.py", "test_algorithms.py"]
+                 "test_qdrl.py", "test_run_folder.py", "test_parsers.py", "test_fast_lander.py",
+                 "test_scale_out.py", "test_hostile_input.py", "test_algorithms.py"]
 
 
 def pytest_collection_modifyitems(items):

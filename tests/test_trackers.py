@@ -74,7 +74,8 @@ def test_every_tracker_holds_every_iterations_metrics_once(tracked):
     rows = metrics_of(run_dir)
     steps = [row["iteration"] for row in rows]
     assert run_archive(run_dir).equals(run_archive(plain))  # tracking changes no result
-    events, by_evaluations = tensorboard_of(run_dir), tensorboard_of(run_dir / "tensorboard", "by_evaluations")
+    events = tensorboard_of(run_dir)
+    by_evaluations = tensorboard_of(run_dir / "tensorboard", "by_evaluations")
     history = [h for h in wandb_history(run_dir) if "qd/qd_score" in h]
     client, run_id = mlflow_of(run_dir)
     for name in trackers.SCALARS:
