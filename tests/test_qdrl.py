@@ -204,6 +204,16 @@ def test_a_dqd_run_is_the_same_on_one_and_two_workers_and_resumed(dqd_runs):
 
 
 @pytest.mark.slow  # real MuJoCo searches
+def test_a_dqd_run_of_an_experiment_is_its_lone_twin(dqd_runs, tmp_path, dask_cluster):
+    flags = {key: value for key, value in DQD.items() if key != "algorithm"}
+    experiments.experiment(algorithms="cma_mega_es", seeds="11", iterations=4, outdir=str(tmp_path / "exp"),
+                           scheduler_address=dask_cluster.scheduler_address, **flags)
+    [run_dir] = [path for path in (tmp_path / "exp").iterdir() if (path / "archive.pkl").is_file()]
+    assert run_archive(run_dir).equals(run_archive(dqd_runs / "two"))
+    assert run_metrics(run_dir) == run_metrics(dqd_runs / "two")
+
+
+@pytest.mark.slow  # real MuJoCo searches
 def test_elites_of_a_dqd_run_are_their_networks_flown_by_hand(dqd_runs):
     """Every elite's stored objective and foot contact is its network flown in gym.make's env
     (the run's 60-step episodes), computed here without the tool's policy or family code."""
