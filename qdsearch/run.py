@@ -48,12 +48,12 @@ def search(**flags: Any) -> None:
     """
     flags = with_task(check_flags(SEARCH_FLAGS, flags))
     check_spaces(flags["env"])
-    check_memory(flags)
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
     # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
     config = check_run_config({name: value if value is None or SEARCH_FLAGS[name].check else str(value)
                                for name, value in flags.items()})
+    check_memory(config.to_json())  # after the sizes' own bounds (check_run_config's)
     seed_archive = load_archive(Path(config.from_archive), config) if config.from_archive else None
     address = scheduler_of(flags)
     with new_folder(config.outdir, f"seed{config.seed}") as run_dir:

@@ -7,7 +7,12 @@ import json
 import numpy as np
 import pytest
 from ribs.archives import DensityArchive, DNSArchive, GridArchive, ProximityArchive
-from ribs.emitters import EvolutionStrategyEmitter, GaussianEmitter, IsoLineEmitter
+from ribs.emitters import (
+    EvolutionStrategyEmitter,
+    GaussianEmitter,
+    GradientArborescenceEmitter,
+    IsoLineEmitter,
+)
 from ribs.emitters.opt import LMMAEvolutionStrategy, SeparableCMAEvolutionStrategy
 from ribs.emitters.rankers import (
     DensityRanker,
@@ -72,8 +77,24 @@ def test_seed_fixes_the_proposals_and_emitters_differ():
 
 
 def algorithm_flags(dask_cluster, algorithm, **overrides):
-    """The tiny run's flags for 2 iterations of `algorithm`."""
-    return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **overrides})
+    """The tiny run's flags for 2 iterations of `algorithm` (a DQD row: 4 gradient samples)."""
+    dqd = {"es_samples": 4} if algorithms.ALGORITHMS[algorithm].dqd else {}
+    return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **dqd, **overrides})
+
+
+def told_gradients(scheduler, rng, lower, upper):
+    """A DQD scheduler's points told made-up values and gradients (ask_dqd, tell_dqd), so that its
+    ask branches; the points' shape."""
+    points = scheduler.ask_dqd()
+    count = len(points)
+    scheduler.tell_dqd(rng.uniform(-100, 100, count), rng.uniform(lower, upper, (count, len(lower))),
+                       rng.normal(size=(count, 1 + len(lower), points.shape[1])))
+    return points.shape
+
+
+def next_asks(scheduler, dqd: bool) -> np.ndarray:
+    """What a scheduler asks first in its next iteration."""
+    return scheduler.ask_dqd() if dqd else scheduler.ask()
 
 
 class TinyRuns(dict):
@@ -152,7 +173,17 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
     assert isinstance(dds.archive, DensityArchive) and dds.archive._bandwidth == pytest.approx(0.05 * span)
     assert all(type(e._ranker) is DensityRanker and e.archive is dds.result_archive and e._sigma0 == 3.0
                for e in dds.emitters)
-    for scheduler in schedulers.values():
+    for name in ("cma_mega_es", "cma_maega_es"):  # dqd-rl's CMA-MEGA (ES); sphere.py's cma_maega
+        dqd = schedulers[name]
+        assert all(isinstance(e, GradientArborescenceEmitter)
+                   and type(e._grad_opt).__name__ == "GradientAscentOpt" for e in dqd.emitters)
+    assert all(e._selection_rule == "mu" for e in schedulers["cma_mega_es"].emitters)
+    assert schedulers["cma_maega_es"].archive.learning_rate == 0.01
+    assert all(type(e._ranker) is ImprovementRanker for e in schedulers["cma_maega_es"].emitters)
+    rng = np.random.default_rng(0)
+    for name, scheduler in schedulers.items():
+        if algorithms.ALGORITHMS[name].dqd:
+            assert told_gradients(scheduler, rng, [-1, -3], [1, 0]) == (5, 32)
         assert scheduler.ask().shape == (5 * 30, 32)
     assert sum(bandit.active) == 5
 
@@ -167,9 +198,12 @@ def test_every_row_asks_and_tells_on_every_task(env):
         scheduler = algorithms.build_scheduler(config)
         rng = np.random.default_rng(0)
         for _ in range(2):
+            lower, upper = np.array(algorithms.archive_shape(config)["ranges"]).T
+            if algorithms.ALGORITHMS[name].dqd:
+                shape = told_gradients(scheduler, rng, lower, upper)
+                assert shape == (2, tasks.ENVIRONMENTS[env].solution_dim)
             solutions = scheduler.ask()
             assert solutions.shape == (6, tasks.ENVIRONMENTS[env].solution_dim)
-            lower, upper = np.array(algorithms.archive_shape(config)["ranges"]).T
             scheduler.tell(rng.uniform(-100, 100, 6), rng.uniform(lower, upper, (6, len(lower))))
         assert len(scheduler.result_archive) > 0
 
@@ -181,7 +215,8 @@ def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
     assert [p.name for p in (run_dir / "heatmaps").iterdir()] == ["heatmap_00002.png"]
     metrics = run_metrics(run_dir)
     assert [row["iteration"] for row in metrics] == [1, 2]
-    assert [row["evaluations"] for row in metrics] == [12, 24]
+    spent = 12 + (2 * (1 + 4) if algorithms.ALGORITHMS[algorithm].dqd else 0)  # a DQD row's points, samples
+    assert [row["evaluations"] for row in metrics] == [spent, 2 * spent]
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == algorithm
     checkpoint = load_pickle(run_dir / "checkpoint.pkl")
     assert checkpoint["config"]["algorithm"] == algorithm
@@ -214,7 +249,8 @@ def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path
     assert run_archive(run_dir).equals(run_archive(reference))
     assert run_metrics(run_dir) == run_metrics(reference)
     schedulers = [load_pickle(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
-    assert np.array_equal(schedulers[0].ask(), schedulers[1].ask())
+    dqd = algorithms.ALGORITHMS[algorithm].dqd
+    assert np.array_equal(next_asks(schedulers[0], dqd), next_asks(schedulers[1], dqd))
     assert archive_table(schedulers[0].archive).equals(archive_table(schedulers[1].archive))
 
 
