@@ -87,6 +87,7 @@ def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label:
     """One panel per metric of PROGRESS_PANELS, one line per group of runs (labelled if it has a
     label): a run's own curve, or for several runs their mean and its 95% confidence band."""
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
     # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
@@ -102,6 +103,7 @@ def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label:
                 low, high = mean_band(values)
                 ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
         ax.set_xlabel(x_label)
+        ax.xaxis.set_major_locator(MaxNLocator(5))  # evaluations run to 100,000s: labels apart
         ax.set_title(label)
         ax.grid(alpha=0.3)
     labelled = any(groups)

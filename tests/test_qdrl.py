@@ -272,3 +272,24 @@ def test_the_results_commands_fly_a_runs_network(run_cli, dqd_runs, tmp_path):
 
 def test_every_policy_row_says_its_own_flags():
     assert POLICIES["linear"].flags == () and POLICIES["mlp"].flags == ("hidden",)
+
+
+def test_curves_over_evaluations_keep_their_tick_labels_apart(tmp_path, monkeypatch):
+    """Budgets of 100,000s of evaluations: at most 6 labels on a panel's x axis, none overlapping."""
+    import matplotlib.pyplot as plt
+
+    from qdsearch import plots
+
+    drawn = []
+    monkeypatch.setattr(plt, "close", drawn.append)  # keep the figure to read its axes
+    rows = [{"evaluations": 200 * i, "qd_score": i * 1e4, "coverage": i / 100, "best_objective": float(i)}
+            for i in range(1, 81)]
+    plots.save_metric_panels({"run": [rows]}, "evaluations", "Evaluations", tmp_path / "curves.png")
+    [figure] = drawn
+    figure.canvas.draw()
+    for ax in figure.axes:
+        low, high = ax.get_xlim()
+        labels = [label for label in ax.get_xticklabels() if low <= label.get_position()[0] <= high]
+        boxes = [label.get_window_extent() for label in labels]
+        assert len(labels) <= 6
+        assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:])), [label.get_text() for label in labels]
