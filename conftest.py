@@ -7,12 +7,15 @@ compiled code's last bits differ from the uncompiled code the script runs by def
 processes the tests start inherit it.
 """
 
+import atexit
 import contextlib
 import io
 import logging
 import os
+import shutil
 import signal
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -22,6 +25,15 @@ from qdsearch import run
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"
 
+# Checkpoints are signed with a key (qdsearch/signing.py): the tests', never the user's. Made once
+# for the session (its pytest-xdist workers, and every process a test starts, inherit it), in a
+# folder that goes with the process that made it.
+if not os.environ.get("QDSEARCH_TESTS_KEY"):
+    _KEY_FOLDER = tempfile.mkdtemp(prefix="qdsearch-tests-key-")
+    atexit.register(shutil.rmtree, _KEY_FOLDER, ignore_errors=True)
+    os.environ["QDSEARCH_TESTS_KEY"] = str(Path(_KEY_FOLDER) / "key")
+os.environ["QDSEARCH_KEY"] = os.environ["QDSEARCH_TESTS_KEY"]
+
 # The files whose tests take longest (real processes, signals, full experiments), longest first.
 # pytest-xdist hands whole files to its workers in collection order (see pyproject.toml): the long
 # ones first keeps the two workers' loads even, as the short files fill in at the end.
@@ -30,11 +42,21 @@ LONGEST_FIRST = ["test_clusters.py", "test_faults.py", "test_resume.py", "test_e
                  "test_scale_out.py", "test_hostile_input.py", "test_algorithms.py"]
 
 
+# The quick subset (-m "not slow") is what runs in this process alone: a test that needs a Dask
+# cluster, a run folder searched on one, a browser or a process of its own is slow, as is one
+# marked so by hand (signals, experiments, clusters of its own).
+HEAVY_FIXTURES = {"dask_cluster", "dask_client", "one_worker_cluster", "tiny_run", "reference", "browser",
+                  "run_process"}
+
+
 def pytest_collection_modifyitems(items):
     def rank(item):
         name = item.path.name
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
     items.sort(key=rank)  # stable: each file's tests keep their order
+    for item in items:
+        if HEAVY_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="session")
@@ -43,6 +65,18 @@ def dask_cluster():
     from dask.distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster:
+        yield cluster
+
+
+@pytest.fixture(scope="session")
+def one_worker_cluster():
+    """A real local cluster of one single-threaded worker process, as `--workers 1` starts: what
+    the runs that must equal their two-worker twins fly on (one cluster for all of them, not one
+    each)."""
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                       dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster:
         yield cluster
 

@@ -23,7 +23,9 @@ evaluation engine, seeded and repeatable runs, checkpoints, metrics, plots and a
 
 The work is done by the package `qdsearch`, one module per role, each opening with a map of
 itself; this script is its command line (COMMANDS, `main`: bad input is one line and exit code 2,
-a fault of the machine one line and exit code 1). A search tells the tutorial's story:
+a fault of the machine one line and exit code 1; -h or --help anywhere is the command's page,
+`help_text`, drawn from the flag tables by qdsearch.flags.help_page). A search tells the
+tutorial's story:
 1. the problem: a task is a row of ENVIRONMENTS (`qdsearch/lander.py`: the Gymnasium id, the
    linear policy's shape, default measures, QD offset) and a measure a row of MEASURES; an
    episode (`fly_lander`) flies the policy W @ obs, and its total reward is the objective;
@@ -44,16 +46,17 @@ The package never imports this script.
 from __future__ import annotations
 
 import importlib
+import inspect
 import logging
 import os
 import signal
 import sys
 from typing import Any, Callable
 
-from qdsearch.flags import UsageError, as_typed, one_line, shown
+from qdsearch.flags import UsageError, as_typed, did_you_mean, flag_table, help_page, one_line, shown, summary
 from qdsearch.options import SEARCH_FLAGS, refuse_unused_row_flags
 from qdsearch.run_files import RunError, fault_text
-from qdsearch.stopping import STOP
+from qdsearch.stopping import STOP, Stopped
 
 if __name__ == "__mp_main__":
     # A local worker (Dask spawns its processes from this script): Ctrl-C in a terminal reaches
@@ -82,8 +85,6 @@ def command(name: str) -> Callable:
 def known_flags(function: Callable) -> list[str]:
     """The flags a command takes: its signature's, and for experiment those of search it passes
     on to every run."""
-    import inspect
-
     parameters = inspect.signature(function).parameters
     known = [name for name, p in parameters.items() if p.kind is not p.VAR_KEYWORD]
     if any(p.kind is p.VAR_KEYWORD for p in parameters.values()):  # experiment's **search_flags
@@ -94,7 +95,7 @@ def known_flags(function: Callable) -> list[str]:
 def text_flags(function: Callable) -> set[str]:
     """The flags of a command whose checks read the text as typed (Flag.text)."""
     entries = {**{name: SEARCH_FLAGS[name] for name in known_flags(function) if name in SEARCH_FLAGS},
-               **getattr(function, "flag_table", {})}
+               **flag_table(function)}
     return {name for name, flag in entries.items() if flag.text}
 
 
@@ -105,7 +106,7 @@ def typed_flags(args: list[str]) -> list[tuple[str, str | None]]:
     for i, arg in enumerate(args):
         if arg == "--":
             break
-        if arg.startswith("--") and arg != "--help":
+        if arg.startswith("--"):
             name, equals, value = arg[2:].partition("=")
             following = args[i + 1] if i + 1 < len(args) and not args[i + 1].startswith("--") else None
             typed.append((name.replace("-", "_"), value if equals else following))
@@ -113,16 +114,26 @@ def typed_flags(args: list[str]) -> list[tuple[str, str | None]]:
 
 
 def reject_unknown_flags(function: Callable, args: list[str]) -> None:
-    """Fire would print a page of usage for a mistyped flag; one line naming it is clearer. A
-    flag given twice is refused too."""
+    """Fire would print a page of usage for a mistyped flag; one line naming it, and the flag it
+    likely meant, is clearer. A flag given twice is refused too."""
     known, given = known_flags(function), set()
     for name, _ in typed_flags(args):
         if name not in known:
-            raise UsageError(f"unknown flag --{name}; valid flags: "
-                             + ", ".join(f"--{flag}" for flag in known))
+            raise UsageError(f"unknown flag --{name}; {did_you_mean(name, known, '--')}")
         if name in given:  # Fire would silently keep the last
             raise UsageError(f"--{name} is given twice; give each flag once")
         given.add(name)
+
+
+def help_text(name: str, function: Callable) -> str:
+    """A command's --help page; the main one (search's) lists every command too."""
+    passed_on = {flag: SEARCH_FLAGS[flag] for flag in known_flags(function)
+                 if flag not in inspect.signature(function).parameters}
+    if name != "search":
+        return help_page(f"lunar_lander.py {name}", function, passed_on)
+    commands = {other: ("(the default: no command name) " if other == "search" else "")
+                + summary(command(other).__doc__ or "") for other in COMMANDS}
+    return help_page("lunar_lander.py", function, passed_on, commands)
 
 
 def main(argv: list[str]) -> int:
@@ -130,21 +141,19 @@ def main(argv: list[str]) -> int:
 
     name = argv[0] if argv and not argv[0].startswith("-") else "search"
     args = argv[1:] if argv and not argv[0].startswith("-") else argv
-    # -h is help, as everywhere (Fire would read it as a flag's short name: --hidden)
-    cut = args.index("--") if "--" in args else len(args)
-    args = ["--help" if arg == "-h" else arg for arg in args[:cut]] + args[cut:]
     STOP.install()
     try:
         if name not in COMMANDS:
-            raise UsageError(f"unknown command {shown(name)}; commands: {', '.join(COMMANDS)}")
+            raise UsageError(f"unknown command {shown(name)}; {did_you_mean(name, COMMANDS)}")
         function = command(name)
+        if "-h" in args or "--help" in args:  # help wherever it is asked, and nothing run (Fire's
+            print(help_text(name, function), end="")  # -h is a flag's short name: --hidden)
+            return 0
         reject_unknown_flags(function, args)
         if name == "search":  # a row's own flag typed for a row that ignores it (experiment: its own check)
             typed = dict(typed_flags(args))
             algorithm = typed.get("algorithm") or SEARCH_FLAGS["algorithm"].default
             refuse_unused_row_flags([str(algorithm).strip("'\"")], list(typed))
-        if "--help" in args and "--" not in args:  # else a command taking **flags reads it as one
-            args = [arg for arg in args if arg != "--help"] + ["--", "--help"]
         args = as_typed(args, text_flags(function))
         fire.Fire(function, command=args, name="lunar_lander.py" if name == "search" else name)
     except UsageError as error:
@@ -153,8 +162,9 @@ def main(argv: list[str]) -> int:
     except (RunError, OSError) as error:  # OSError: any fault not already described better
         print(f"error: {one_line(fault_text(error))}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("stopped", file=sys.stderr)
+    except KeyboardInterrupt as stop:
+        if not isinstance(stop, Stopped):  # else its line is said
+            print("stopped", file=sys.stderr)
         return 130
     return 0
 
@@ -163,7 +173,7 @@ def run_as_script() -> None:
     """`python lunar_lander.py ...`: main, then a quick exit (see exit_now)."""
     try:
         exit_now(main(sys.argv[1:]))
-    except SystemExit as done:  # fire's --help and its own usage messages
+    except SystemExit as done:  # Fire's own usage messages (exit code 2)
         exit_now(done.code)
 
 

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import algorithms, run_config, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, run_config, tasks  # noqa: E402
 
 
 def timed(*args: str) -> float:
@@ -75,7 +75,7 @@ def two_at_once_seconds(configs: list[dict]) -> float:
 
 def same_run(a: Path, b: Path) -> bool:
     def archive(run):
-        table = run_files.read_pickle(run / "archive.pkl", "archive").data(return_type="pandas")
+        table = run_config.saved_archive(run).data(return_type="pandas")
         return table.sort_values("index").reset_index(drop=True)
 
     def metrics(run):

@@ -28,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import loop, run_config, run_files, saving  # noqa: E402
+from qdsearch import loop, run_config, saving  # noqa: E402
 
 
 def timed_saves(run: loop.Run, saves: int, processes: int) -> dict[str, float]:
@@ -50,8 +50,8 @@ def timed_saves(run: loop.Run, saves: int, processes: int) -> dict[str, float]:
 
 
 def main(run: str = "outputs/seed42", saves: int = 10, out: str = "benchmarks/save_results.json") -> None:
-    checkpoint = run_files.read_pickle(Path(run) / "checkpoint.pkl", "checkpoint")
-    config = run_config.check_run_config(checkpoint["config"])
+    checkpoint = run_config.load_checkpoint(Path(run) / "checkpoint.pkl")  # signed with your key
+    config = checkpoint["config"]
     with tempfile.TemporaryDirectory() as tmp:
         saved = loop.Run.from_checkpoint(Path(tmp), {**checkpoint, "config": config},
                                          logging.getLogger("bench_saves"))

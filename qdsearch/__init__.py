@@ -4,6 +4,8 @@
 Map, a module per role, imports going down the list only:
 - flags: the `Flag` entry, the checkers, UsageError;
 - run_files: locks, atomic writes, JSON and pickles, logs; RunError;
+- signing: the user's key (QDSEARCH_KEY, or ~/.config/qdsearch/key) and the checkpoints signed
+  with it, their signature checked before anything is unpickled (resume --trust adopts another's);
 - stopping: Ctrl-C and SIGTERM (`STOP`), acted on where stopping is safe;
 - plots: heatmaps and progress curves;
 - trackers: TensorBoard, W&B and MLflow (--track), offline first, each iteration once;
@@ -23,6 +25,9 @@ Map, a module per role, imports going down the list only:
 - engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
 - options: every command's flags, declared once, and the bounds on sizes;
 - metrics: a run's metrics rows;
+- archive_data: a run's archive as data (archive.npz: numpy, already a dependency, keeps every
+  float64 bit, which a CSV may not, and holds arrays of any shape, a CVT's centroids too), made
+  back into its pyribs archive without unpickling; archive.csv of folders from before it;
 - saving: a run folder's files, written while the loop goes on (saver threads; on a cluster
   joined by its address, saver processes);
 - run_config: the typed RunConfig made from the flags, `upgrade` of old folders, config.json and
@@ -33,14 +38,16 @@ Map, a module per role, imports going down the list only:
   file per part;
 - experiment_folder: experiment.json read and checked, a setting's label (what compare reads);
 - experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
-- run_folder: what the results commands read of a run folder (`load_run`, `elite_rows`);
+- run_folder: what the results commands read of a run folder (`load_run`, `elite_rows`): data
+  files only, never a pickle, so a folder from anyone is safe to open;
 - results: `video`, `elites`, `trajectories`, and choosing elites;
 - evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);
 - explorer: `explore`, the page (explorer_page.html) and the poses it plays;
 - live: `watch`, a live page of a run (Bokeh), redrawn from its files;
 - stats: statistics across seeds (BCa, rliable's IQM and P(A>B) with stratified bootstrap, Holm);
 - compared_runs: what `compare` reads of its runs (corrected metrics, a cut at a budget);
-- comparison: `compare` and its statistics.
+- comparison: `compare` and its statistics;
+- notebook: run folders as pandas tables, the public API (`read_run`, `read_experiment`).
 """
 
 import ctypes.util
@@ -60,3 +67,15 @@ if ctypes.util.find_library("EGL"):
 # 2.01 for 96 (the walker), 3.39 vs 4.02 for 216 (benchmarks/bench_ask_tell.py, 2026-11-24). So
 # compilation is off unless asked for, and every search computes the same bits.
 os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
+
+__all__ = ["read_run", "read_experiment"]  # the public API: docs/notebooks.md
+
+
+def __getattr__(name: str):
+    """`qdsearch.read_run` and `qdsearch.read_experiment`, imported when first used: the command
+    line imports this package too, and answers --help without pandas and pyribs."""
+    if name in __all__:
+        from qdsearch import notebook
+
+        return getattr(notebook, name)
+    raise AttributeError(f"module 'qdsearch' has no attribute {name!r}")

@@ -3,7 +3,7 @@
 Map:
 - the ALGORITHMS table (--algorithm): each row's archive kwargs, result archive and emitters;
 - the ARCHIVES table (--archive): how each kind of archive is made (`grid_archives`,
-  `cvt_archives`: a CVT's centroids made once per run, by k-means from the run's seed), where its
+  `cvt_archives`: a CVT's centroids made once per run by `k_means` from the run's seed), where its
   cells lie (`cell_positions`) and an empty archive of the same cells (`empty_like`);
 - the DQD rows (`gradient_arborescence`), `evaluations_per_iteration`, and what a row's
   emitters and archives hold in memory (ES_BYTES, `memory_needed`);
@@ -14,6 +14,7 @@ Map:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable
 
 import numpy as np
@@ -253,13 +254,22 @@ def cvt_archives(config: Any) -> Callable[..., Any]:
     """Empty CVT archives of the run: --cells centroids, made once by k-means over points drawn
     uniformly in the measures' ranges (pyribs' k_means_centroids), seeded from the run's seed
     apart from the archive's and emitters' seeds (a grid run's seeds stay as they were)."""
-    from ribs.archives import CVTArchive, k_means_centroids
+    from ribs.archives import CVTArchive
 
     shape = archive_shape(config)
     seed = int(np.random.SeedSequence([config.seed, 0xC07]).generate_state(1)[0])
-    centroids, _ = k_means_centroids(centroids=config.cells, ranges=shape["ranges"],
-                                     samples=CVT_SAMPLES, seed=seed)
+    centroids = k_means(config.cells, tuple(map(tuple, shape["ranges"])), seed).copy()
     return lambda **kwargs: CVTArchive(**shape, centroids=centroids, **kwargs)
+
+
+@functools.lru_cache(maxsize=16)
+def k_means(cells: int, ranges: tuple, seed: int) -> np.ndarray:
+    """pyribs' k-means centroids, kept for the runs of one process that share their seed, task
+    and cells (a second of CPU each: an experiment's settings of one seed, a driver's resumes)."""
+    from ribs.archives import k_means_centroids
+
+    centroids, _ = k_means_centroids(centroids=cells, ranges=list(ranges), samples=CVT_SAMPLES, seed=seed)
+    return centroids
 
 
 def grid_positions(archive: Any, indices: np.ndarray) -> np.ndarray:

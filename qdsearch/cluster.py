@@ -238,12 +238,14 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     warnings.filterwarnings("ignore", message="Port 8787 is already in use")
     # The imports are over before the search starts: ribs' CMA-ES rebuilds its thread-pool
     # controller whenever the number of imported modules has changed.
+    # Its start takes seconds (~10 s on a loaded machine): said before, and when it is ready.
+    log.info(f"Starting a local Dask cluster of {workers} worker process(es)...")
     with preloading(RUN_IMPORTS), dask.config.set(QUIET_CLUSTER):
         cluster = start_local_cluster(workers, log)
     quiet_dask_logs()  # LocalCluster's silence_logs set its own level
     with cluster, Client(cluster) as client, losing_the_scheduler(client, cluster.scheduler_address):
         pin_workers(client, workers)
-        log.info(f"Dask cluster: {workers} worker process(es); dashboard {client.dashboard_link}")
+        log.info(f"Dask cluster ready: {workers} worker process(es); dashboard {client.dashboard_link}")
         yield client
 
 
@@ -303,16 +305,19 @@ def losing_the_scheduler(client, address: str) -> Iterator[None]:
 
 def dashboard_of(client) -> str:
     """The dashboard's link where one answers; a scheduler started with --no-dashboard still
-    names port 8787 (its HTTP server answers there, without the dashboard's pages)."""
+    names port 8787 (its HTTP server answers there, without the dashboard's pages). A HEAD of the
+    page tells them apart (Bokeh's page refuses the method with 405, a missing one is 404) in a
+    few ms, where a GET would render the page (~1 s of the scheduler's CPU)."""
+    import urllib.error
     import urllib.request
 
     try:
-        with urllib.request.urlopen(client.dashboard_link, timeout=2) as page:
-            if page.status == 200:
-                return f"dashboard {client.dashboard_link}"
+        with urllib.request.urlopen(urllib.request.Request(client.dashboard_link, method="HEAD"), timeout=2):
+            return f"dashboard {client.dashboard_link}"
+    except urllib.error.HTTPError as error:
+        return f"dashboard {client.dashboard_link}" if error.code == 405 else "no dashboard"
     except (OSError, ValueError):
-        pass
-    return "no dashboard"
+        return "no dashboard"
 
 
 PACKAGE = Path(__file__).resolve().parent  # this package: what a worker needs of our code

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.algorithms import kind_of, task_of
+from qdsearch.algorithms import task_of
 from qdsearch.compared_runs import (
     CORRECTED,
     check_fresh,
@@ -47,8 +47,8 @@ from qdsearch.experiment_folder import run_setting
 from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.plots import save_metric_panels
-from qdsearch.run_config import RunConfig
-from qdsearch.run_files import atomic_write, check_parent_folder, read_pickle, write_csv
+from qdsearch.run_config import RunConfig, saved_archive
+from qdsearch.run_files import atomic_write, check_parent_folder, write_csv
 from qdsearch.stats import (
     RESAMPLES,
     bootstrap_interval,
@@ -64,8 +64,8 @@ COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task
 NORMALISED = "normalised_qd_score"  # QD score over its most: comparable between tasks
 # The files a run's final figures come from: its own, or (--corrected) those `evaluate --corrected` wrote.
-ARCHIVE_FILES = {False: ("archive.pkl", "archive.csv"),
-                 True: ("corrected_archive.pkl", "corrected_archive.csv")}
+ARCHIVE_FILES = {False: ("archive.npz", "archive.csv"),
+                 True: ("corrected_archive.npz", "corrected_archive.csv")}
 
 
 def solved_cells(path: Path, task: Environment) -> int | None:
@@ -90,9 +90,10 @@ def run_labels(run_dirs: list[Path], configs: list[RunConfig]) -> list[str]:
     return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
 
 
-def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
-    """The files of a comparison, all named after the PNG: by default new files under outputs/;
-    never an existing file unless --overwrite."""
+def comparison_outputs(out: str | None, overwrite: bool, home: Path | None = None) -> dict[str, Path]:
+    """The files of a comparison, all named after the PNG: by default new files in `home` (the
+    one experiment compared: compare.png, compare_2.png, ...) or under outputs/; never an
+    existing file unless --overwrite."""
     def named(png: Path) -> dict[str, Path]:
         return {"png": png, "csv": png.with_suffix(".csv"), "md": png.with_suffix(".md"),
                 "settings": png.with_name(f"{png.stem}_settings.csv"),
@@ -102,8 +103,8 @@ def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
 
     if out is None:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-        candidates = [Path("outputs") / f"compare_{stamp}{suffix}.png" for suffix in
-                      ["", *(f"_{i}" for i in range(2, 1000))]]
+        first = home / "compare" if home is not None else Path("outputs") / f"compare_{stamp}"
+        candidates = [Path(f"{first}{suffix}.png") for suffix in ["", *(f"_{i}" for i in range(2, 1000))]]
         files = next(named(p) for p in candidates if not any(f.exists() for f in named(p).values()))
     else:
         files = named(Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png"))
@@ -113,6 +114,12 @@ def comparison_outputs(out: str | None, overwrite: bool) -> dict[str, Path]:
         raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
                          f"or pass --overwrite")
     return files
+
+
+def experiment_home(run_dirs: tuple) -> Path | None:
+    """The experiment folder a comparison of it alone is written into, if that is what it is."""
+    folder = Path(str(run_dirs[0])) if len(run_dirs) == 1 else None
+    return folder if folder is not None and (folder / "experiment.json").is_file() else None
 
 
 QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
@@ -130,13 +137,12 @@ FEW_RUNS = 5
 
 
 def final_archive(path: Path):
-    """A run's final archive (archive.pkl, or corrected_archive.pkl), or None where there is no
-    readable archive of ours."""
+    """A run's final archive (archive.npz, or corrected_archive.npz; of a folder from before them,
+    the CSV), or None where there is no readable archive of ours. No pickle is read."""
     try:
-        archive = read_pickle(path, "archive pickle")
+        return saved_archive(path.parent, path.stem)
     except UsageError:
         return None
-    return archive if kind_of(archive) else None
 
 
 def cqd(archive, task: Environment) -> float:
@@ -181,13 +187,13 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunC
     are left out (NaN)."""
     import pandas as pd
 
-    pickle_name, csv_name = ARCHIVE_FILES[corrected is not None]
+    data_name, csv_name = ARCHIVE_FILES[corrected is not None]
     rows, objectives = [], []
     for i, (label, run_dir, config, metrics) in enumerate(zip(labels, run_dirs, configs, runs)):
         final = metrics[-1] if corrected is None else {**metrics[-1], **{
             key: corrected[i][key] for key in CORRECTED}}
         task = task_of(config)
-        archive = None if cut and cut[i] else final_archive(run_dir / pickle_name)
+        archive = None if cut and cut[i] else final_archive(run_dir / data_name)
         objectives.append(None if archive is None else archive.data("objective"))
         rows.append({"run": label, "folder": str(run_dir), "task": config.env,
                      "setting": run_setting(config.to_json()), "seed": config.seed,
@@ -305,6 +311,8 @@ def aggregate_statistics(table, baseline: str | None = None):
 METRIC_FORMATS = {"evaluations": "{:.0f}", "num_elites": "{:.0f}", "coverage": "{:.4f}",
                   "qd_score": "{:,.0f}", "best_objective": "{:.1f}", "mean_objective": "{:.1f}",
                   NORMALISED: "{:.4f}", SOLVED_CELLS: "{:.0f}", QD_AUC: "{:,.0f}", CQD_SCORE: "{:.2f}"}
+# A statistic of counts over runs (a mean, an IQM, their bounds) is no count: 0 and 1 average 0.5.
+SUMMARY_FORMATS = {**METRIC_FORMATS, SOLVED_CELLS: "{:,.1f}"}
 
 
 def format_table(table) -> str:
@@ -325,7 +333,7 @@ def settings_table(stats, point: str, low: str, high: str) -> list[str]:
     lines = ["| setting | runs | " + " | ".join(SUMMARISED) + " |",
              "| --- | --- |" + " --- |" * len(SUMMARISED)]
     for setting, group in stats.groupby("setting", sort=False):
-        cells = {row["metric"]: with_interval(METRIC_FORMATS[row["metric"]].format, row[point], row[low],
+        cells = {row["metric"]: with_interval(SUMMARY_FORMATS[row["metric"]].format, row[point], row[low],
                                               row[high]) for row in group.to_dict("records")}
         lines.append(f"| {setting} | {group['runs'].max()} | "
                      + " | ".join(cells[m] for m in SUMMARISED) + " |")
@@ -438,7 +446,7 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
         # each setting its colour: tab10's distinct ones, tab20's (pairs of shades) past ten
         ax.set_prop_cycle(color=plt.get_cmap("tab10" if len(settings) <= 10 else "tab20").colors)
         for setting in settings:
-            archives = [read_pickle(Path(row["folder"]) / archive_name, "archive pickle") for row in runs
+            archives = [final_archive(Path(row["folder"]) / archive_name) for row in runs
                         if row["task"] == task and row["setting"] == setting]
             line, _ = aggregate_cdf(archives, ax=ax, cumulative=-1, vmin=vmin, vmax=vmax)
             line.set_label(f"{setting} ({len(archives)} run{'s' if len(archives) > 1 else ''})")
@@ -456,11 +464,11 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
 def values_used(corrected: list[dict] | None) -> str:
     """The one line that says which final values the comparison is of."""
     if corrected is None:
-        return "Final values: each run's last row of metrics.json, and its archive.pkl and archive.csv."
+        return "Final values: each run's last row of metrics.json, and its archive.npz and archive.csv."
     repeats = sorted({fix["repeats"] for fix in corrected})
     seeds = f"{repeats[0]}" if len(repeats) == 1 else f"{repeats[0]} to {repeats[-1]}"
     return (f"Final values: each run's corrected metrics (corrected.json: its elites flown again on "
-            f"{seeds} new seeds), corrected_archive.pkl and corrected_archive.csv; {QD_AUC} from "
+            f"{seeds} new seeds), corrected_archive.npz and corrected_archive.csv; {QD_AUC} from "
             f"metrics.json (a curve).")
 
 
@@ -496,10 +504,11 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     Args:
         run_dirs: Run folders or experiment folders written by this script.
         out: The PNG to write (the other files get the same name); default: a new
+            compare.png in the experiment folder if one alone is compared, else a new
             outputs/compare_<timestamp>.png.
         overwrite: Replace those files if they already exist.
         corrected: Compare each run's corrected metrics and archive (corrected.json and
-            corrected_archive.pkl, written by `evaluate RUN --corrected`) instead of its own.
+            corrected_archive.npz, written by `evaluate RUN --corrected`) instead of its own.
         baseline: Test only this setting against each other one (its label as the tables show
             it, or its algorithm if only one setting has it, e.g. cma_me), instead of every pair:
             with many settings, Holm's adjustment over every pair leaves the tests little power.
@@ -522,7 +531,7 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     if fixes is not None:
         check_fresh(fixes, list(runs), paths)
     baseline = check_baseline(baseline, list(dict.fromkeys(run_setting(c.to_json()) for c in configs)))
-    files = comparison_outputs(None if out is None else str(out), overwrite)
+    files = comparison_outputs(None if out is None else str(out), overwrite, experiment_home(run_dirs))
     labels = run_labels(paths, list(configs))
     table, objectives = comparison_table(labels, paths, list(configs), runs, fixes, cut)
     several = table["task"].nunique() > 1

@@ -14,19 +14,22 @@ Map:
 - robustness: `robustness_table`, `write_robustness`;
 - the corrected archive: `corrected_archive`, `archive_metrics` (the run's row of the archive's
   iteration), `corrected_summary`, `write_corrected`;
-- `evaluate`: the command.
+- `evaluate` (the command: a run, or each run of an experiment on one cluster), `evaluate_run`.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, task_of
+from qdsearch.archive_data import write_archive_data
 from qdsearch.cluster import dask_client, scheduler_of
 from qdsearch.engine import averaged, gather_with_progress, per_terrain, submit_flights
+from qdsearch.experiment_folder import read_experiment
 from qdsearch.flags import UsageError, boolean, positive_int, seed_list, takes, whole_number_up_to
 from qdsearch.metrics import iteration_metrics, load_metrics
 from qdsearch.options import CLUSTER_FLAGS, check_rollouts, checked
@@ -40,8 +43,8 @@ from qdsearch.tasks import MEASURES, episode_of
 ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default
 DEFAULT_REPEATS = 10  # seeds of a corrected archive (QDax's examples re-evaluate 10 to 100 times)
 MAX_REPEATS = 1_000
-CORRECTED_FILES = ("corrected.json", "corrected_archive.pkl", "corrected_archive.csv",
-                   "corrected_heatmap.png")
+CORRECTED_FILES = ("corrected.json", "corrected_archive.npz", "corrected_archive.pkl",
+                   "corrected_archive.csv", "corrected_heatmap.png")
 
 
 def new_seeds(config: RunConfig, count: int) -> list[int]:
@@ -52,14 +55,16 @@ def new_seeds(config: RunConfig, count: int) -> list[int]:
 
 
 def fly_elites(solutions: np.ndarray, seeds: list[int], measures: tuple[str, ...], config: RunConfig,
-               flags: dict[str, Any]) -> np.ndarray:
-    """Every solution flown on every seed, on the Dask cluster the flags name (or a local one):
-    (solutions, seeds, 1 + measures), the objective first."""
-    workers = checked("workers", flags["workers"])
-    with dask_client(workers, scheduler_of(flags), console_log()) as client:
-        futures = submit_flights(client, solutions, seeds, measures, config.fast_env, env_name=config.env,
-                                 policy=policy_of(config), episode=episode_of(config))
-        return per_terrain(gather_with_progress(client, futures), seeds)
+               flags: dict[str, Any], client: Any = None) -> np.ndarray:
+    """Every solution flown on every seed, on `client` (an experiment's runs share one) or the
+    Dask cluster the flags name (or a local one): (solutions, seeds, 1 + measures), the
+    objective first."""
+    if client is None:
+        with dask_client(checked("workers", flags["workers"]), scheduler_of(flags), console_log()) as own:
+            return fly_elites(solutions, seeds, measures, config, flags, own)
+    futures = submit_flights(client, solutions, seeds, measures, config.fast_env, env_name=config.env,
+                             policy=policy_of(config), episode=episode_of(config))
+    return per_terrain(gather_with_progress(client, futures), seeds)
 
 
 def robustness_table(rows: dict[str, np.ndarray], measures: list[str], seeds: list[int],
@@ -118,7 +123,9 @@ def corrected_summary(corrected: Any, run_metrics: dict, seeds: list[int], elite
 
 
 def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig) -> None:
-    """The corrected archive beside the run's own: pickle, CSV, heatmap, and corrected.json."""
+    """The corrected archive beside the run's own: its data (what compare reads), pickle (for
+    pyribs' users), CSV, heatmap, and corrected.json."""
+    write_archive_data(run / "corrected_archive.npz", corrected, config.to_json())
     write_pickle(run / "corrected_archive.pkl", corrected)
     write_csv(run / "corrected_archive.csv", corrected.data(return_type="pandas"))
     save_heatmap(corrected, [MEASURES[m] for m in config.measures], run / "corrected_heatmap.png",
@@ -135,14 +142,16 @@ def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig)
 
 def archive_metrics(archive: Any, metrics: list[dict], run: Path) -> dict:
     """The row of metrics.json of the iteration the archive is of. A run still being written saves
-    metrics.json before archive.pkl, so metrics read after the archive hold its row, and maybe
-    later ones: the last row that says what the archive holds (a row is made from the archive,
-    so they agree exactly)."""
+    metrics.json before archive.npz, so metrics read after the archive hold its row, and maybe
+    later ones: the last row that says what the archive holds (a row is made from the archive;
+    the archive made again from its file sums its objectives in another order, so the QD scores
+    agree to rounding)."""
     stats = archive.stats
     for row in reversed(metrics):
-        if row["num_elites"] == int(stats.num_elites) and row["qd_score"] == float(stats.qd_score):
+        if row["num_elites"] == int(stats.num_elites) and math.isclose(
+                row["qd_score"], float(stats.qd_score), rel_tol=1e-9, abs_tol=1e-6):
             return row
-    raise UsageError(f"{run / 'metrics.json'} has no row of the iteration {run / 'archive.pkl'} is of "
+    raise UsageError(f"{run / 'metrics.json'} has no row of the iteration {run / 'archive.npz'} is of "
                      f"({int(stats.num_elites)} elites, QD score {float(stats.qd_score):,.0f}); "
                      f"if the run is being written, try again")
 
@@ -160,7 +169,8 @@ def corrected_seeds(config: RunConfig, env_seeds: Any, repeats: Any) -> list[int
 @takes(CLUSTER_FLAGS)
 def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, corrected: Any = False,
              repeats: int | None = None, **flags: Any) -> None:
-    """Fly the run's elites again (on Dask): on other terrains, or (--corrected) on new seeds.
+    """Fly the run's elites again (on Dask): on other terrains, or (--corrected) on new seeds. Of
+    an experiment folder, every run's, on one cluster.
 
     Robustness (the default) writes RUN_DIR/robustness.csv (per elite: its objective in the run,
     i.e. its mean over the run's terrains; mean, min and standard deviation of its objective over
@@ -171,20 +181,35 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
     --corrected builds the corrected archive: every elite flown on --repeats new seeds and
     inserted by its mean measures and mean objective into an empty archive of the run's cells.
     Writes corrected.json (its QD score, coverage, cells, best and mean objective, beside the
-    run's), corrected_archive.pkl, corrected_archive.csv and corrected_heatmap.png; `compare
+    run's), corrected_archive.npz (and .pkl, .csv) and corrected_heatmap.png; `compare
     --corrected` reads them.
 
     Args:
-        run_dir: A run folder written by this script.
+        run_dir: A run folder written by this script, or an experiment folder (each of its runs).
         env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10 (default: 0-19;
             with --corrected, the first --repeats seeds the run did not search on).
         top: Robustness only: the K elites with the highest objectives (default: all).
         corrected: Build the corrected archive instead of the robustness table.
         repeats: With --corrected: new seeds to fly every elite on (default 10).
     """
-    archive, config = load_run(run_dir)
-    run = Path(str(run_dir))
-    corrected = boolean("corrected", corrected)
+    path, corrected = Path(str(run_dir)), boolean("corrected", corrected)
+    if not (path / "experiment.json").is_file():
+        return evaluate_run(path, env_seeds, top, corrected, repeats, flags)
+    runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]
+    missing = [run.name for run in runs if not (run / "config.json").is_file()]
+    if missing:
+        raise UsageError(f"{path}: run(s) {', '.join(missing[:5])} not started yet; resume the "
+                         f"experiment first (python lunar_lander.py resume {path})")
+    with dask_client(checked("workers", flags["workers"]), scheduler_of(flags), console_log()) as client:
+        for run in runs:
+            print(f"{run.name}:")
+            evaluate_run(run, env_seeds, top, corrected, repeats, flags, client)
+
+
+def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: Any, flags: dict[str, Any],
+                 client: Any = None) -> None:
+    """evaluate of one run folder, on `client` if given (else a cluster of its own)."""
+    archive, config = load_run(run)
     own = archive_metrics(archive, load_metrics(run), run) if corrected else None  # read after it
     if not corrected and repeats is not None:
         raise UsageError("--repeats is for --corrected (the robustness table takes --env_seeds)")
@@ -201,10 +226,10 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
     if seen := sorted(set(seeds) & set(config.env_seed)):
         print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
     if not corrected:
-        objectives = fly_elites(rows["solution"], seeds, (), config, flags)[:, :, 0]
+        objectives = fly_elites(rows["solution"], seeds, (), config, flags, client)[:, :, 0]
         write_robustness(run, archive, config, rows, seeds, objectives, str(env_seeds or ROBUSTNESS_SEEDS))
         return
-    flights = fly_elites(rows["solution"], seeds, tuple(config.measures), config, flags)
+    flights = fly_elites(rows["solution"], seeds, tuple(config.measures), config, flags, client)
     fixed = corrected_archive(archive, config, rows["solution"], flights)
     summary = corrected_summary(fixed, own, seeds, len(rows["solution"]))
     write_corrected(run, fixed, summary, config)

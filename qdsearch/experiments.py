@@ -5,8 +5,9 @@ A run's results depend on its own asks and tells only, so each run ends bit for 
 alone would end it, whatever the interleaving, the worker count or a stop and resume between.
 
 Map:
-- `experiment`: the command; `experiment_grid` checks the grid's axes and the flags every run
-  shares; `experiment_runs` names each run by its setting (`run_setting`, shared with compare);
+- `experiment`: the command (its flags on the command line or in a plan file: `read_plan`);
+  `experiment_grid` checks the grid's axes and the flags every run shares; `experiment_runs`
+  names each run by its setting (`run_setting`, shared with compare);
 - `run_experiment` and `Experiment`: the cluster, the log, and the runs driven through the one
   run loop (loop.py's Driver), their states recorded in experiment.json;
 - `resume`: the command, for a run folder (run.resume_run) or an experiment folder
@@ -31,7 +32,18 @@ import numpy as np
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.cluster import scheduler_of
 from qdsearch.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting
-from qdsearch.flags import UsageError, check_flags, one_of, positive_int, seed_list, takes
+from qdsearch.flags import (
+    UsageError,
+    boolean,
+    check_flags,
+    did_you_mean,
+    listed,
+    one_of,
+    positive_int,
+    seed_list,
+    shown,
+    takes,
+)
 from qdsearch.loop import Driver, Run
 from qdsearch.options import (
     CLUSTER_FLAGS,
@@ -58,6 +70,7 @@ from qdsearch.run import resume_run, session
 from qdsearch.run_config import check_run_config, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
+    atomic_write,
     check_parent_folder,
     close_logger,
     fault_text,
@@ -67,6 +80,7 @@ from qdsearch.run_files import (
     new_folder,
     write_json,
 )
+from qdsearch.signing import adopt
 from qdsearch.tasks import check_spaces
 
 # Which search flags an experiment sets itself (per_run) and which may take a list of values,
@@ -80,7 +94,8 @@ def passed_on() -> list[str]:
 
 
 def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | None = None,
-               max_in_flight: int | None = None, part: str | None = None, **search_flags: Any) -> None:
+               max_in_flight: int | None = None, part: str | None = None, plan: str | None = None,
+               **search_flags: Any) -> None:
     """Run every combination of the listed settings with every seed, interleaved on one cluster.
 
     Each run is an ordinary run folder inside the experiment folder (every command works on it),
@@ -102,11 +117,22 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
             array: docs/clusters.md). Every part is given the same flags and --outdir; the first
             writes the plan, each keeps its runs' states in parts/I_of_K/. Run again, a part
             continues where it stopped.
+        plan: A TOML file of the experiment (see the README's Experiments): its algorithms, seeds,
+            max_in_flight and any flag it passes on, a list of values for an axis of the grid. A
+            flag given beside it (algorithms or seeds other than their defaults) replaces the
+            file's value. The file is copied into the experiment folder as plan.toml.
         search_flags: Any flag of search that it passes to every run (see: lunar_lander.py --help):
             {passed_on}. A list of values of {sweeps}, e.g. --learning_rate "[0.01, 0.1]", is one
             more axis of the grid.
     """
     cluster = {name: search_flags.pop(name) for name in CLUSTER_FLAGS}
+    plan_text = None
+    if plan is not None:
+        plan_text, planned = read_plan(Path(str(plan)))
+        algorithms = planned.pop("algorithms", algorithms) if algorithms == ("cma_me",) else algorithms
+        seeds = planned.pop("seeds", seeds) if seeds == "1-5" else seeds
+        max_in_flight = planned.pop("max_in_flight", None) if max_in_flight is None else max_in_flight
+        search_flags = {**{k: v for k, v in planned.items() if k not in EXPERIMENT_OWN}, **search_flags}
     axes, common, seeds = experiment_grid(algorithms, seeds, search_flags)
     workers = checked("workers", cluster["workers"])
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
@@ -128,11 +154,42 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
             raise UsageError(f"{folder} exists and is not a folder; choose another --outdir")
         folder.mkdir(parents=True, exist_ok=True)
         claim_plan(folder, plan_of(split[1]))
+        if plan_text is not None and not (folder / "plan.toml").exists():  # the first part's copy
+            atomic_write(folder / "plan.toml", lambda f: f.write(plan_text), mode="w")
         return resume_experiment(folder, None, workers, cluster, split)
     with new_folder(outdir, "experiment") as folder:
-        plan = plan_of(None)
-        write_json(folder / "experiment.json", plan)
-        run_experiment(folder, plan, workers, scheduler_address)
+        if plan_text is not None:
+            atomic_write(folder / "plan.toml", lambda f: f.write(plan_text), mode="w")
+        record = plan_of(None)
+        write_json(folder / "experiment.json", record)
+        run_experiment(folder, record, workers, scheduler_address)
+
+
+# The keys of a plan file that are experiment's own flags (the others are flags it passes on).
+EXPERIMENT_OWN = ("algorithms", "seeds", "max_in_flight")
+
+
+def read_plan(path: Path) -> tuple[str, dict[str, Any]]:
+    """A plan file (TOML: Python reads it without a library, and its lists and numbers are typed
+    as the flags are): its text, and its flags, each name known (the values are checked as
+    flags typed on the command line are)."""
+    import tomllib
+
+    try:
+        text = path.read_text()
+        planned = tomllib.loads(text)
+    except (OSError, UnicodeDecodeError) as error:
+        raise UsageError(f"--plan {path}: cannot read it ({fault_text(error)})") from None
+    except tomllib.TOMLDecodeError as error:
+        raise UsageError(f"--plan {path}: not TOML ({error})") from None
+    known = [*EXPERIMENT_OWN, *passed_on()]
+    for name, value in planned.items():
+        if name not in known:
+            raise UsageError(f"--plan {path}: {shown(name)} is not a flag of experiment; "
+                             f"{did_you_mean(name, known)}")
+        if isinstance(value, dict):
+            raise UsageError(f"--plan {path}: {name} is a table; give a value or a list of values")
+    return text, planned
 
 
 experiment.__doc__ = experiment.__doc__.format(
@@ -149,8 +206,8 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
                          f"--seeds, --outdir, --workers and --scheduler_address (or --scheduler_file) "
                          f"of experiment")
     if unknown := sorted(set(search_flags) - set(search_defaults())):
-        raise UsageError(f"unknown flag --{unknown[0]}")
-    names = [n.strip() for n in algorithms.split(",")] if isinstance(algorithms, str) else list(algorithms)
+        raise UsageError(f"unknown flag --{unknown[0]}; {did_you_mean(unknown[0], passed_on(), '--')}")
+    names = listed(algorithms)
     if not names:
         raise UsageError("--algorithms is empty: the grid has no run")
     axes = {"algorithm": [one_of(ALGORITHMS)("algorithms", name) for name in names]}
@@ -304,6 +361,15 @@ class Experiment(Driver):
             entry.pop("error", None)
         self.save_states({self.parts[entry["name"]]})
 
+    def figures(self, row: dict) -> dict[str, str]:
+        """The experiment's own figures on its bar: runs finished of its runs, and the best
+        objective over every run told so far (not the figures of whichever run told last)."""
+        finished = sum(entry["state"] == "done" or self.latest.get(entry["name"], {}).get("iteration", -1)
+                       >= entry["config"]["iterations"] for entry in self.runs)
+        bests = [r["best_objective"] for r in self.latest.values() if r.get("best_objective") is not None]
+        best = max(bests, default=float("nan"))
+        return {"runs_done": f"{finished}/{len(self.runs)}", "best": f"{best:.1f}"}
+
     def lines(self) -> list[str]:
         """A line per setting: its runs' progress, mean QD score and coverage, best objective."""
         lines = []
@@ -352,8 +418,10 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
                       cluster: dict[str, Any], split: tuple[int, int] | None = None) -> None:
     """Continue every unfinished run of an experiment, or of one part of it (failed ones are
     tried again), on the cluster the `cluster` flags name (by default a local one). A part locks
-    its own folder; the whole of a split experiment locks every part's."""
+    its own folder; the whole of a split experiment locks every part's. With --trust, the
+    checkpoints of its unfinished runs are signed with the user's key first."""
     check_split(read_experiment(folder), folder, split, iterations)  # before anything is written
+    trust = boolean("trust", cluster["trust"])
     scheduler_address = scheduler_of(cluster)
     with contextlib.ExitStack() as locks:
         plan = read_experiment(folder)
@@ -366,6 +434,9 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
             locks.enter_context(folder_lock(folder))
         plan = read_experiment(folder)  # as it is now that no other process writes it
         mine = runs_of_part(plan, split[0] if split else None)
+        for entry in mine if trust else []:
+            if entry["state"] != "done":
+                adopt(folder / entry["name"] / "checkpoint.pkl")
         workers = checked("workers", plan["workers"] if workers is None else workers)
         planned = max(entry["config"]["iterations"] for entry in plan["runs"])
         if iterations is not None:

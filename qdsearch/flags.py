@@ -3,28 +3,34 @@
 A command's flags live in a table of `Flag` entries (options.py's SEARCH_FLAGS,
 CLUSTER_FLAGS and SELECTION_FLAGS): each entry holds the default, the --help line, the check,
 and the flag's part in experiments. `takes` gives a command those flags as keyword arguments:
-its signature and its docstring's Args come from the tables, so Fire's --help, Fire's parsing
-and a direct call all see one declaration.
+its signature and its docstring's Args come from the tables, so Fire's parsing, --help and a
+direct call all see one declaration.
 
 Map:
 - `UsageError`: bad input, reported as one line and exit code 2;
 - the checkers, each `(flag name, value) -> checked value`: `positive_int`,
   `whole_number_up_to`, `seed_number`, `positive_float`, `fraction`, `boolean`, `one_of`,
-  `seed_list`, `distinct_names`; `shown` quotes a bad value, `clipped` cuts a library's
-  message, `one_line` keeps a message on one line;
-- `Flag`, `check_flags` (values through their entries' checks) and `takes` (the decorator).
+  `seed_list`, `distinct_names`; `listed` splits a list as typed; `shown` quotes a bad value,
+  `clipped` cuts a library's message, `one_line` keeps a message on one line;
+- `nearest` and `did_you_mean`: how every refusal of a name (a task, an algorithm, a measure,
+  a tracker, a command, a flag) ends, with the name the user most likely meant;
+- `Flag`, `check_flags` (values through their entries' checks), `takes` (the decorator) and
+  `flag_table` (the flags a command took from the tables);
+- `help_page`: a command's --help, rendered from its signature, docstring and flag tables
+  (`summary`, `documented_arguments`, `shown_default`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import inspect
 import math
 import re
 import textwrap
 import unicodedata
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -98,9 +104,50 @@ def one_of(choices: dict) -> Check:
     """A check that the value is a key of `choices` (a table such as ALGORITHMS)."""
     def check(name: str, value: Any) -> str:
         if not isinstance(value, str) or value not in choices:
-            raise UsageError(f"--{name} must be one of {', '.join(choices)}, got {shown(value)}")
+            raise UsageError(f"--{name} {shown(value)} is unknown; {did_you_mean(value, choices)}")
         return value
     return check
+
+
+def nearest(name: str, choices: Iterable[str]) -> str | None:
+    """The choice a mistyped name most likely meant, or None if none is near: difflib's closest
+    match, case and - against _ aside (sep-cma-mae: sep_cma_mae), to a choice or to the tail of
+    one after an underscore (y_vel: impact_y_velocity, whose head a user may not know)."""
+    def fold(text: str) -> str:
+        return text.lower().replace("-", "_")
+
+    choices = list(choices)
+    names = {fold(choice): choice for choice in choices}
+    if match := difflib.get_close_matches(fold(name), list(names), n=1):  # whole names first: a
+        return names[match[0]]  # tail never hides a name (--seed: --seeds, not --env_seed)
+    tails = {}
+    for choice in choices:
+        parts = choice.split("_")
+        for start in range(1, len(parts)):
+            tails.setdefault(fold("_".join(parts[start:])), choice)
+    match = difflib.get_close_matches(fold(name), list(tails), n=1)
+    return tails[match[0]] if match else None
+
+
+def did_you_mean(name: Any, choices: Iterable[str], prefix: str = "") -> str:
+    """How a refusal of a name that is not one of `choices` ends: the nearest choice as the fix
+    if one is near ("did you mean sep_cma_mae?"), else the choices. `prefix` is how a choice is
+    typed (-- for a flag)."""
+    choices = list(choices)
+    near = nearest(str(name), choices)
+    return f"did you mean {prefix}{near}?" if near else f"choose from {prefix}" + f", {prefix}".join(choices)
+
+
+def listed(value: Any) -> list[str]:
+    """The items of a list flag: Fire's list or tuple, or the text as typed, "a,b" or "[a, b]"
+    (Fire leaves as text a list it cannot read as a literal, such as [cma_me, cma-mae]: split at
+    its commas, brackets and quotes off, each item is named as the user typed it)."""
+    if isinstance(value, (list, tuple)):
+        return [str(item).strip() for item in value]
+    text = str(value).strip()
+    if len(text) > 1 and text[0] + text[-1] in ("[]", "()"):
+        text = text[1:-1]
+    return [item.strip().strip("'\"").strip() for item in text.split(",")]
 
 
 def seed_list(name: str, value: Any) -> list[int]:
@@ -149,12 +196,14 @@ def clipped(text: str, limit: int = 200) -> str:
 
 
 def distinct_names(table: dict, noun: str, most: int) -> Check:
-    """A check for 1 to `most` distinct keys of `table` (such as MEASURES), as "a,b" or a list."""
+    """A check for 1 to `most` distinct keys of `table` (such as MEASURES), as "a,b" or a list;
+    a name not in `table` is the one refused, with the name it likely meant."""
     def check(name: str, value: Any) -> list[str]:
-        names = [str(v) for v in value] if isinstance(value, (tuple, list)) else str(value).split(",")
-        names = [n.strip() for n in names]
-        unknown = [n for n in names if n not in table]
-        if unknown or not 1 <= len(names) <= most or len(set(names)) != len(names):
+        names = listed(value) if isinstance(value, (str, tuple, list)) else []
+        if unknown := [n for n in names if n and n not in table]:
+            raise UsageError(f"--{name} {shown(unknown[0])} is not one of the {noun}; "
+                             + did_you_mean(unknown[0], table))
+        if "" in names or not 1 <= len(names) <= most or len(set(names)) != len(names):
             raise UsageError(f"--{name} takes 1 to {most} different {noun} of {', '.join(table)}; "
                              f"got {shown(value)}")
         return names
@@ -186,9 +235,10 @@ def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
     """Give a command that takes `**flags` the flags of `tables` as ordinary keyword arguments.
 
     The command's signature becomes its own parameters followed by the tables' flags with their
-    defaults, and its docstring's Args section gains each flag's help line; Fire builds --help
-    and parses the command line from both. A call binds its arguments to that signature (a
-    misspelt keyword is a TypeError, as for any function) and passes every flag, defaulted.
+    defaults, and its docstring's Args section gains each flag's help line (for Python's help());
+    Fire parses the command line by the signature, and help_page renders --help from the tables
+    (flag_table). A call binds its arguments to that signature (a misspelt keyword is a
+    TypeError, as for any function) and passes every flag, defaulted.
     """
     flags = {name: flag for table in tables for name, flag in table.items()}
 
@@ -209,11 +259,20 @@ def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
             return function(**arguments, **extra)
 
         command.__signature__ = signature
-        command.flag_table = {name: flags[name] for name in flags if name not in own.parameters}
-        command.__doc__ = with_flag_help(function.__doc__ or "", {n: flags[n] for n in flags
-                                                                  if n not in own.parameters})
+        FLAG_TABLES[command] = {name: flags[name] for name in flags if name not in own.parameters}
+        command.__doc__ = with_flag_help(function.__doc__ or "", FLAG_TABLES[command])
         return command
     return decorate
+
+
+# The flags each command took from the tables, kept here and not as an attribute of the command:
+# Fire lists a function's public attributes as commands of their own ("GROUPS ... flag_table").
+FLAG_TABLES: dict[Callable, dict[str, Flag]] = {}
+
+
+def flag_table(function: Callable) -> dict[str, Flag]:
+    """The flags a command took from the tables through `takes` (none for the others)."""
+    return FLAG_TABLES.get(function, {})
 
 
 def as_typed(args: list[str], text_flags: set[str]) -> list[str]:
@@ -236,11 +295,109 @@ def as_typed(args: list[str], text_flags: set[str]) -> list[str]:
 
 
 def with_flag_help(doc: str, flags: dict[str, Flag]) -> str:
-    """The docstring with a Google-style Args line per flag (Fire shows them in --help)."""
+    """The docstring with a Google-style Args line per flag (for Python's help(); --help is help_page's)."""
     doc = inspect.cleandoc(doc)
-    lines = [textwrap.fill(f"{name}: {flag.help}", 96, initial_indent="    ",
-                           subsequent_indent="        ") for name, flag in flags.items()]
+    lines = [textwrap.fill(f"{name}: {flag.help}", 96, initial_indent="    ", subsequent_indent="        ",
+                           break_on_hyphens=False) for name, flag in flags.items()]
     if "\nArgs:\n" not in doc:
         doc += "\n\nArgs:"
     head, _, tail = doc.partition("\nArgs:\n")
     return "\n".join([head, "Args:", *(tail.splitlines() if tail else []), *lines])
+
+
+# --help is drawn here from the signature and the tables, not by Fire, which builds its page by
+# parsing the docstring: any wrapped line "word ...: text" starts a new argument there (--workers'
+# help ended at "flying the"), a default of None prints as "Type: Optional[]", its short names
+# clash (-h for --hidden, while -h is help) and public attributes show as GROUPS. Escaping each
+# quirk would be a fight with its parser over every new help text; drawn from the Flag entries,
+# the page says exactly what they declare. Fire still parses the command line.
+WIDTH = 100  # of a help page's lines
+
+
+def help_page(title: str, function: Callable, passed_on: dict[str, Flag] | None = None,
+              commands: dict[str, str] | None = None) -> str:
+    """A command's --help: NAME (its docstring's first paragraph), SYNOPSIS, DESCRIPTION (the rest
+    before Args), COMMANDS (the main page's: name to summary), its positional arguments, its FLAGS
+    (a table's help for a flag it took, its docstring's Args for its own) and, for a command that
+    passes flags on (experiment's **search_flags), those flags with their tables' help."""
+    doc, table = function.__doc__ or "", flag_table(function)
+    documented = documented_arguments(doc)
+    parameters = list(inspect.signature(function).parameters.values())
+    positional = [p for p in parameters if p.default is p.empty and p.kind is not p.VAR_KEYWORD]
+    words = [p.name.upper() + ("..." if p.kind is p.VAR_POSITIONAL else "") for p in positional]
+    passes = next((documented.get(p.name, "") for p in parameters if p.kind is p.VAR_KEYWORD), "")
+    sections = {
+        "NAME": wrapped(f"{title} - {summary(doc)}", 4),
+        "SYNOPSIS": wrapped(" ".join(["python", title, *words, "[--FLAG=VALUE ...]"]), 4),
+        "DESCRIPTION": textwrap.indent(description(doc), "    "),
+        "COMMANDS": listing(f"python {title} COMMAND --help: a command's own page.",
+                            [help_item(name, text) for name, text in (commands or {}).items()]),
+        "POSITIONAL ARGUMENTS": listing("", [help_item(word, documented.get(p.name, ""))
+                                             for word, p in zip(words, positional)]),
+        "FLAGS": listing("", [flag_item(p.name, table[p.name].help if p.name in table
+                                        else documented.get(p.name, ""), p.default)
+                              for p in parameters if p.default is not p.empty]),
+        "FLAGS PASSED ON TO EVERY RUN": listing(passes, [flag_item(name, flag.help, flag.default)
+                                                         for name, flag in (passed_on or {}).items()]),
+    }
+    return "\n\n".join(f"{head}\n{body.rstrip()}" for head, body in sections.items() if body) + "\n"
+
+
+def listing(lead: str, items: list[str]) -> str:
+    """A section of entries, after its lead paragraph if it has one ("": none; no entries: no section)."""
+    return "\n".join(([wrapped(lead, 4), ""] if lead else []) + items) if items else ""
+
+
+def flag_item(name: str, text: str, default: Any) -> str:
+    """A flag's entry: --name=NAME, its default and its whole help."""
+    return help_item(f"--{name}={name.upper()}", text, default)
+
+
+def help_item(head: str, text: str, default: Any = None) -> str:
+    """One entry of a page: its head, then its default as typed (if it has one) and its text whole."""
+    default_line = [f"        Default: {shown_default(default)}"] if shown_default(default) else []
+    return "\n".join([f"    {head}", *default_line, wrapped(text, 8)])
+
+
+def wrapped(text: str, indent: int) -> str:
+    """Text as the page's indented lines, broken at spaces only (a line broken after a hyphen
+    reads as two words once joined: "ME-MAP- Elites")."""
+    return textwrap.fill(" ".join(text.split()), WIDTH, initial_indent=" " * indent,
+                         subsequent_indent=" " * indent, break_on_hyphens=False, break_long_words=False)
+
+
+def shown_default(value: Any) -> str:
+    """A default as a user would type it (true, 1-5, cma_me), or "" for none (None, an empty list):
+    the flag's help says what its absence means (drawn, the task's own)."""
+    if value is None or value == [] or value == ():
+        return ""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+
+
+def summary(doc: str) -> str:
+    """A docstring's first paragraph, on one line."""
+    return " ".join(inspect.cleandoc(doc).split("\n\n")[0].split())
+
+
+def description(doc: str) -> str:
+    """A docstring's paragraphs after the first, up to its Args, as written."""
+    head = inspect.cleandoc(doc).partition("\nArgs:\n")[0]
+    return head.partition("\n\n")[2].strip()
+
+
+def documented_arguments(doc: str) -> dict[str, str]:
+    """A docstring's Args, each argument's text on one line. An argument starts at the section's
+    own indent ("name: text"); a deeper line goes on the one before, whatever colons it holds
+    (Fire's parser took "array: docs/clusters.md" in --part's text for an argument)."""
+    arguments: dict[str, str] = {}
+    name = None
+    for line in inspect.cleandoc(doc).partition("\nArgs:\n")[2].splitlines():
+        if not line.startswith(" "):  # the section's end
+            break
+        if entry := re.match(r" {4}\**(\w+)(?: \([^)]*\))?: ?(.*)", line):
+            name, arguments[entry[1]] = entry[1], entry[2]
+        elif name:
+            arguments[name] += " " + line.strip()
+    return arguments

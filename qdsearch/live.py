@@ -1,7 +1,8 @@
 """`watch`: a live page of a run, served with Bokeh (installed with Dask for its dashboard) on a
 port of its own: the archive's elites coloured by objective and the QD score so far, redrawn as
-the run's folder is refreshed (every --log_every iterations). It reads the run's files only, so it
-watches a run of any machine whose folder it sees, and never slows or stops the search.
+the run's folder is refreshed (every --log_every iterations). It reads the run's files only (its
+config.json, checked against archive.npz's, archive.csv and metrics.json; never a pickle), so it
+watches a run of any machine (or anyone) whose folder it sees, and never slows or stops the search.
 
 Map:
 - `elite_columns`, `metric_columns`: the run's files as the page's data;
@@ -84,7 +85,10 @@ def live_document(run_dir: Path, config: RunConfig):
         colours = LinearColorMapper(palette=Magma256, low=task.heat[0], high=task.heat[1])
         x_range = axes[0].range
         y_range = axes[1].range if len(axes) > 1 else (-1.0, 1.0)
+        if len(axes) > 1 and axes[1].descending:  # as heatmap.png and the explorer draw it
+            y_range = y_range[::-1]
         archive = figure(title="Archive: elites by objective", width=560, height=460, x_range=x_range,
+                         name="archive",
                          y_range=y_range, x_axis_label=axes[0].label,
                          y_axis_label=axes[1].label if len(axes) > 1 else "")
         archive.scatter("x", "y", source=elites, marker="square", size=7,

@@ -9,8 +9,8 @@ signals ignored (saving.py's `Savers`), which only the main thread may set.
 
 Map:
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
-  chunk back), `tell`, the checkpoint (built and written here only) and `save` (its folder's
-  files: saving.py's `save_outputs`);
+  chunk back), `tell`, the checkpoint (built and written here only, signed with the user's key:
+  signing.py) and `save` (its folder's files: saving.py's `save_outputs`);
 - `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
   goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
   next batch or finishes. Its subclasses say how runs are opened and recorded (experiments.py's
@@ -40,8 +40,9 @@ from qdsearch.gradients import estimate, noise, sample_points
 from qdsearch.metrics import describe_progress, iteration_metrics
 from qdsearch.policies import policy_of
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
-from qdsearch.run_files import RunError, atomic_write, fault_text, write_pickle
+from qdsearch.run_files import RunError, atomic_write, fault_text
 from qdsearch.saving import SAVER_PROCESSES, Savers
+from qdsearch.signing import user_key, write_signed_pickle
 from qdsearch.stopping import STOP
 from qdsearch.tasks import episode_of
 from qdsearch.trackers import Tracking, wait_for_trackers
@@ -191,7 +192,7 @@ class Run:
             self.settle()
         finally:
             if force or self.iteration > self.saved:
-                write_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
+                write_signed_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
                 self.saved = self.iteration
 
     def save(self, savers: Savers) -> None:
@@ -201,7 +202,7 @@ class Run:
         self.pending = savers.submit(self.write, self.checkpoint(), savers)
 
     def write(self, checkpoint: dict, savers: Savers) -> None:
-        write_pickle(self.dir / "checkpoint.pkl", checkpoint)
+        write_signed_pickle(self.dir / "checkpoint.pkl", checkpoint)
         self.saved = checkpoint["iteration"]
         savers.write_outputs(self.dir, checkpoint["scheduler"].result_archive, checkpoint["metrics"],
                              checkpoint["config"], checkpoint["iteration"])
@@ -241,6 +242,7 @@ class Driver:
                  limit: int | None = None, every: int | None = None) -> None:
         from dask.distributed import as_completed
 
+        user_key()  # the key checkpoints are signed with, made (or refused) before any run opens
         self.client, self.log, self.total, self.done, self.every = client, log, total, done, every
         self.todo = collections.deque(entries)
         self.entries = {entry["name"]: entry for entry in entries}
@@ -272,6 +274,10 @@ class Driver:
         """Lines logged every `every` iterations told."""
         return []
 
+    def log_lines(self) -> None:
+        for line in self.lines():
+            self.log.info(line)
+
     # ---- the loop ----
     def drive(self) -> None:
         """Drive every entry's run to its target; a stop or a fault keeps each run's last
@@ -289,12 +295,15 @@ class Driver:
                 run, position = self.owner.pop(future.key, (None, 0))
                 if run is not None and run.name in self.live and run.take(position, result):
                     self.advance(run)  # else a chunk of a run that has failed meanwhile
+                if not self.live:  # the closing lines go under the finished bar, not redrawn after them
+                    self.bar.close()
                 self.reap(wait=False)
-                if self.every and (self.bar.n - logged >= self.every or not self.live):
+                if self.every and self.live and self.bar.n - logged >= self.every:
                     logged = self.bar.n
-                    for line in self.lines():
-                        self.log.info(line)
+                    self.log_lines()
             self.reap(wait=True)
+            if self.every:
+                self.log_lines()
         except BaseException:
             self.todo.clear()  # nothing more is opened
             for run in list(self.live.values()):
@@ -346,6 +355,12 @@ class Driver:
             self.owner[future.key] = (run, position)
             self.finished.add(future)
 
+    def figures(self, row: dict) -> dict[str, str]:
+        """What the progress bar shows beside its count, after a run told `row`: that run's
+        coverage, QD score and best objective (a driver of many runs shows its own figures)."""
+        best = float("nan") if row["best_objective"] is None else row["best_objective"]
+        return {"coverage": f"{row['coverage']:.3f}", "qd": f"{row['qd_score']:.4g}", "best": f"{best:.1f}"}
+
     def advance(self, run: Run) -> None:
         """The run's batch is whole: tell it, save it at its log interval, send again or finish."""
         try:
@@ -357,8 +372,7 @@ class Driver:
             self.latest[run.name] = row
             self.told += 1
             self.bar.update(1)
-            self.bar.set_postfix(coverage=f"{row['coverage']:.3f}", qd=f"{row['qd_score']:.4g}",
-                                 best=f"{row['best_objective'] or float('nan'):.1f}", refresh=False)
+            self.bar.set_postfix(self.figures(row), refresh=False)
             if row["iteration"] >= run.target:
                 self.finish(run)
             else:

@@ -263,9 +263,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "scheduler_file": CLUSTER_FLAGS["scheduler_file"],
     "scheduler_timeout": CLUSTER_FLAGS["scheduler_timeout"],
     "worker_timeout": CLUSTER_FLAGS["worker_timeout"],
-    "from_archive": Flag(None, "Warm start: an archive.pkl of an earlier run whose elites are "
-                               "re-evaluated in this run's setting to fill the archive first; the "
-                               "emitters start from the best.", per_run=True),
+    "from_archive": Flag(None, "Warm start from an earlier run's archive.npz (or its run folder, or "
+                               "the archive.pkl the archive.npz lies beside; no pickle is loaded), "
+                               "whose elites are re-evaluated in this run's setting to fill the "
+                               "archive first; the emitters start from the best.", per_run=True),
     "track": Flag([], "Trackers to log the run to, comma-separated, of " + ", ".join(TRACKERS) + ": every "
                       "iteration's metrics and the pictures of every save, offline unless the "
                       "tracker's own settings say otherwise (pip install -r requirements-trackers.txt).",
@@ -283,6 +284,9 @@ RESUME_FLAGS: dict[str, Flag] = {
     "workers": dataclasses.replace(CLUSTER_FLAGS["workers"], default=None, help=(
         CLUSTER_FLAGS["workers"].help + " Default: as the run was started.")),
     **{name: flag for name, flag in CLUSTER_FLAGS.items() if name != "workers"},
+    "trust": Flag(False, "Resume from a checkpoint not signed with your key (another user's, or "
+                         "from before checkpoints were signed) and sign it with yours; loading a "
+                         "pickle may run any code it holds, so only for one you trust.", boolean),
 }
 
 # Which elites a results command shows (video, trajectories), and on which terrain (explore too).

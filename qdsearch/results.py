@@ -6,7 +6,8 @@ Map:
   `select_elites`, `load_chosen_elites` (the run read by run_folder.py's readers);
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
-  `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family).
+  `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family);
+  `add_to_index`: video and trajectories add to their index tables, never drop a row.
 (`evaluate`, the elites flown on other terrains or seeds, is evaluation.py's.)
 """
 
@@ -264,12 +265,11 @@ def video(run_dir: str, **flags: Any) -> None:
 
     Each elite is also flown again in its run's setting and must score exactly its stored
     objective and measures (a warning says if not). videos/index.csv lists the videos with the
-    elites' objectives and measures.
+    elites' objectives and measures, earlier calls' videos too.
 
     Args:
         run_dir: A run folder written by this script.
     """
-    import pandas as pd
 
     config, chosen, shown = load_chosen_elites(run_dir, flags)
     folder, rows, measures = Path(str(run_dir)) / "videos", [], config.measures
@@ -288,7 +288,24 @@ def video(run_dir: str, **flags: Any) -> None:
                      "objective": float(elite["objective"]),
                      **{name: float(value) for name, value in zip(measures, elite["measures"])},
                      "reflown_objective": objective, "reproduced": reproduced})
-    write_csv(folder / "index.csv", pd.DataFrame(rows))
+    add_to_index(folder / "index.csv", rows, "video")
+
+
+def add_to_index(path: Path, rows: list[dict], key: str) -> None:
+    """Add `rows` to the index table at `path`: an earlier call's rows stay (their files do too),
+    and a row of a file written again replaces its old row (matched by its `key` column)."""
+    import pandas as pd
+
+    table = pd.DataFrame(rows)
+    if path.is_file():
+        try:
+            earlier = pd.read_csv(path)
+        except (OSError, ValueError, pd.errors.ParserError) as error:
+            raise UsageError(f"{path}: unreadable ({fault_text(error)}); move it aside to start a new "
+                             f"index") from None
+        if key in earlier:
+            table = pd.concat([earlier[~earlier[key].isin(table[key])], table], ignore_index=True)
+    write_csv(path, table)
 
 
 def elite_table(archive, measures: list[str], min_objective: float | None = None,
@@ -375,15 +392,24 @@ def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]]
 def trajectories(run_dir: str, **flags: Any) -> None:
     """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
 
-    The elites are chosen as for the video command.
+    The elites are chosen as for the video command. Each drawing is also kept in
+    RUN_DIR/trajectories/, and trajectories/index.csv lists the elites of every drawing.
 
     Args:
         run_dir: A run folder written by this script.
     """
     config, chosen, shown = load_chosen_elites(run_dir, flags)
-    path = Path(str(run_dir)) / "trajectories.png"
+    path, kept = Path(str(run_dir)) / "trajectories.png", Path(str(run_dir)) / "trajectories"
     paths = fly_paths(chosen, shown, config.env, policy_of(config), episode_of(config))
     save_trajectory_plot(chosen, paths, shown, path, config.env)
+    kept.mkdir(exist_ok=True)
+    drawing = kept / f"trajectories_{1 + len(list(kept.glob('trajectories_*.png'))):03d}.png"
+    atomic_write(drawing, lambda f: f.write(path.read_bytes()))
+    add_to_index(kept / "index.csv", [
+        {"picture": drawing.name, "env_seed": shown, "cell_index": int(elite["index"]),
+         "objective": float(elite["objective"]),
+         **{name: float(value) for name, value in zip(config.measures, elite["measures"])}}
+        for elite in chosen], "picture")
     for elite in chosen:
         print(f"{elite['name']}: {describe_elite(elite, config.measures)}")
-    print(f"written to {path}")
+    print(f"written to {path} (and kept as {drawing}, listed in {kept / 'index.csv'})")

@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
-from qdsearch.flags import UsageError, check_flags, takes
+from qdsearch.flags import UsageError, boolean, check_flags, takes
 from qdsearch.loop import OneRun, Run
-from qdsearch.options import RESUME_FLAGS, SEARCH_FLAGS, check_memory, checked, with_task
+from qdsearch.options import CLUSTER_FLAGS, RESUME_FLAGS, SEARCH_FLAGS, check_memory, checked, with_task
 from qdsearch.run_config import check_run_config, load_archive, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
@@ -30,22 +30,31 @@ from qdsearch.run_files import (
     library_versions,
     make_logger,
     new_folder,
-    read_pickle,
+    read_run_json,
 )
+from qdsearch.signing import adopt, read_signed_pickle
+from qdsearch.stopping import Stopped
 from qdsearch.tasks import check_spaces
 
 
 @takes(SEARCH_FLAGS)
-def search(**flags: Any) -> None:
+def search(config: str | None = None, **flags: Any) -> None:
     """Search a task (--env; Lunar Lander's landings by default) with a QD algorithm and write a
     run folder.
 
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:
-    checkpoint.pkl, archive.pkl, archive.csv, metrics.json, heatmap.png, heatmaps/, progress.png,
-    config.json and run.log. Other commands (each with --help): resume, experiment, video, elites,
-    trajectories, evaluate, explore, compare.
+    checkpoint.pkl (signed with your key), archive.npz, archive.pkl, archive.csv, metrics.json,
+    heatmap.png, heatmaps/, progress.png, config.json and run.log. The other commands: COMMANDS
+    in --help.
+
+    Args:
+        config: A run's config.json (or its run folder): a new run with exactly that run's
+            settings, its seed too, so its archive is the same bit for bit; a flag given beside
+            it (other than its default) replaces the file's value.
     """
+    if config is not None:
+        flags = settings_of(Path(str(config)), flags)
     flags = with_task(check_flags(SEARCH_FLAGS, flags))
     check_spaces(flags["env"])
     if flags["seed"] is None:
@@ -68,18 +77,40 @@ def search(**flags: Any) -> None:
     print(where_to_look(run_dir))
 
 
+# What --config does not take from its file: where the new run goes and the cluster it flies on.
+NOT_FROM_CONFIG = ("outdir", *CLUSTER_FLAGS)
+
+
+def settings_of(path: Path, given: dict[str, Any]) -> dict[str, Any]:
+    """search's flags from a run's config.json (--config), with the flags given beside it that
+    differ from their defaults in place of the file's."""
+    folder, name = (path, "config.json") if path.is_dir() else (path.parent, path.name)
+    try:
+        recorded = check_run_config(read_run_json(folder, name)).to_json()
+    except UsageError as error:
+        raise UsageError(f"--config {path}: {error}") from None
+    return {flag: given[flag] if flag in NOT_FROM_CONFIG or given[flag] != SEARCH_FLAGS[flag].default
+            else recorded[flag] for flag in SEARCH_FLAGS}
+
+
 @takes(RESUME_FLAGS)
 def resume_run(run_dir: str, **flags: Any) -> None:
     """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped (the
     `resume` command of a run folder; experiments.resume hands it those).
 
+    A checkpoint not signed with your key is refused unless --trust is given (which signs it
+    with your key).
+
     Args:
         run_dir: A run folder written by this script.
     """
     path, iterations, workers = Path(run_dir), flags["iterations"], flags["workers"]
-    load_run_state(path)  # refuse a bad folder before anything is written in it
+    trust = boolean("trust", flags["trust"])
+    load_run_state(path, trust)  # refuse a bad folder before anything is written in it
     scheduler_address = scheduler_of(flags)
     with folder_lock(path):
+        if trust:
+            adopt(path / "checkpoint.pkl")
         config, checkpoint = load_run_state(path)  # as the last writer left it
         iterations = checked("iterations", config.iterations if iterations is None else iterations)
         workers = checked("workers", config.workers if workers is None else workers)
@@ -133,7 +164,7 @@ def session(log_path: Path, opening: str, workers: int, scheduler_address: str |
                 yield client, log
         except KeyboardInterrupt:
             log.info(f"Stopped; {state('')}")
-            raise
+            raise Stopped from None
         except passing:
             raise
         except (RunError, OSError) as error:
@@ -151,8 +182,10 @@ def run_session(run_dir: Path, workers: int, scheduler_address: str | None):
 def checkpoint_state(run_dir: Path, flags: str = "") -> str:
     """What a stopped or failed run folder holds, and the command that continues it (with
     `flags`, such as a new cluster's)."""
+    path = run_dir / "checkpoint.pkl"
     try:
-        held = f"its checkpoint holds iteration {read_pickle(run_dir / 'checkpoint.pkl', '')['iteration']}"
+        held = f"its checkpoint holds iteration {read_signed_pickle(path, 'checkpoint')['iteration']}"
     except (UsageError, KeyError, TypeError):
-        held = "it holds no checkpoint yet (resume starts the run from its config.json)"
+        held = ("its checkpoint is not readable as this run's" if path.exists() else
+                "it holds no checkpoint yet (resume starts the run from its config.json)")
     return f"{held}; continue with: python lunar_lander.py resume {shlex.quote(str(run_dir))}{flags}"

@@ -1,15 +1,18 @@
 """A run's configuration: the typed RunConfig made from the flag tables, the one `upgrade` of old
-folders, and config.json and the checkpoint read back, checked against the flags, each other and
-the archive.
+folders, and config.json, the checkpoint and the archive read back, checked against the flags,
+each other and the archive. Nothing here unpickles a file that is not signed with the user's key
+(signing.py): the results commands read the archive as data (archive_data.py).
 
 Map:
 - `RunConfig` (a frozen dataclass: a field per search flag, typed by what its check returns, and
   RECORDS, what a run notes about itself), `upgrade`, `check_run_config` (every value checked:
   the one way a RunConfig is made), `write_config`;
-- CHECKPOINT_FORMAT; `load_checkpoint`;
-- `load_run_config`, `load_checked_config` (what the results commands read), `load_run_state`
-  (what resume reads), `check_same_config`, `check_centroids`;
-- `check_archive` and `load_archive` (an archive must be the grid of its run's config).
+- CHECKPOINT_FORMAT; `load_checkpoint` (signed, or trusted: resume --trust);
+- `load_run_config`, `load_checked_config` (what the results commands read: config.json checked
+  against archive.npz's config), `load_run_state` (what resume reads), `check_same_config`,
+  `check_centroids`;
+- `check_archive`, `saved_archive` (a folder's archive.npz, or the archive.csv of a folder from
+  before it) and `load_archive` (an archive must be the grid of its run's config).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, archive_shape, kind_of
+from qdsearch.archive_data import archive_from_csv, empty_archive, read_archive_data, recorded_config
 from qdsearch.flags import Flag, UsageError, check_flags, seed_number, shown
 from qdsearch.metrics import check_metrics
 from qdsearch.options import (
@@ -32,7 +36,8 @@ from qdsearch.options import (
     search_defaults,
     with_task,
 )
-from qdsearch.run_files import read_pickle, read_run_json, write_json
+from qdsearch.run_files import read_run_json, write_json
+from qdsearch.signing import read_signed_pickle
 
 # What a run's config.json notes about the run besides its flags: each field's type, and what a
 # run that did not note it holds.
@@ -101,12 +106,17 @@ def load_run_config(run_dir: Path) -> RunConfig:
 
 
 def load_checked_config(run_dir: Path) -> RunConfig:
-    """What the results commands read of a run: its config.json, checked, and checked against its
-    checkpoint where it has one (an edit to another task of the same shape would go unseen by
-    the archive's own checks)."""
+    """What the results commands read of a run: its config.json, checked, and checked against the
+    config its archive.npz was saved with, where it has one (an edit to another task of the same
+    shape would go unseen by the archive's own checks). No pickle is read: the folder may be
+    anyone's."""
     config = load_run_config(run_dir)
-    if (run_dir / "checkpoint.pkl").is_file():
-        check_same_config(config, load_checkpoint(run_dir / "checkpoint.pkl")["config"], run_dir)
+    if (data := run_dir / "archive.npz").is_file():
+        try:
+            saved = check_run_config(recorded_config(data))
+        except UsageError as error:
+            raise UsageError(f"{data}: archive data of an incompatible config ({error})") from None
+        check_same_config(config, saved, run_dir, "archive.npz")
     return config
 
 
@@ -116,14 +126,15 @@ def load_checked_config(run_dir: Path) -> RunConfig:
 MAY_DIFFER = ("iterations", "evaluations")  # (--evaluations: the budget that set the iterations)
 
 
-def load_run_state(run_dir: Path) -> tuple[RunConfig, dict | None]:
+def load_run_state(run_dir: Path, trust: bool = False) -> tuple[RunConfig, dict | None]:
     """A run folder's config and checkpoint, which must agree (a hand edit of config.json is
     refused, not silently ignored). A run killed before its first checkpoint (while its cluster
     started) has only config.json: its checkpoint is None, and resume starts it afresh from that
-    config, which records the seed, so it ends as the uninterrupted run would."""
+    config, which records the seed, so it ends as the uninterrupted run would. The checkpoint is
+    unpickled only if signed with the user's key, or `trust`ed (resume --trust)."""
     path = run_dir / "checkpoint.pkl"
     if path.is_file() or not (run_dir / "config.json").is_file():
-        checkpoint = load_checkpoint(path)
+        checkpoint = load_checkpoint(path, trust)
         if (run_dir / "config.json").is_file():
             check_same_config(load_run_config(run_dir), checkpoint["config"], run_dir)
         check_centroids(run_dir, checkpoint["scheduler"].result_archive)
@@ -147,14 +158,16 @@ def check_centroids(run_dir: Path, archive: Any) -> None:
                          f"delete it, and resume writes it again from the checkpoint")
 
 
-def check_same_config(recorded: RunConfig, checkpointed: RunConfig, run_dir: Path) -> None:
-    """config.json must say what the checkpoint ran with: a run goes on as it started."""
+def check_same_config(recorded: RunConfig, checkpointed: RunConfig, run_dir: Path,
+                      source: str = "checkpoint") -> None:
+    """config.json must say what the checkpoint (or the archive.npz: `source`) ran with: a run goes
+    on as it started."""
     for name in SEARCH_FLAGS:
         said, ran = getattr(recorded, name), getattr(checkpointed, name)
         if name not in MAY_DIFFER and name not in CLUSTER_FLAGS and said != ran:
             raise UsageError(
                 f"{run_dir / 'config.json'} says --{name} {shown(said)} but the run's "
-                f"checkpoint ran with {shown(ran)}: a run goes on with the settings "
+                f"{source} ran with {shown(ran)}: a run goes on with the settings "
                 f"it started with; undo the edit, or start a new run with the flags you want")
 
 
@@ -181,9 +194,46 @@ def check_archive(archive: Any, path: Path, config: RunConfig) -> None:
                          f"the run's --measures {','.join(config.measures)} and {size} need {expected})")
 
 
+def rewrite_hint(folder: Path, stem: str) -> str:
+    """The command that writes a folder's stem.npz again: resume (from the run's checkpoint: a
+    finished run is saved again) or evaluate --corrected."""
+    if stem == "corrected_archive":
+        return f"python lunar_lander.py evaluate {folder} --corrected writes it again"
+    return (f"python lunar_lander.py resume {folder} --trust writes it again from the run's "
+            f"checkpoint, if you trust that file")
+
+
+def archive_source(folder: Path, stem: str = "archive") -> Path:
+    """The file a run folder's archive is read from (stem: "archive", or evaluate's
+    "corrected_archive"): stem.npz, or in a folder from before it, stem.csv; never stem.pkl."""
+    for source in (folder / f"{stem}.npz", folder / f"{stem}.csv"):
+        if source.is_file():
+            return source
+    why = (f"its {stem}.pkl is not opened (loading a pickle may run any code it holds); "
+           if (folder / f"{stem}.pkl").is_file() else f"is {folder} a run folder of lunar_lander.py? ")
+    raise UsageError(f"{folder / stem}.npz: no such file, nor {stem}.csv; {why}"
+                     + rewrite_hint(folder, stem))
+
+
+def saved_archive(folder: Path, stem: str = "archive") -> Any:
+    """A run folder's archive, made from its data file (archive_source), never from a pickle: a
+    .csv on the cells of the folder's config.json (a CVT's: centroids.npy)."""
+    source = archive_source(folder, stem)
+    if source.suffix == ".npz":
+        return read_archive_data(source)[0]
+    config = load_run_config(folder)
+    if config.archive == "cvt" and not (folder / "centroids.npy").is_file():
+        raise UsageError(f"{folder / 'centroids.npy'}: no such file (the cells of the run's CVT "
+                         f"archive); " + rewrite_hint(folder, stem))
+    return archive_from_csv(source, empty_archive(config, folder / "centroids.npy"))
+
+
 def load_archive(path: Path, config: RunConfig):
-    """A saved archive, checked against the config of the run that uses it."""
-    archive = read_pickle(path, "archive pickle")
+    """A saved archive, checked against the config of the run that uses it: a run folder's, or
+    the one whose file is named (its archive.npz; an archive.pkl or .csv names the archive.npz
+    beside it, or in a folder from before archive.npz, that folder's archive.csv)."""
+    folder, stem = (path, "archive") if path.is_dir() else (path.parent, path.stem)
+    archive = saved_archive(folder, stem)
     check_archive(archive, path, config)
     if len(archive) == 0:
         raise UsageError(f"{path}: the archive is empty; nothing to start from")
@@ -214,11 +264,12 @@ def check_run_config(recorded: Any) -> RunConfig:
                      **{name: config[name] for name in RECORDS if config.get(name) is not None})
 
 
-def load_checkpoint(path: Path) -> dict:
-    """A checkpoint written by this script and consistent with this script's problem."""
+def load_checkpoint(path: Path, trust: bool = False) -> dict:
+    """A checkpoint written by this script and consistent with this script's problem, unpickled
+    only once its signature is found to be the user's (or they `trust` it: resume --trust)."""
     if not path.is_file():
         raise UsageError(f"{path}: no checkpoint there (is {path.parent} a run folder of lunar_lander.py?)")
-    checkpoint = read_pickle(path, "checkpoint")
+    checkpoint = read_signed_pickle(path, "checkpoint", trust)
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise UsageError(f"{path}: not a lunar_lander checkpoint (holds a {type(checkpoint).__name__})")
     from ribs.schedulers import BanditScheduler, Scheduler

@@ -8,7 +8,8 @@ Map:
   `make_folders`, `remove_unworked`), `check_writable`;
 - writing: `atomic_write` (a temporary file, then os.replace), `write_json`, `write_pickle`,
   `write_csv`;
-- reading: `read_run_json`, `read_pickle` (a UsageError that names the file and the fault);
+- reading: `read_run_json`, `unpickle` (a UsageError that names the file and the fault; only
+  for a file whose signature was checked: signing.py);
 - `fault_text`: any fault as one line; logs: `make_logger` (console and run.log), `console_log`;
 - `library_versions`: what config.json records of the libraries a run ran with.
 """
@@ -211,16 +212,12 @@ def read_run_json(run_dir: Path, name: str) -> Any:
         raise UsageError(f"{path}: not readable JSON ({error})") from None
 
 
-def read_pickle(path: Path, what: str) -> Any:
-    """Unpickle a file of ours, or raise a UsageError that names the file and what is wrong.
-
-    Pickles can run code when loaded: only load files you trust (archive.csv is for sharing).
-    """
-    if not path.is_file():
-        raise UsageError(f"{path}: no such file (expected {what})")
+def unpickle(payload: bytes, path: Path, what: str) -> Any:
+    """The pickled bytes of the file `path` loaded, or a UsageError that names the file and what
+    is wrong. Loading a pickle runs any code it holds: only signing.py's `read_signed_pickle`
+    calls this, once the file's signature says it is the user's own (or they trust it)."""
     try:
-        with open(path, "rb") as file:
-            return pickle.load(file)
+        return pickle.loads(payload)
     except Exception as error:  # truncated, corrupt, or not a pickle at all
         raise UsageError(f"{path}: not a readable {what} ({type(error).__name__}: {error})") from None
 

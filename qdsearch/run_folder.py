@@ -1,6 +1,7 @@
 """What the results commands (video, elites, trajectories, evaluate, explore) read of a run
 folder, in one place: its archive and config checked against each other, its elites in a fixed
-order, and the terrain a command shows it on.
+order, and the terrain a command shows it on. They read archive.npz (archive_data.py), config.json
+and metrics.json, never a pickle: a run folder from anyone is safe to open.
 
 Map: `load_run`, `elite_rows`, `shown_terrain`.
 """
@@ -14,19 +15,19 @@ import numpy as np
 
 from qdsearch.flags import UsageError, check_flags
 from qdsearch.options import TERRAIN_FLAGS
-from qdsearch.run_config import RunConfig, load_archive, load_checked_config
+from qdsearch.run_config import RunConfig, archive_source, load_archive, load_checked_config
 
 
 def load_run(run_dir: Any) -> tuple[Any, RunConfig]:
-    """A run folder's archive and config (checked against each other). Folders written before
-    --measures and --grid existed load with the tutorial's measures on a 50x50 grid."""
+    """A run folder's archive (archive.npz; a folder from before it: archive.csv) and config,
+    checked against each other. Folders written before --measures and --grid existed load with the
+    tutorial's measures on a 50x50 grid."""
     path = Path(str(run_dir))
     if not path.is_dir():
         raise UsageError(f"{path}: no such run folder")
-    if not (path / "archive.pkl").is_file():
-        raise UsageError(f"{path / 'archive.pkl'}: no such file (is {path} a run folder of lunar_lander.py?)")
+    archive_source(path)  # before the config: no archive is the fault to name
     config = load_checked_config(path)
-    return load_archive(path / "archive.pkl", config), config
+    return load_archive(path / "archive.npz", config), config
 
 
 def elite_rows(archive) -> dict[str, np.ndarray]:

@@ -2,8 +2,9 @@
 cluster with cores of its own, the saver processes that draw the runs' CSVs and pictures.
 
 Map:
-- `save_outputs`: a run folder's files besides the checkpoint (metrics, archive and its CSV,
-  heatmaps, progress plot): what a save costs, nearly all of it;
+- `save_outputs`: a run folder's files besides the checkpoint (metrics, archive.pkl for pyribs'
+  users, archive.npz for the results commands, archive.csv, heatmaps, progress plot): what a save
+  costs, nearly all of it;
 - `Savers`: the threads a driver's saves run in, and the processes (`saver_processes`) they
   hand `save_outputs` to (`write_outputs`), started as saves come, with Ctrl-C and SIGTERM
   ignored; if one dies, the threads write the saves themselves.
@@ -23,6 +24,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from qdsearch.archive_data import write_archive_data
 from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_files import atomic_write, write_csv, write_json, write_pickle
 from qdsearch.tasks import ENVIRONMENTS, MEASURES
@@ -33,11 +35,13 @@ SAVER_PROCESSES = 2
 
 
 def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
-    """The run folder's files besides the checkpoint: metrics, archive, its CSV, the heatmaps and
+    """The run folder's files besides the checkpoint: metrics, the archive (a pickle for pyribs'
+    users, archive.npz for the results commands, which never unpickle), its CSV, the heatmaps and
     the progress plot. At a full Lunar Lander archive (300 iterations) they take ~0.27 s of CPU,
-    the CSV and the pictures nearly all of it (benchmarks/bench_saves.py)."""
+    the CSV and the pictures nearly all of it (benchmarks/bench_saves.py; archive.npz ~5 ms)."""
     write_json(run_dir / "metrics.json", metrics)
     write_pickle(run_dir / "archive.pkl", archive)
+    write_archive_data(run_dir / "archive.npz", archive, config)
     write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
     title = f"{config['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"

@@ -1,7 +1,8 @@
 """Ctrl-C and SIGTERM, acted on only where stopping is safe: the one `STOP` of a process, which
 the script installs and every wait (for a cluster, for results, between videos) consults.
 
-Map: `StopRequests` (record a request; `check` it; `interruptible` blocks), `STOP`.
+Map: `StopRequests` (record a request; `check` it; `interruptible` blocks), `STOP`; `Stopped`
+(a stop whose line has been said).
 """
 
 from __future__ import annotations
@@ -48,3 +49,8 @@ class StopRequests:
 
 
 STOP = StopRequests()
+
+
+class Stopped(KeyboardInterrupt):
+    """A stop that has said its own line (where the run folders are, how to go on): the script
+    adds none."""

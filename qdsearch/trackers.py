@@ -39,7 +39,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from qdsearch.flags import UsageError, clipped, shown
+from qdsearch.flags import UsageError, clipped, did_you_mean, shown
 from qdsearch.run_files import fault_text, write_json
 
 SCALARS = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective", "evaluations")
@@ -236,7 +236,7 @@ def check_tracks(name: str, value: Any) -> list[str]:
         raise UsageError(f"--{name} must name trackers ({', '.join(TRACKERS)}), got {shown(value)}")
     for tracker in names:
         if tracker not in TRACKERS:
-            raise UsageError(f"--{name} {shown(tracker)} is not a tracker; choose from {', '.join(TRACKERS)}")
+            raise UsageError(f"--{name} {shown(tracker)} is not a tracker; {did_you_mean(tracker, TRACKERS)}")
         if not installed(TRACKERS[tracker].module):
             raise UsageError(f"--{name} {tracker} needs the {TRACKERS[tracker].package} package: "
                              f"pip install -r requirements-trackers.txt")

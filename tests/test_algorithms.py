@@ -25,14 +25,16 @@ from ribs.emitters.rankers import (
 )
 from ribs.schedulers import BanditScheduler, Scheduler
 
-from qdsearch import algorithms, experiments, options, results, run, run_config, run_files, tasks
+from qdsearch import algorithms, experiments, options, results, run, run_config, tasks
 from util import (
     archive_table,
     assert_one_line_error,
     load_pickle,
+    read_checkpoint,
     run_archive,
     run_metrics,
     tiny_flags,
+    write_checkpoint,
 )
 
 ALGORITHMS = list(algorithms.ALGORITHMS)  # every row: a run folder each, and their resumes
@@ -218,14 +220,14 @@ def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
     spent = 12 + (2 * (1 + 4) if algorithms.ALGORITHMS[algorithm].dqd else 0)  # a DQD row's points, samples
     assert [row["evaluations"] for row in metrics] == [spent, 2 * spent]
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == algorithm
-    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
     assert checkpoint["config"]["algorithm"] == algorithm
     assert 0 < metrics[-1]["num_elites"] == len(load_pickle(run_dir / "archive.pkl"))
 
 
 def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
     run_dir = tiny_runs["cma_mae"]
-    scheduler = load_pickle(run_dir / "checkpoint.pkl")["scheduler"]
+    scheduler = read_checkpoint(run_dir / "checkpoint.pkl")["scheduler"]
     saved = load_pickle(run_dir / "archive.pkl")
 
     assert saved.learning_rate == 1.0  # the result archive, not the soft archive
@@ -240,15 +242,15 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 @pytest.mark.slow  # a resume or warm start per algorithm: the whole suite has them
 @pytest.mark.parametrize("algorithm", [name for name in ALGORITHMS if name != "cma_me"])
 def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path, dask_cluster, tiny_runs,
-                                                                       algorithm):
+                                                                       algorithm, one_worker_cluster):
     run_dir = tmp_path / "run"
     run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
-    experiments.resume(str(run_dir), iterations=2, workers=1)  # a cluster of its own, of 1 worker
+    experiments.resume(str(run_dir), iterations=2, scheduler_address=one_worker_cluster.scheduler_address)
 
     reference = tiny_runs[algorithm]
     assert run_archive(run_dir).equals(run_archive(reference))
     assert run_metrics(run_dir) == run_metrics(reference)
-    schedulers = [load_pickle(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
+    schedulers = [read_checkpoint(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
     dqd = algorithms.ALGORITHMS[algorithm].dqd
     assert np.array_equal(next_asks(schedulers[0], dqd), next_asks(schedulers[1], dqd))
     assert archive_table(schedulers[0].archive).equals(archive_table(schedulers[1].archive))
@@ -266,7 +268,7 @@ def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algor
     metrics = run_metrics(run_dir)
     assert metrics[0]["iteration"] == 0 and metrics[0]["evaluations"] == elites
     assert metrics[0]["num_elites"] == elites  # same terrain, same grid: every elite lands again
-    scheduler = load_pickle(run_dir / "checkpoint.pkl")["scheduler"]
+    scheduler = read_checkpoint(run_dir / "checkpoint.pkl")["scheduler"]
     assert len(scheduler.archive) >= elites and len(scheduler.result_archive) >= elites
 
 
@@ -290,16 +292,16 @@ def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorith
 
 
 def test_checkpoint_from_before_learning_rate_still_resumes(tmp_path, tiny_runs):
-    checkpoint = load_pickle(tiny_runs["cma_me"] / "checkpoint.pkl")
+    checkpoint = read_checkpoint(tiny_runs["cma_me"] / "checkpoint.pkl")
     del checkpoint["config"]["learning_rate"]
-    run_files.write_pickle(tmp_path / "checkpoint.pkl", checkpoint)
+    write_checkpoint(tmp_path / "checkpoint.pkl", checkpoint)
 
     assert run_config.load_checkpoint(tmp_path / "checkpoint.pkl")["config"].learning_rate == 0.01
 
 
 def test_unknown_algorithm_and_bad_learning_rate_are_one_line_errors(run_cli, tmp_path):
     result = run_cli("--algorithm", "cma_es", "--outdir", tmp_path / "run")
-    assert_one_line_error(result, "--algorithm", "cma_es", "cma_me, cma_mae, map_elites")
+    assert_one_line_error(result, "--algorithm", "cma_es", "did you mean cma_me?")
     for value in (0, 1.5, "fast"):
         assert_one_line_error(run_cli("--algorithm", "cma_mae", f"--learning_rate={value}", "--outdir",
                                       tmp_path / "run"),

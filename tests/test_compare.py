@@ -250,9 +250,11 @@ def normalised(row: dict, run_dir) -> float:
 
 @pytest.fixture(scope="module")
 def walker_run(tmp_path_factory, dask_cluster):
-    """A tiny run (2 iterations) of another task: the walker, with the tiny run's setting."""
+    """A tiny run (2 iterations) of another task: the walker, with the tiny run's setting (and
+    its task's own episodes: a setting that names the same flags as the lander's)."""
     folder = tmp_path_factory.mktemp("walker") / "cma_me"
-    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, log_every=2), outdir=str(folder))
+    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, log_every=2, episode_length=None),
+               outdir=str(folder))
     return folder
 
 
@@ -306,12 +308,12 @@ CORRECTED = {"qd_score": 12345.0, "coverage": 0.25, "num_elites": 625, "best_obj
 
 def corrected_copy(run_dir, where, numbers: dict, solved: int | None):
     """A copy of a run with corrected.json holding `numbers`; with `solved` set, a corrected
-    archive too: archive.pkl as it is, archive.csv with `solved` elites at 250 and the rest at -50."""
+    archive too: archive.npz as it is, archive.csv with `solved` elites at 250 and the rest at -50."""
     shutil.copytree(run_dir, where)
     iteration = run_metrics(run_dir)[-1]["iteration"]
     (where / "corrected.json").write_text(json.dumps({"iteration": iteration, **numbers}))
     if solved is not None:
-        shutil.copy(where / "archive.pkl", where / "corrected_archive.pkl")
+        shutil.copy(where / "archive.npz", where / "corrected_archive.npz")
         archive = pd.read_csv(where / "archive.csv")
         archive["objective"] = [250.0] * solved + [-50.0] * (len(archive) - solved)
         archive.to_csv(where / "corrected_archive.csv", index=False)
@@ -332,11 +334,11 @@ def test_compare_corrected_uses_each_runs_corrected_metrics(run_cli, tmp_path, t
     assert (row["num_elites"], row["best_objective"], row["mean_objective"]) == (625, 111.5, -42.0)
     assert row["normalised_qd_score"] == pytest.approx(normalised({"qd_score": 12345.0}, tiny_run))
     assert row["solved_cells"] == 3  # from corrected_archive.csv
-    assert row["cqd_score"] == pytest.approx(own["cqd_score"][0])  # corrected_archive.pkl: a copy
+    assert row["cqd_score"] == pytest.approx(own["cqd_score"][0])  # corrected_archive.npz: a copy
     assert table["qd_auc"].tolist() == pytest.approx(own["qd_auc"].tolist())  # still metrics.json's curve
     assert own["qd_score"].tolist() == [run_metrics(tiny_run)[-1]["qd_score"]] * 2
     assert np.isnan(table["cqd_score"][1]) and np.isnan(table["solved_cells"][1])  # no corrected archive
-    assert f"{second}: no readable corrected_archive.pkl; left out of the score" in result.stdout
+    assert f"{second}: no readable corrected_archive.npz; left out of the score" in result.stdout
     stats_table = pd.read_csv(tmp_path / "fixed_settings.csv").set_index("metric")
     assert stats_table.loc["qd_score", "mean"] == pytest.approx((12345.0 + 20000.0) / 2)
     assert "corrected metrics (corrected.json: its elites flown again on 10 new seeds)" in (

@@ -20,15 +20,14 @@ from util import (
     folder_state,
     page_data,
     run_archive,
+    tiny_env,
+    tiny_episode,
     tiny_flags,
 )
 
 RNG = np.random.default_rng(20)
 OTHER_ROWS = [name for name in tasks.ENVIRONMENTS if name != tasks.DEFAULT_ENV]
 WALKER = "BipedalWalker-v3"
-# Rows whose every episode lasts 1,000 steps: a minute of software rendering here (the other
-# MuJoCo rows test MuJoCo's video; these test the rest).
-LONG_VIDEOS = {"HalfCheetah-v5"}
 
 
 def policies(env_name: str, count: int = 4) -> np.ndarray:
@@ -105,13 +104,13 @@ def task_runs(tmp_path_factory, dask_cluster):
 @pytest.mark.slow
 @pytest.mark.parametrize("env_name", OTHER_ROWS)
 def test_one_worker_and_a_resumed_run_equal_the_straight_run(env_name, task_runs, tmp_path,
-                                                            dask_cluster):
+                                                            dask_cluster, one_worker_cluster):
     straight = task_runs[env_name]
     config = json.loads((straight / "config.json").read_text())
     assert config["env"] == env_name and config["measures"] == list(tasks.ENVIRONMENTS[env_name].measures)
     archive = run_archive(straight)
     assert len(archive) > 0 and archive["solution_0"].notna().all()
-    run.search(**tiny_flags(env=env_name, workers=1), outdir=str(tmp_path / "one"))
+    run.search(**tiny_flags(one_worker_cluster, env=env_name), outdir=str(tmp_path / "one"))
     assert_same_run(tmp_path / "one", straight)
     run.search(**tiny_flags(dask_cluster, env=env_name, iterations=1), outdir=str(tmp_path / "resumed"))
     experiments.resume(str(tmp_path / "resumed"), iterations=3,
@@ -145,16 +144,17 @@ def walker_experiment(tmp_path_factory, dask_cluster):
 def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experiment, tmp_path,
                                                                dask_cluster, run_cli):
     run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8), outdir=str(tmp_path / "twin"))
-    assert_same_run(walker_experiment / "cma_me_n_emitters_2_batch_size_6_seed8", tmp_path / "twin")
+    name = "cma_me_n_emitters_2_batch_size_6_episode_length_100_seed8"
+    assert_same_run(walker_experiment / name, tmp_path / "twin")
     result = run_cli("compare", str(walker_experiment), "--out", str(tmp_path / "walkers.png"))
     assert result.returncode == 0, result.stderr
     report = (tmp_path / "walkers.md").read_text()
     assert report.startswith("| setting | runs | qd_score |")
-    assert "| cma_me n_emitters=2 batch_size=6 | 2 |" in report
+    assert "| cma_me n_emitters=2 batch_size=6 episode_length=100 | 2 |" in report
     assert "BipedalWalker-v3" in report and "returns at least 300" in report
     stats = pd.read_csv(tmp_path / "walkers_settings.csv")
-    assert set(stats["setting"]) == {"cma_me n_emitters=2 batch_size=6",
-                                     "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5"}
+    assert set(stats["setting"]) == {"cma_me n_emitters=2 batch_size=6 episode_length=100",
+                                     "cma_mae n_emitters=2 batch_size=6 learning_rate=0.5 episode_length=100"}
     assert stats["ci95_low"].notna().any()
 
 
@@ -163,14 +163,13 @@ def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experimen
 def test_video_and_elites_of_every_row(env_name, task_runs, tmp_path, capsys):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
-    if env_name not in LONG_VIDEOS:
-        results.video(str(run_dir), best=True)
-        index = pd.read_csv(run_dir / "videos" / "index.csv")
-        assert index["reproduced"].tolist() == [True]
-        solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
-        steps = tasks.fly(solution, 52, tasks.make_env(env_name=env_name), env_name=env_name).steps
-        frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
-        assert frames == steps + 1
+    results.video(str(run_dir), best=True)
+    index = pd.read_csv(run_dir / "videos" / "index.csv")
+    assert index["reproduced"].tolist() == [True]
+    solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
+    steps = tasks.fly(solution, 52, tiny_env(env_name), env_name=env_name).steps
+    frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
+    assert frames == steps + 1
     results.elites(str(run_dir), top=2)
     table = pd.read_csv(run_dir / "elites.csv")
     assert list(table.columns) == ["objective", *tasks.ENVIRONMENTS[env_name].measures, "cell_index"]
@@ -185,8 +184,9 @@ def test_walker_trajectories_are_its_hull_paths(task_runs, tmp_path):
     assert (run_dir / "trajectories.png").stat().st_size > 10_000
     chosen = results.select_elites(results.load_run(run_dir)[0], top=3,
                                    measures=list(tasks.TUTORIAL_MEASURES))
-    env = tasks.make_env(env_name=WALKER)
-    for elite, (path, end) in zip(chosen, results.fly_paths(chosen, 52, WALKER)):
+    env = tiny_env(WALKER)
+    paths = results.fly_paths(chosen, 52, WALKER, episode=tiny_episode(WALKER))
+    for elite, (path, end) in zip(chosen, paths):
         walk = tasks.fly(elite["solution"], 52, env, env_name=WALKER)
         assert len(path) == walk.steps and end == walk.steps - 1
         assert path[-1, 0] - path[0, 0] == pytest.approx(walk.distance, abs=0.2)  # one step's move
@@ -210,7 +210,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     assert data["pose_scale"] == list(task.family.pose_scale)
     assert len(poses) == sum(e["steps"] + 1 for e in data["elites"])
     solutions = dict(zip(*results.load_run(run_dir)[0].data(["index", "solution"]).values()))
-    env = tasks.make_env(env_name=env_name)
+    env = tiny_env(env_name)
     for elite in data["elites"][:3]:
         path: list = []
         tasks.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
@@ -239,7 +239,7 @@ def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_c
     evaluation.evaluate(str(run_dir), env_seeds="3-4", top=2,
                                 scheduler_address=dask_cluster.scheduler_address)
     table = pd.read_csv(run_dir / "robustness.csv")
-    env, rows = tasks.make_env(env_name=WALKER), results.elite_rows(results.load_run(run_dir)[0])
+    env, rows = tiny_env(WALKER), results.elite_rows(results.load_run(run_dir)[0])
     solutions = dict(zip(rows["index"], rows["solution"]))
     assert len(table) == 2
     for row in table.to_dict("records"):

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import evaluation, explorer, fast_lander, lander, run_files, tasks
+from qdsearch import archive_data, evaluation, explorer, fast_lander, lander, run_files, tasks
 from util import DATA_BLOCK, LANDER, folder_state, load_pickle, page_data, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
@@ -63,11 +63,12 @@ def test_bad_folders_are_refused_and_untouched(explored, tmp_path, run_cli, case
     if case == "no archive":
         run_dir.mkdir()
         (run_dir / "notes.txt").write_text("mine")
-        words = "archive.pkl: no such file"
+        words = "archive.npz: no such file"
     elif case == "empty archive":
         shutil.copytree(explored, run_dir)
-        run_files.write_pickle(run_dir / "archive.pkl", GridArchive(solution_dim=32, dims=(50, 50),
-                                                             ranges=[(-1, 1), (-3, 0)]))
+        empty = GridArchive(solution_dim=32, dims=(50, 50), ranges=[(-1, 1), (-3, 0)])
+        archive_data.write_archive_data(run_dir / "archive.npz", empty,
+                                        run_files.read_run_json(run_dir, "config.json"))
         words = "empty"
     else:
         with small_disk(tmp_path, "8m") as disk:

@@ -13,6 +13,8 @@ import pytest
 from qdsearch import fast_lander, tasks
 from util import HOVER_W, LANDER, LANDER_W, SEEDS
 
+pytestmark = pytest.mark.slow  # ~1,000 episodes of gym.make's lander: half a minute of CPU
+
 
 def plain_rollout(solution, env_seed, env):
     """The tutorial's rollout, on gym.make's env: (objective, x, y-velocity, steps, path)."""

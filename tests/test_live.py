@@ -8,7 +8,7 @@ import time
 import pandas as pd
 import pytest
 
-from qdsearch import experiments, run
+from qdsearch import experiments, run, tasks
 from util import assert_one_line_error, launch, run_metrics, tiny_flags
 
 pytestmark = pytest.mark.slow  # a server process and a browser
@@ -46,6 +46,10 @@ def test_the_live_page_shows_the_runs_files_and_follows_a_resume(tmp_path, dask_
         assert page_value(page, f"{elites}.objective.length") == len(archive)
         assert sorted(page_value(page, f"Array.from({elites}.objective)")) == sorted(archive["objective"])
         assert page_value(page, "Array.from(doc.get_model_by_name('metrics').data.iteration)") == [1, 2]
+        # the y-velocity axis as heatmap.png draws it: the fastest impacts (most negative) on top
+        y_range = page_value(page, "[doc.get_model_by_name('archive').y_range.start, "
+                                   "doc.get_model_by_name('archive').y_range.end]")
+        assert y_range == [0.0, -3.0] and tasks.MEASURES["impact_y_velocity"].descending
         headline = page_value(page, "doc.get_model_by_name('headline').text")
         assert "&lt;i&gt;run&amp;" in headline and "iteration 2 of 2" in headline
 

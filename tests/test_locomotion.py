@@ -15,7 +15,15 @@ import pytest
 
 from conftest import ROOT, SCRIPT
 from qdsearch import locomotion, results, run, run_config, tasks
-from util import assert_one_line_error, assert_same_run, folder_state, load_pickle, run_archive, tiny_flags
+from util import (
+    assert_one_line_error,
+    assert_same_run,
+    folder_state,
+    load_pickle,
+    read_checkpoint,
+    run_archive,
+    tiny_flags,
+)
 
 ROBOT_ROWS = ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Ant-v5", "ant_omni"]
 
@@ -169,7 +177,7 @@ def test_a_config_edited_to_another_archive_kind_is_refused(cvt_run, tmp_path, r
 @pytest.mark.slow
 def test_four_feet_on_a_cvt_archive_and_a_grid_of_four(tmp_path, dask_cluster):
     """Ant-v5 takes a CVT archive by default; a grid of 4 measures is refused only by its size."""
-    config = run_config.check_run_config(load_pickle(
+    config = run_config.check_run_config(read_checkpoint(
         _tiny(tmp_path / "ant", dask_cluster, env="Ant-v5") / "checkpoint.pkl")["config"])
     assert config.archive == "cvt" and len(config.measures) == 4
     grid4 = _tiny(tmp_path / "grid4", dask_cluster, env="Ant-v5", archive="grid", grid=3)

@@ -11,7 +11,15 @@ from matplotlib.image import imread
 
 from qdsearch import experiments, results, run, tasks
 from qdsearch.flags import UsageError
-from util import LANDER, assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
+from util import (
+    LANDER,
+    assert_one_line_error,
+    load_pickle,
+    read_checkpoint,
+    run_archive,
+    run_metrics,
+    tiny_flags,
+)
 
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
@@ -88,16 +96,17 @@ def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_clus
     run.search(**flags, outdir=str(tmp_path / "whole"))
     old = tmp_path / "old"
     run.search(**{**flags, "iterations": 1}, outdir=str(old))
-    checkpoint = load_pickle(old / "checkpoint.pkl")
+    checkpoint = read_checkpoint(old / "checkpoint.pkl")
     for config in (checkpoint["config"], json.loads((old / "config.json").read_text())):
         for key in ("measures", "grid", "env"):
             del config[key]
         config["env_seed"] = 52
         (old / "config.json").write_text(json.dumps(config))
-    (old / "checkpoint.pkl").write_bytes(pickle.dumps(checkpoint))
+    (old / "checkpoint.pkl").write_bytes(pickle.dumps(checkpoint))  # unsigned, as then
+    (old / "archive.npz").unlink()  # nor was there an archive.npz: archive.csv is read
 
     results.elites(str(old))  # results commands read it as the tutorial's measures
-    experiments.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address)
+    experiments.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address, trust=True)
 
     assert run_archive(old).equals(run_archive(tmp_path / "whole"))
     assert run_metrics(old) == run_metrics(tmp_path / "whole")

@@ -13,7 +13,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ribs.archives import GridArchive
 
-from qdsearch import algorithms, experiments, flags, metrics, results, run_config, tasks, trackers
+from qdsearch import (
+    algorithms,
+    archive_data,
+    experiments,
+    flags,
+    metrics,
+    results,
+    run_config,
+    tasks,
+    trackers,
+)
 from qdsearch.flags import (
     MAX_SEED,
     MAX_SEEDS,
@@ -29,7 +39,7 @@ from qdsearch.flags import (
     seed_number,
 )
 from qdsearch.parts import MAX_PARTS, parse_part
-from qdsearch.run_files import read_pickle, read_run_json
+from qdsearch.run_files import read_run_json
 
 QUICK = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -185,11 +195,11 @@ def test_run_files_on_disk(content):
     """Whatever bytes a run folder's files hold, the loaders answer in one line."""
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
-        for name in ("config.json", "metrics.json", "experiment.json", "checkpoint.pkl", "archive.pkl"):
+        for name in ("config.json", "metrics.json", "experiment.json", "checkpoint.pkl", "archive.npz"):
             (folder / name).write_bytes(content)
         for load in (lambda: read_run_json(folder, "config.json"), lambda: run_config.load_run_config(folder),
                      lambda: metrics.load_metrics(folder), lambda: experiments.read_experiment(folder),
-                     lambda: read_pickle(folder / "archive.pkl", "archive pickle"),
+                     lambda: archive_data.read_archive_data(folder / "archive.npz"),
                      lambda: run_config.load_checkpoint(folder / "checkpoint.pkl")):
             refused_in_one_line_or(load)
 

@@ -135,6 +135,7 @@ def test_a_batchs_rollouts_are_dealt_out_to_its_chunks_and_come_back_in_order():
     assert np.array_equal(engine.per_terrain(chunks, [52, 7]), rows.reshape(6, 2, 2))
 
 
+@pytest.mark.slow  # a cluster of its own
 def test_a_drivers_runs_in_flight_share_the_chunks_and_never_change_the_results():
     """ClusterShare counts the cluster's worker threads (a worker that joins is counted at the next
     refresh) and the driver's own runs; more runs in flight split each batch into fewer chunks, and
@@ -160,6 +161,7 @@ def test_a_drivers_runs_in_flight_share_the_chunks_and_never_change_the_results(
                               engine.per_terrain(client.gather(shared), [52]))
 
 
+@pytest.mark.slow  # a cluster of its own
 def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
     """Each thread keeps its own environment: threads that shared one would mix their episodes."""
     from dask.distributed import Client, LocalCluster

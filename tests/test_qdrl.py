@@ -180,12 +180,12 @@ def test_a_row_whose_emitters_cannot_hold_the_network_is_refused_at_once(run_cli
 
 
 @pytest.fixture(scope="module")
-def dqd_runs(tmp_path_factory, dask_cluster):
-    """The tiny DQD run on the shared 2-worker cluster, on 1 worker of its own, and stopped after
-    2 iterations then resumed to 4."""
+def dqd_runs(tmp_path_factory, dask_cluster, one_worker_cluster):
+    """The tiny DQD run on the shared 2-worker cluster, on the 1-worker one, and stopped after 2
+    iterations then resumed to 4."""
     root = tmp_path_factory.mktemp("dqd")
     run.search(**tiny_flags(dask_cluster, **DQD, iterations=4, seed=11), outdir=str(root / "two"))
-    run.search(**tiny_flags(None, **DQD, iterations=4, seed=11, workers=1), outdir=str(root / "one"))
+    run.search(**tiny_flags(one_worker_cluster, **DQD, iterations=4, seed=11), outdir=str(root / "one"))
     run.search(**tiny_flags(dask_cluster, **DQD, iterations=2, seed=11), outdir=str(root / "resumed"))
     experiments.resume(str(root / "resumed"), iterations=4, scheduler_address=dask_cluster.scheduler_address)
     return root
@@ -245,7 +245,7 @@ def test_a_budget_in_evaluations_stops_at_the_last_iteration_within_it(tmp_path,
 
 
 @pytest.mark.slow  # real MuJoCo searches
-def test_the_results_commands_fly_a_runs_network(run_cli, dqd_runs, tmp_path):
+def test_the_results_commands_fly_a_runs_network(run_cli, dqd_runs, tmp_path, dask_cluster):
     """video, elites, trajectories, evaluate, explore and compare on an MLP DQD run: each flies the
     elites as the run's policy (video reflies the best to its stored objective)."""
     folder = str(dqd_runs / "two")
@@ -253,11 +253,11 @@ def test_the_results_commands_fly_a_runs_network(run_cli, dqd_runs, tmp_path):
     result = run_cli("video", folder, "--best")
     assert result.returncode == 0, result.stderr
     assert f"objective {best:.2f}" in result.stdout
-    elites = len(run_archive(folder))
+    elites, on_cluster = len(run_archive(folder)), ["--scheduler_address", dask_cluster.scheduler_address]
     for command, said in ((["elites", folder], f"{elites} of {elites} elites"),
                           (["trajectories", folder, "--top", "2"], "trajectories.png"),
-                          (["explore", folder], f"{elites} elites"),
-                          (["evaluate", folder, "--env_seeds", "0-1", "--workers", "1"], "")):
+                          (["explore", folder, *on_cluster], f"{elites} elites"),
+                          (["evaluate", folder, "--env_seeds", "0-1", *on_cluster], "")):
         result = run_cli(*command)
         assert result.returncode == 0 and said in result.stdout, (command, result.stderr)
     result = run_cli("compare", folder, str(dqd_runs / "one"), "--at_evaluations", "100",

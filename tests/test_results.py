@@ -308,5 +308,5 @@ def test_commands_and_their_flags_are_registered(tmp_path):
     with pytest.raises(UsageError, match="--cell;"):
         ll.reject_unknown_flags(ll.command("video"), ["--cell", "[(0, 0)]"])
     (tmp_path / "run").mkdir()
-    with pytest.raises(UsageError, match="archive.pkl: no such file"):
+    with pytest.raises(UsageError, match="archive.npz: no such file"):
         results.load_run(tmp_path / "run")

@@ -2,7 +2,6 @@
 
 import json
 import os
-import pickle
 import signal
 import threading
 import time
@@ -12,17 +11,20 @@ import numpy as np
 import pytest
 from ribs.archives import GridArchive
 
-from qdsearch import algorithms, experiments, run, run_config, tasks
+from qdsearch import algorithms, archive_data, experiments, run, run_config, signing, tasks
 from util import (
     LANDER,
     REFERENCE_ITERATIONS,
     assert_same_run,
     checkpoint_iteration,
+    checkpoint_payload,
     folder_state,
     launch,
     load_pickle,
+    read_checkpoint,
     tiny_flags,
     wait_for,
+    write_checkpoint,
 )
 
 pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
@@ -74,7 +76,7 @@ def test_interrupt_keeps_a_checkpoint_and_resume_completes(tmp_path, dask_cluste
 
     assert process.returncode == 130, err
     assert "Traceback" not in err and f"resume {run_dir}" in out
-    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
     assert 3 <= checkpoint["iteration"] < ITERATIONS
     assert [r["iteration"] for r in checkpoint["metrics"]] == list(range(1, checkpoint["iteration"] + 1))
 
@@ -89,7 +91,7 @@ def test_kill_9_leaves_a_loadable_checkpoint(tmp_path, dask_cluster, reference):
     os.killpg(process.pid, signal.SIGKILL)  # the search and its Dask workers, at once
     process.communicate(timeout=60)
 
-    assert load_pickle(run_dir / "checkpoint.pkl")["iteration"] >= 6
+    assert read_checkpoint(run_dir / "checkpoint.pkl")["iteration"] >= 6
     experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(run_dir, reference)
 
@@ -143,33 +145,30 @@ def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, r
     assert metrics[2]["evaluations"] == len(elites) + 2 * 12
     config = json.loads((run_dir / "config.json").read_text())
     assert config["from_archive"] == str((reference / "archive.pkl").resolve())
-    for emitter in load_pickle(run_dir / "checkpoint.pkl")["scheduler"].emitters:
+    for emitter in read_checkpoint(run_dir / "checkpoint.pkl")["scheduler"].emitters:
         assert np.array_equal(emitter.x0, elites[np.argmax(flown[:, 0])])
-
-
-def write_pickle(path, obj):
-    path.write_bytes(pickle.dumps(obj))
 
 
 def bad_checkpoints(reference):
     """(name, writer of a checkpoint.pkl that must be refused, words the error must contain)."""
-    good = load_pickle(reference / "checkpoint.pkl")
+    good = read_checkpoint(reference / "checkpoint.pkl")
     small = GridArchive(solution_dim=32, dims=(10, 10), ranges=TUTORIAL_RANGES)
     other_scheduler = algorithms.build_scheduler(run_config.check_run_config(good["config"]))
     other_scheduler._archive = small
     return [
-        ("truncated", lambda p: p.write_bytes((reference / "checkpoint.pkl").read_bytes()[:5000]),
-         "not a readable checkpoint"),
-        ("garbage", lambda p: p.write_bytes(b"this is not a pickle"), "not a readable checkpoint"),
-        ("plain dict", lambda p: write_pickle(p, {"iteration": 3}), "not a lunar_lander checkpoint"),
-        ("incompatible config", lambda p: write_pickle(p, {**good, "config": {**good["config"],
-                                                        "batch_size": 0}}), "incompatible config"),
-        ("other archive shape", lambda p: write_pickle(p, {**good, "scheduler": other_scheduler}),
+        ("truncated", lambda p: signing.write_signed(
+            p, checkpoint_payload(reference / "checkpoint.pkl")[:5000]), "not a readable checkpoint"),
+        ("garbage", lambda p: signing.write_signed(p, b"this is not a pickle"), "not a readable checkpoint"),
+        ("plain dict", lambda p: write_checkpoint(p, {"iteration": 3}), "not a lunar_lander checkpoint"),
+        ("incompatible config", lambda p: write_checkpoint(p, {**good, "config": {**good["config"],
+                                                            "batch_size": 0}}), "incompatible config"),
+        ("other archive shape", lambda p: write_checkpoint(p, {**good, "scheduler": other_scheduler}),
          "another shape"),
+        ("unsigned", lambda p: p.write_bytes(checkpoint_payload(reference / "checkpoint.pkl")), "--trust"),
     ]
 
 
-@pytest.mark.parametrize("case", range(5))
+@pytest.mark.parametrize("case", range(6))
 def test_bad_checkpoint_is_refused_and_the_folder_untouched(tmp_path, reference, run_cli, case):
     name, write, words = bad_checkpoints(reference)[case]
     run_dir = tmp_path / "run"
@@ -195,16 +194,19 @@ def test_resume_of_a_folder_without_checkpoint(tmp_path, run_cli):
 @pytest.mark.parametrize("content, words", [
     (None, "no such file"),
     (b"\x80\x05garbage", "not a readable"),
-    ({"a": 1}, "holds a dict"),
+    ({"a": 1}, "archive data of format None"),
     (GridArchive(solution_dim=32, dims=(10, 10), ranges=TUTORIAL_RANGES), "another shape"),
     (GridArchive(solution_dim=32, dims=(50, 50), ranges=TUTORIAL_RANGES), "empty"),
 ])
 def test_bad_warm_start_archive(tmp_path, run_cli, content, words):
-    path = tmp_path / "archive.pkl"
+    """--from_archive reads the archive.npz beside a named archive.pkl, never the pickle."""
+    path, data = tmp_path / "archive.pkl", tmp_path / "archive.npz"
     if isinstance(content, bytes):
-        path.write_bytes(content)
+        data.write_bytes(content)
+    elif isinstance(content, dict):
+        np.savez(data, **content)
     elif content is not None:
-        write_pickle(path, content)
+        archive_data.write_archive_data(data, content, {})
     result = run_cli("--iterations", 1, "--from_archive", path, "--outdir", tmp_path / "run")
     assert result.returncode == 2 and words in result.stderr and result.stderr.count("\n") == 1
     assert not (tmp_path / "run").exists()

@@ -24,7 +24,7 @@ from util import (
     checkpoint_iteration,
     folder_state,
     launch,
-    load_pickle,
+    read_checkpoint,
     small_disk,
     tiny_flags,
     wait_for,
@@ -133,11 +133,11 @@ def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, ca
         out, err = process.communicate(timeout=120)
     assert process.returncode == 130, err
     assert json.loads((run_dir / "config.json").read_text())["resumed"] == []  # no resumption recorded
-    held = load_pickle(run_dir / "checkpoint.pkl")["iteration"]
+    held = read_checkpoint(run_dir / "checkpoint.pkl")["iteration"]
     # The writer has ended: its lock went with it.
     assert ll.main(["resume", str(run_dir), "--iterations", str(held + 1),
                     "--scheduler_address", dask_cluster.scheduler_address]) == 0
-    assert load_pickle(run_dir / "checkpoint.pkl")["iteration"] == held + 1
+    assert read_checkpoint(run_dir / "checkpoint.pkl")["iteration"] == held + 1
 
 
 def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny_run):
@@ -147,7 +147,7 @@ def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny
 
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run, run_dir)
-    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
     run = loop.Run.from_checkpoint(run_dir, {**checkpoint, "config": run_config.check_run_config(
         checkpoint["config"])}, loop.logging.getLogger("test"))
     savers = saving.Savers(processes=1)

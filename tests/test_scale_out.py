@@ -83,7 +83,7 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
 
     from conftest import ROOT
     from qdsearch import saving
-    from util import load_pickle
+    from util import read_checkpoint
 
     flags = {**tiny_flags(dask_cluster), "outdir": str(tmp_path / "run")}
     code = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
@@ -93,7 +93,7 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
     assert result.returncode == 0, result.stderr
     assert "driver imported matplotlib: False" in result.stdout
 
-    checkpoint = load_pickle(tmp_path / "run" / "checkpoint.pkl")
+    checkpoint = read_checkpoint(tmp_path / "run" / "checkpoint.pkl")
     (tmp_path / "here").mkdir()
     saving.save_outputs(tmp_path / "here", checkpoint["scheduler"].result_archive, checkpoint["metrics"],
                       checkpoint["config"], checkpoint["iteration"])

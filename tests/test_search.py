@@ -9,7 +9,7 @@ from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
 from qdsearch import run
-from util import archive_table, load_pickle, run_archive, run_metrics, tiny_flags
+from util import archive_table, load_pickle, read_checkpoint, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"]
@@ -48,7 +48,7 @@ def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys
     assert len(table) == len(archive)
     assert np.allclose(table.sort_values("index")["objective"], archive_table(archive)["objective"])
 
-    checkpoint = load_pickle(run_dir / "checkpoint.pkl")
+    checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
     assert checkpoint["iteration"] == 3 and checkpoint["metrics"] == metrics
     assert isinstance(checkpoint["scheduler"], Scheduler)
     assert archive_table(checkpoint["scheduler"].archive).equals(archive_table(archive))

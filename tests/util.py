@@ -22,22 +22,68 @@ LANDER = "LunarLander-v3"  # the tutorial's task: what the lander-only tests fly
 TINY = dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
             sigma0=1.0, batch_size=6, log_every=3)
 REFERENCE_ITERATIONS = 12  # the uninterrupted run that stopped-and-resumed runs must equal
+# Tiny runs of the walkers and robots fly episodes of this many steps (--episode_length), not their
+# tasks' 1,000-2,000: a tenth of the time, and nothing a test checks needs a long walk (the tasks'
+# own episodes are checked by the hand-made traces). A test that flies a tiny run's elite by hand
+# makes its env with `tiny_env`. The landers keep their own episodes (most end in a crash or a
+# landing well before their limit).
+TINY_EPISODE = 100
+
+
+def tiny_episode(env_name: str):
+    """The episode rules of a tiny run of `env_name`."""
+    from qdsearch import lander, tasks
+
+    landing = tasks.ENVIRONMENTS[env_name].family is lander.LANDER
+    return tasks.Episode(None if landing else TINY_EPISODE)
+
+
+def tiny_env(env_name: str):
+    """The env a tiny run of `env_name` flies in."""
+    from qdsearch import tasks
+
+    return tasks.make_env(env_name=env_name, episode=tiny_episode(env_name))
 
 
 def tiny_flags(cluster=None, **overrides) -> dict:
     """Keyword arguments of `search` for a tiny run, on `cluster` (a LocalCluster) if given; a
-    task whose archive is a CVT gets 32 cells (k-means makes 1,024 in seconds)."""
+    task whose archive is a CVT gets 32 cells (k-means makes 1,024 in seconds); a walker's or a
+    robot's episodes last TINY_EPISODE steps."""
     from qdsearch import tasks
 
     address = {} if cluster is None else {"scheduler_address": cluster.scheduler_address}
     flags = {**TINY, **address, **overrides}
-    cvt = (flags.get("archive") or tasks.ENVIRONMENTS[flags.get("env", tasks.DEFAULT_ENV)].archive) == "cvt"
+    env_name = flags.get("env", tasks.DEFAULT_ENV)
+    length = tiny_episode(env_name).length if env_name in tasks.ENVIRONMENTS else None
+    flags = {"episode_length": length, **flags} if length else flags
+    cvt = (flags.get("archive") or tasks.ENVIRONMENTS[env_name].archive) == "cvt"
     return {"cells": 32, **flags} if cvt else flags
 
 
 def load_pickle(path):
     with open(path, "rb") as file:
         return pickle.load(file)
+
+
+def checkpoint_payload(path) -> bytes:
+    """A checkpoint's pickle: its bytes after the signature's header (qdsearch/signing.py), if it
+    has one."""
+    from qdsearch import signing
+
+    data = Path(path).read_bytes()
+    return data[len(signing.MAGIC) + signing.DIGITS + 1:] if data.startswith(signing.MAGIC) else data
+
+
+def read_checkpoint(path):
+    """A checkpoint.pkl unpickled, its signature stripped unchecked (the tests read their own)."""
+    return pickle.loads(checkpoint_payload(path))
+
+
+def write_checkpoint(path, checkpoint) -> None:
+    """A checkpoint (any object) pickled and signed with the tests' key, as a run writes one."""
+    from qdsearch import signing
+
+    signing.write_signed_pickle(Path(path), checkpoint)
 
 
 def archive_table(archive) -> pd.DataFrame:
@@ -64,7 +110,7 @@ def assert_same_run(run_dir: Path, reference: Path) -> None:
     assert run_metrics(run_dir) == run_metrics(reference)
     iterations = [row["iteration"] for row in run_metrics(reference)]
     assert [row["iteration"] for row in run_metrics(run_dir)] == iterations
-    schedulers = [load_pickle(Path(d) / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
+    schedulers = [read_checkpoint(Path(d) / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
     assert np.array_equal(schedulers[0].ask(), schedulers[1].ask())
 
 
@@ -118,7 +164,7 @@ def wait_for(condition, process, what, timeout=120):
 def checkpoint_iteration(run_dir: Path) -> int:
     """The iteration of a run folder's checkpoint, -1 while there is none (or it is being replaced)."""
     try:
-        return load_pickle(Path(run_dir) / "checkpoint.pkl")["iteration"]
+        return read_checkpoint(Path(run_dir) / "checkpoint.pkl")["iteration"]
     except (OSError, EOFError, pickle.UnpicklingError):
         return -1
 
