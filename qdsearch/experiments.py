@@ -421,7 +421,7 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
     its own folder; the whole of a split experiment locks every part's. With --trust, the
     checkpoints of its unfinished runs are signed with the user's key first."""
     check_split(read_experiment(folder), folder, split, iterations)  # before anything is written
-    trust = boolean("trust", cluster["trust"])
+    trust = boolean("trust", cluster.get("trust", False))  # experiment --part: its own runs only
     scheduler_address = scheduler_of(cluster)
     with contextlib.ExitStack() as locks:
         plan = read_experiment(folder)

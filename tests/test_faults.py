@@ -336,7 +336,8 @@ def walker_run(tmp_path_factory, dask_cluster):
 
 
 def test_results_commands_refuse_a_config_edited_to_a_task_of_the_same_shape(run_cli, walker_run, tmp_path):
-    """Walker to hardcore: the archive fits both; the checkpoint says which ran."""
+    """Walker to hardcore: the archive fits both; archive.npz's own config (resume: the
+    checkpoint's) says which ran."""
     run_dir = tmp_path / "run"
     shutil.copytree(walker_run, run_dir)
     config = json.loads((run_dir / "config.json").read_text())
@@ -344,8 +345,8 @@ def test_results_commands_refuse_a_config_edited_to_a_task_of_the_same_shape(run
     before = folder_state(run_dir)
     for command in COMMANDS:
         assert_one_line_error(run_cli(command[0], run_dir, *command[1:]),
-                              "says --env 'BipedalWalkerHardcore-v3' but the run's checkpoint ran with "
-                              "'BipedalWalker-v3'")
+                              "says --env 'BipedalWalkerHardcore-v3' but the run's ",
+                              "ran with 'BipedalWalker-v3'")  # its archive.npz, or resume's checkpoint
     assert folder_state(run_dir) == before
 
 
