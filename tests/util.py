@@ -23,11 +23,11 @@ TINY = dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_
             sigma0=1.0, batch_size=6, log_every=3)
 REFERENCE_ITERATIONS = 12  # the uninterrupted run that stopped-and-resumed runs must equal
 # Tiny runs of the walkers and robots fly episodes of this many steps (--episode_length), not their
-# tasks' 1,000-2,000: a tenth of the time, and nothing a test checks needs a long walk (the tasks'
+# tasks' 1,000-2,000: a twentieth of the time, and nothing a test checks needs a long walk (the tasks'
 # own episodes are checked by the hand-made traces). A test that flies a tiny run's elite by hand
 # makes its env with `tiny_env`. The landers keep their own episodes (most end in a crash or a
 # landing well before their limit).
-TINY_EPISODE = 100
+TINY_EPISODE = 50
 
 
 def tiny_episode(env_name: str):
