@@ -49,13 +49,6 @@ HEAVY_FIXTURES = {"dask_cluster", "dask_client", "one_worker_cluster", "tiny_run
                   "run_process"}
 
 
-def pytest_xdist_auto_num_workers(config) -> int:
-    """`-n auto`: a test process per core, and one more. The suite's tests wait on real processes
-    (clusters starting, timeouts, signals) more than they compute: on 2 cores its CPU time was 59%
-    of the cores' time with a process per core (816 s of 1,386, measured 2026-11-28)."""
-    return (os.cpu_count() or 1) + 1
-
-
 def pytest_collection_modifyitems(items):
     def rank(item):
         name = item.path.name
