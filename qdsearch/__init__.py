@@ -52,6 +52,7 @@ Map, a module per role, imports going down the list only:
 
 import ctypes.util
 import os
+import sys
 
 # Plots are written to files, never shown: no display is needed (set before matplotlib loads).
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -67,6 +68,30 @@ if ctypes.util.find_library("EGL"):
 # 2.01 for 96 (the walker), 3.39 vs 4.02 for 216 (benchmarks/bench_ask_tell.py, 2026-11-24). So
 # compilation is off unless asked for, and every search computes the same bits.
 os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
+
+
+def hold_x86_cpus_to_avx2_kernels() -> None:
+    """OpenBLAS and numpy pick their kernels by the CPU when numpy loads, and CMA-ES's arithmetic
+    gives other last bits on AVX-512 kernels than on AVX2 ones: the seed-42, 300-iteration lander
+    archive differed between an AVX-512 and an AVX2 machine, and is the same on both held so
+    (2026-11-28). So every x86-64 CPU with AVX2 and FMA runs OpenBLAS's Haswell kernels and
+    numpy's AVX2 ones: a seed gives the same archive on a laptop and on any generation of cluster
+    node, and a run resumed on another node ends as it would have. Only before numpy loads, and
+    never over the user's own settings; config.json records the kernels a run used."""
+    if "numpy" in sys.modules:
+        return
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            flags = set(next(line for line in cpuinfo if line.startswith("flags")).split())
+    except (OSError, StopIteration):  # not Linux: the libraries choose
+        return
+    if {"avx2", "fma"} <= flags:
+        os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+        if "avx512f" in flags:  # numpy 2.4's names of its AVX-512 kernels
+            os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", "X86_V4,AVX512_ICL,AVX512_SPR")
+
+
+hold_x86_cpus_to_avx2_kernels()
 
 __all__ = ["read_run", "read_experiment"]  # the public API: docs/notebooks.md
 

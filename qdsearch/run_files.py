@@ -11,7 +11,7 @@ Map:
 - reading: `read_run_json`, `unpickle` (a UsageError that names the file and the fault; only
   for a file whose signature was checked: signing.py);
 - `fault_text`: any fault as one line; logs: `make_logger` (console and run.log), `console_log`;
-- `library_versions`: what config.json records of the libraries a run ran with.
+- `library_versions`: what config.json records of the libraries a run ran with (`cpu_kernels`).
 """
 
 from __future__ import annotations
@@ -276,4 +276,20 @@ def library_versions() -> dict[str, str]:
     from importlib.metadata import version
 
     packages = ["ribs", "gymnasium", "box2d", "dask", "distributed", "numpy"]
-    return {"python": platform.python_version(), **{name: version(name) for name in packages}}
+    return {"python": platform.python_version(), **{name: version(name) for name in packages},
+            "kernels": cpu_kernels()}
+
+
+def cpu_kernels() -> str:
+    """numpy's OpenBLAS, the CPU kernels it runs and numpy's own ("0.3.31 Haswell, X86_V3"): runs
+    agree bit for bit only on the same kernels (qdsearch/__init__.py holds x86-64 CPUs to AVX2's)."""
+    import numpy
+    from threadpoolctl import threadpool_info
+
+    found = [f"{lib['version']} {lib.get('architecture')}" for lib in threadpool_info()
+             if lib.get("internal_api") == "openblas" and "numpy" in lib.get("filepath", "")]
+    try:
+        simd = ",".join(numpy.__config__.CONFIG["SIMD Extensions"]["found"]) or "baseline"
+    except (AttributeError, KeyError, TypeError):
+        simd = "unknown"
+    return f"{found[0] if found else 'unknown'}, {simd}"

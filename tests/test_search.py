@@ -9,7 +9,7 @@ from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
 from qdsearch import run
-from util import archive_table, load_pickle, read_checkpoint, run_archive, run_metrics, tiny_flags
+from util import archive_table, launch, load_pickle, read_checkpoint, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"]
@@ -86,3 +86,51 @@ def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, dask_cluster):
     run.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
     config = json.loads((tmp_path / "r" / "config.json").read_text())
     assert isinstance(config["seed"], int) and config["seed"] >= 0
+
+
+def cpu_flags() -> set[str]:
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            return set(next(line for line in cpuinfo if line.startswith("flags")).split())
+    except (OSError, StopIteration):
+        return set()
+
+
+def searched_on_kernels(tmp_path, cluster, monkeypatch, name, **kernels):
+    """The seed-3, 4-iteration lander search (its archive differed on AVX-512's kernels and AVX2's)
+    as a real process, with the environment variables `kernels` (none: the package's choice)."""
+    for variable in ("OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES"):
+        if variable in kernels:
+            monkeypatch.setenv(variable, kernels[variable])
+        else:
+            monkeypatch.delenv(variable, raising=False)
+    search = launch(iterations=4, seed=3, outdir=tmp_path / name, scheduler_address=cluster.scheduler_address)
+    assert search.wait(timeout=300) == 0, search.communicate()
+    return tmp_path / name
+
+
+AVX2 = {"OPENBLAS_CORETYPE": "Haswell", "NPY_DISABLE_CPU_FEATURES": "X86_V4,AVX512_ICL,AVX512_SPR"}
+
+
+def test_a_seed_gives_one_archive_whatever_kernels_the_cpu_offers(tmp_path, dask_cluster, monkeypatch):
+    """An x86-64 CPU with AVX2 runs OpenBLAS's and numpy's AVX2 kernels, whatever more it has: a
+    plain search's archive is the one of a search held to them by hand, and config.json says so."""
+    plain = searched_on_kernels(tmp_path, dask_cluster, monkeypatch, "plain")
+    held = searched_on_kernels(tmp_path, dask_cluster, monkeypatch, "held", **AVX2)
+    assert (plain / "archive.csv").read_bytes() == (held / "archive.csv").read_bytes()
+    kernels = json.loads((plain / "config.json").read_text())["versions"]["kernels"]
+    if {"avx2", "fma"} <= cpu_flags():
+        assert kernels.endswith(" Haswell, X86_V3")
+    if "avx512f" in cpu_flags():  # why the hold is there: AVX-512's kernels give other bits
+        other = searched_on_kernels(tmp_path, dask_cluster, monkeypatch, "avx512",
+                                    OPENBLAS_CORETYPE="SkylakeX", NPY_DISABLE_CPU_FEATURES="")
+        assert (other / "archive.csv").read_bytes() != (plain / "archive.csv").read_bytes()
+
+
+def test_the_test_processes_run_the_kernels_the_command_line_does():
+    """pytest's plugins load numpy before conftest.py: `-p qdsearch` (pyproject.toml) loads the
+    package first, so the searches run inside the tests compute the command line's bits."""
+    from qdsearch.run_files import cpu_kernels
+
+    if {"avx2", "fma"} <= cpu_flags():
+        assert cpu_kernels().endswith(" Haswell, X86_V3")
