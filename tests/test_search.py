@@ -128,8 +128,8 @@ def test_a_seed_gives_one_archive_whatever_kernels_the_cpu_offers(tmp_path, dask
 
 
 def test_the_test_processes_run_the_kernels_the_command_line_does():
-    """pytest's plugins load numpy before conftest.py: `-p qdsearch` (pyproject.toml) loads the
-    package first, so the searches run inside the tests compute the command line's bits."""
+    """conftest.py imports the package before anything loads numpy, so the searches run inside the
+    tests compute the command line's bits."""
     from qdsearch.run_files import cpu_kernels
 
     if {"avx2", "fma"} <= cpu_flags():
