@@ -33,7 +33,7 @@ def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = tasks.D
     for run_dir, (archive, config) in zip(run_dirs, archives):
         cells = archive.int_to_grid_index(archive.data("index"))
         edges = ", ".join(f"{name} {np.isin(cells[:, i], (0, archive.dims[i] - 1)).mean():.1%}"
-                          for i, name in enumerate(config["measures"]))
+                          for i, name in enumerate(config.measures))
         print(f"{run_dir}: {len(archive)} elites; on an axis's two edge cells: {edges}")
     solutions = [archive.data("solution") for archive, _ in archives]
     task = tasks.ENVIRONMENTS[env]
