@@ -70,6 +70,15 @@ if ctypes.util.find_library("EGL"):
 os.environ.setdefault("NUMBA_DISABLE_JIT", "1")
 
 
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags as Linux lists them (avx2, fma, avx512f, ...); none elsewhere."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            return set(next(line for line in cpuinfo if line.startswith("flags")).split())
+    except (OSError, StopIteration):
+        return set()
+
+
 def hold_x86_cpus_to_avx2_kernels() -> None:
     """OpenBLAS and numpy pick their kernels by the CPU when numpy loads, and CMA-ES's arithmetic
     gives other last bits on AVX-512 kernels than on AVX2 ones: the seed-42, 300-iteration lander
@@ -80,11 +89,7 @@ def hold_x86_cpus_to_avx2_kernels() -> None:
     never over the user's own settings; config.json records the kernels a run used."""
     if "numpy" in sys.modules:
         return
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            flags = set(next(line for line in cpuinfo if line.startswith("flags")).split())
-    except (OSError, StopIteration):  # not Linux: the libraries choose
-        return
+    flags = cpu_flags()  # empty where not Linux: the libraries choose
     if {"avx2", "fma"} <= flags:
         os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
         if "avx512f" in flags:  # numpy 2.4's names of its AVX-512 kernels

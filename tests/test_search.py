@@ -8,7 +8,7 @@ from matplotlib.image import imread
 from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
-from qdsearch import run
+from qdsearch import cpu_flags, run
 from util import archive_table, launch, load_pickle, read_checkpoint, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
@@ -86,14 +86,6 @@ def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, dask_cluster):
     run.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
     config = json.loads((tmp_path / "r" / "config.json").read_text())
     assert isinstance(config["seed"], int) and config["seed"] >= 0
-
-
-def cpu_flags() -> set[str]:
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            return set(next(line for line in cpuinfo if line.startswith("flags")).split())
-    except (OSError, StopIteration):
-        return set()
 
 
 def searched_on_kernels(tmp_path, cluster, monkeypatch, name, **kernels):
