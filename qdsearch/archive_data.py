@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import re
 import types
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -61,13 +62,17 @@ def write_archive_data(path: Path, archive: Any, config: dict) -> None:
 def archive_fields(path: Path, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The arrays of an archive.npz (`names` only, if given), read without unpickling, of
     ARCHIVE_FORMAT; or a one-line refusal."""
+    if path.is_file() and not zipfile.is_zipfile(path):  # numpy's own message would offer to unpickle it
+        raise UsageError(f"{path}: not a readable archive data file (not an .npz, a zip of numpy arrays)")
     try:
         with np.load(path, allow_pickle=False) as data:
             fields = {name: data[name] for name in (data.files if names is None else ("format", *names))}
     except FileNotFoundError:
         raise UsageError(f"{path}: no such file") from None
     except Exception as error:  # not a zip of .npy files; a field missing; an object array
-        raise UsageError(f"{path}: not a readable archive data file ({fault_text(error)})") from None
+        why = ("it holds pickled Python objects, which are never loaded" if "pickle" in str(error)
+               else fault_text(error))  # (numpy's own words would offer to unpickle them)
+        raise UsageError(f"{path}: not a readable archive data file ({why})") from None
     found = fields.get("format", np.array(None, dtype=object))
     if found.shape != () or found.item() != ARCHIVE_FORMAT:
         raise UsageError(f"{path}: archive data of format {found!s}, not {ARCHIVE_FORMAT} (not "

@@ -112,8 +112,9 @@ def load_checked_config(run_dir: Path) -> RunConfig:
     anyone's."""
     config = load_run_config(run_dir)
     if (data := run_dir / "archive.npz").is_file():
+        recorded = recorded_config(data)  # an unreadable file says so itself
         try:
-            saved = check_run_config(recorded_config(data))
+            saved = check_run_config(recorded)
         except UsageError as error:
             raise UsageError(f"{data}: archive data of an incompatible config ({error})") from None
         check_same_config(config, saved, run_dir, "archive.npz")

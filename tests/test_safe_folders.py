@@ -247,3 +247,25 @@ def test_a_key_others_may_read_is_refused(tmp_path, monkeypatch):
     key.chmod(0o644)
     with pytest.raises(UsageError, match="chmod 600"):
         signing.user_key()
+
+
+def object_array_npz(path):
+    """An .npz whose `format` is an object array: loading it would unpickle."""
+    np.savez(path, format=np.array([Trap(path.parent / "marker")], dtype=object))
+
+
+@pytest.mark.parametrize("spoil", [
+    lambda path: path.write_text("garbage"),
+    lambda path: path.write_bytes(path.read_bytes()[:200]),
+    object_array_npz,
+], ids=["text", "truncated", "object-array"])
+def test_a_spoiled_archive_npz_is_one_line_that_never_offers_to_unpickle(tmp_path, tiny_run, run_cli, spoil):
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny_run, run_dir)
+    spoil(run_dir / "archive.npz")
+    before = folder_state(run_dir)
+    result = run_cli("elites", run_dir)
+    assert_one_line_error(result, f"{run_dir / 'archive.npz'}: not a readable archive data file")
+    assert "allow_pickle" not in result.stderr and "unsafe" not in result.stderr
+    assert "incompatible config" not in result.stderr
+    assert folder_state(run_dir) == before and not (run_dir / "marker").exists()
