@@ -319,13 +319,12 @@ class Driver:
             wait_for_trackers(self.log)
 
     def next_chunk(self) -> tuple[Any, Any]:
-        """The next chunk back, as as_completed hands it. A client that has given up on its
-        scheduler (closed) leaves its futures pending, and as_completed would wait on them for
-        ever: the wait looks at the client as it goes, as as_completed's own wait does (a
+        """The next chunk back, as as_completed hands it. A client that has lost its scheduler
+        leaves the futures sent since pending, and as_completed would wait on them for ever: the
+        wait looks at the client as it goes (check_connected), as as_completed's own wait does (a
         condition woken by each result, or every 0.1 s)."""
         while not self.finished.has_ready():
-            if self.client.status not in ("running", "connecting"):
-                self.check_scheduler(RunError(f"the Dask client is {self.client.status}"))
+            self.check_connected()
             with self.finished.thread_condition:
                 self.finished.thread_condition.wait(timeout=0.1)
         return next(self.finished)
@@ -350,6 +349,7 @@ class Driver:
 
     def send(self, run: Run) -> None:
         """The run's next batch, to the cluster."""
+        self.check_connected()
         threads, sharing = self.share(len(self.live))
         for position, future in enumerate(run.send(self.client, sharing, threads)):
             self.owner[future.key] = (run, position)
@@ -384,12 +384,24 @@ class Driver:
             self.check_scheduler(error)
             self.fail(self.entries[run.name], run, error)
 
+    def check_connected(self) -> None:
+        """Stop at once when the client has lost its scheduler. While it tries to reconnect
+        ("connecting", for up to HANDSHAKE_TIMEOUT) it has already cancelled every future in
+        flight, so no run can go on; a batch sent or a question asked then (the chunks' worker
+        count) would wait out the whole reconnection, or the closed client's futures for ever."""
+        if self.client.status != "running":
+            self.check_scheduler(RunError(f"the Dask client is {self.client.status}"))
+
     def check_scheduler(self, error: BaseException) -> None:
         """A task lost with the scheduler is no run's fault: the whole drive stops (every run
         keeps its checkpoint) rather than failing its runs one by one."""
-        if self.client.status != "running":
+        if isinstance(error, SchedulerLost):
+            raise error
+        status = self.client.status
+        if status != "running":  # while it reconnects, every fault is the loss's: one cause said
+            why = "its connection closed" if status == "connecting" else clipped(fault_text(error))
             raise SchedulerLost(f"lost the Dask scheduler at {self.client.scheduler.address} "
-                                f"({clipped(fault_text(error))})") from None
+                                f"({why})") from None
 
     def fail(self, entry: dict, run: Run | None, error: BaseException) -> None:
         """A run's fault: with `isolated` runs, it stops that run alone (its checkpoint kept, its

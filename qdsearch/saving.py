@@ -40,8 +40,9 @@ def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iter
     the progress plot. At a full Lunar Lander archive (300 iterations) they take ~0.27 s of CPU,
     the CSV and the pictures nearly all of it (benchmarks/bench_saves.py; archive.npz ~5 ms)."""
     write_json(run_dir / "metrics.json", metrics)
-    write_pickle(run_dir / "archive.pkl", archive)
+    # archive.npz before archive.pkl: a reader that finds the pickle finds the data it reads too.
     write_archive_data(run_dir / "archive.npz", archive, config)
+    write_pickle(run_dir / "archive.pkl", archive)
     write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
     title = f"{config['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"

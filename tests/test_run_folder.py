@@ -117,6 +117,7 @@ def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, ca
     flags = {**FLAGS, "iterations": 40, "log_every": 2}
     process = launch(**flags, outdir=run_dir, scheduler_address=dask_cluster.scheduler_address)
     try:
+        # archive.pkl is a save's last archive file: the readers' archive.npz is there before it
         wait_for(lambda: checkpoint_iteration(run_dir) >= 2 and (run_dir / "archive.pkl").exists(),
                  process, "a first saved iteration")
 
