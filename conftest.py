@@ -37,9 +37,11 @@ os.environ["QDSEARCH_KEY"] = os.environ["QDSEARCH_TESTS_KEY"]
 # The files whose tests take longest (real processes, signals, full experiments), longest first.
 # pytest-xdist hands whole files to its workers in collection order (see pyproject.toml): the long
 # ones first keeps the workers' loads even, as the short files fill in at the end.
-LONGEST_FIRST = ["test_clusters.py", "test_faults.py", "test_resume.py", "test_experiment.py",
-                 "test_qdrl.py", "test_run_folder.py", "test_parsers.py", "test_fast_lander.py",
-                 "test_scale_out.py", "test_hostile_input.py", "test_algorithms.py"]
+# (Their order as `--durations=0` summed them per file on 2026-11-28.)
+LONGEST_FIRST = ["test_environments.py", "test_clusters.py", "test_faults.py", "test_experiment.py",
+                 "test_resume.py", "test_run_folder.py", "test_algorithms.py", "test_scale_out.py",
+                 "test_trackers.py", "test_first_hour.py", "test_safe_folders.py", "test_qdrl.py",
+                 "test_search.py", "test_terminal.py", "test_locomotion.py", "test_fast_lander.py"]
 
 
 # The quick subset (-m "not slow") is what runs in this process alone: a test that needs a Dask
