@@ -47,8 +47,8 @@ LONGEST_FIRST = ["test_environments.py", "test_clusters.py", "test_faults.py", "
 # The quick subset (-m "not slow") is what runs in this process alone: a test that needs a Dask
 # cluster, a run folder searched on one, a browser or a process of its own is slow, as is one
 # marked so by hand (signals, experiments, clusters of its own).
-HEAVY_FIXTURES = {"dask_cluster", "dask_client", "one_worker_cluster", "tiny_run", "reference", "browser",
-                  "run_process"}
+HEAVY_FIXTURES = {"dask_cluster", "dask_client", "one_worker_cluster", "off_loopback_cluster", "tiny_run",
+                  "reference", "browser", "run_process"}
 
 
 def pytest_collection_modifyitems(items):
@@ -80,6 +80,24 @@ def one_worker_cluster():
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                       dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster:
+        yield cluster
+
+
+@pytest.fixture
+def off_loopback_cluster():
+    """A real local cluster of one worker process on this machine's outward address, not
+    loopback: what a driver takes for workers with cores of their own (cluster.shares_this_machine),
+    so it draws in saver processes."""
+    import ipaddress
+
+    from dask.distributed import LocalCluster
+    from distributed.utils import get_ip
+
+    host = get_ip()
+    if ipaddress.ip_address(host).is_loopback:
+        pytest.skip("this machine has no address but loopback")
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host=host,
+                      dashboard_address=None, silence_logs=logging.ERROR) as cluster:
         yield cluster
 
 

@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from qdsearch.algorithms import ALGORITHMS, build_scheduler
-from qdsearch.cluster import SchedulerLost
+from qdsearch.cluster import SchedulerLost, shares_this_machine
 from qdsearch.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
 from qdsearch.flags import UsageError, clipped
 from qdsearch.gradients import estimate, noise, sample_points
@@ -252,12 +252,13 @@ class Driver:
         self.latest: dict[str, dict] = {}  # run name -> its last metrics row
         self.told = 0  # iterations told in this drive
         self.closing: list[Run] = []  # finished runs whose last save is being written
-        # Run folders are written while the runs go on. A cluster joined by its address runs on
-        # cores of its own, and so may saver processes. On a cluster it starts itself
-        # (--workers), the driver shares the machine's cores with the workers: a saver process
-        # would gain nothing (measured on 2 cores: docs/performance.md) and cost its fork
-        # server's start (its imports: ~1.5 s of CPU): one thread draws.
-        self.savers = Savers(min(SAVER_PROCESSES, self.limit) if client.cluster is None else 0)
+        # Run folders are written while the runs go on. A cluster whose workers are elsewhere
+        # runs on cores of its own, and so may saver processes. On a cluster it starts itself
+        # (--workers), or one joined whose workers all listen on loopback, the driver shares the
+        # machine's cores with the workers: a saver process would gain nothing (measured on 2
+        # cores: docs/performance.md) and cost its fork server's start (its imports: ~1.5 s of
+        # CPU): one thread draws.
+        self.savers = Savers(0 if shares_this_machine(client) else min(SAVER_PROCESSES, self.limit))
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
         self.finished = as_completed(with_results=True, raise_errors=False)

@@ -200,12 +200,12 @@ def test_a_drivers_first_save_does_not_wait_for_its_fork_servers_start(tmp_path)
     assert done.stdout.split() == ["True"]
 
 
-def test_a_driver_killed_with_sigkill_leaves_no_saver_process_behind(tmp_path, dask_cluster):
+def test_a_driver_killed_with_sigkill_leaves_no_saver_process_behind(tmp_path, off_loopback_cluster):
     import psutil  # distributed's own dependency
 
     run_dir = tmp_path / "run"
     process = launch(**{**FLAGS, "iterations": 10_000, "log_every": 1}, outdir=run_dir,
-                     scheduler_address=dask_cluster.scheduler_address)
+                     scheduler_address=off_loopback_cluster.scheduler_address)
     try:
         wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "saves in its saver process")
         savers = psutil.Process(process.pid).children(recursive=True)

@@ -75,23 +75,27 @@ def test_search_on_an_existing_cluster_equals_a_local_run(tmp_path, tiny_run, ru
     assert can_import_the_code(external_cluster) == [True, True]
 
 
+@pytest.mark.parametrize("workers", ["elsewhere", "on loopback"])
 def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_draw_itself(
-        tmp_path, dask_cluster):
-    """The driver's process never draws (every run's tell needs its GIL): its saver process
-    writes the CSV and the pictures, the very bytes the driver would have written."""
+        tmp_path, request, workers):
+    """With workers elsewhere (any address but loopback), the driver's process never draws (every
+    run's tell needs its GIL): its saver process writes the CSV and the pictures, the very bytes
+    the driver would have written. With workers on loopback (this machine's cores), its thread
+    draws them, as with a cluster of its own (no fork server's imports)."""
     import json
 
     from conftest import ROOT
     from qdsearch import saving
     from util import read_checkpoint
 
-    flags = {**tiny_flags(dask_cluster), "outdir": str(tmp_path / "run")}
+    cluster = request.getfixturevalue("off_loopback_cluster" if workers == "elsewhere" else "dask_cluster")
+    flags = {**tiny_flags(cluster), "outdir": str(tmp_path / "run")}
     code = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
             "print('driver imported matplotlib:', 'matplotlib' in sys.modules)")
     result = subprocess.run([sys.executable, "-c", code, json.dumps(flags)], cwd=ROOT,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
-    assert "driver imported matplotlib: False" in result.stdout
+    assert f"driver imported matplotlib: {workers == 'on loopback'}" in result.stdout
 
     checkpoint = read_checkpoint(tmp_path / "run" / "checkpoint.pkl")
     (tmp_path / "here").mkdir()
