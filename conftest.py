@@ -97,7 +97,7 @@ def off_loopback_cluster():
     if ipaddress.ip_address(host).is_loopback:
         pytest.skip("this machine has no address but loopback")
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host=host,
-                      dashboard_address=None, silence_logs=logging.ERROR) as cluster:
+                      dashboard_address=f"{host}:0", silence_logs=logging.ERROR) as cluster:
         yield cluster
 
 
