@@ -29,7 +29,7 @@ from util import (
 pytestmark = pytest.mark.slow  # real scheduler and worker processes
 
 # Two runs long enough for workers to come and go while they fly.
-RUNS = dict(algorithms="cma_me", seeds="1-2", iterations=30, n_emitters=2, batch_size=6, log_every=2)
+RUNS = dict(algorithms="cma_me", seeds="1-2", iterations=50, n_emitters=2, batch_size=6, log_every=2)
 
 
 @pytest.fixture(scope="module")
