@@ -88,13 +88,13 @@ def off_loopback_cluster():
     """A real local cluster of one worker process on this machine's outward address, not
     loopback: what a driver takes for workers with cores of their own (cluster.shares_this_machine),
     so it draws in saver processes."""
-    import ipaddress
-
     from dask.distributed import LocalCluster
     from distributed.utils import get_ip
 
+    from qdsearch.cluster import is_loopback
+
     host = get_ip()
-    if ipaddress.ip_address(host).is_loopback:
+    if is_loopback(host):
         pytest.skip("this machine has no address but loopback")
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host=host,
                       dashboard_address=f"{host}:0", silence_logs=logging.ERROR) as cluster:

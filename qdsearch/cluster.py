@@ -10,7 +10,7 @@ Map:
 - `dask_client`: a client of that scheduler or of a new local cluster (`start_local_cluster`, in
   the memory there is: `check_local_memory`; a worker per core pinned to it: pinning.py), the
   code shipped to it (`ship_code`); a lost scheduler leaves it as a `SchedulerLost`;
-  `shares_this_machine` tells whether its workers run on the driver's machine;
+  `shares_this_machine` tells whether its workers run on the driver's machine (`is_loopback`);
 - the quiet: `quiet_dask_logs`, `not_dask_stop`, `QUIET_CLUSTER`; `preloading` imports what a run
   needs while its cluster starts.
 Every wait is stoppable: Ctrl-C and SIGTERM (stopping.py's STOP) end it at once.
@@ -308,20 +308,24 @@ def shares_this_machine(client) -> bool:
     """Whether the client's workers run on the driver's machine for certain: a local cluster it
     started, or one whose every worker listens on a loopback address (`dask worker`s started here
     on 127.0.0.1). Workers on any other address are taken to have cores of their own."""
-    import ipaddress
-
     from distributed.comm import get_address_host
 
     if client.cluster is not None:
         return True
     hosts = [get_address_host(address) for address in client.scheduler_info()["workers"]]
+    return bool(hosts) and all(map(is_loopback, hosts))
 
-    def loopback(host: str) -> bool:
-        with contextlib.suppress(ValueError):
-            return ipaddress.ip_address(host).is_loopback
-        return host == "localhost"
 
-    return bool(hosts) and all(loopback(host) for host in hosts)
+def is_loopback(host: str) -> bool:
+    """Whether `host` (an IP address or a name) is this machine's loopback."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # another name
+        return False
 
 
 def dashboard_of(client) -> str:

@@ -256,8 +256,8 @@ class Driver:
         # runs on cores of its own, and so may saver processes. On a cluster it starts itself
         # (--workers), or one joined whose workers all listen on loopback, the driver shares the
         # machine's cores with the workers: a saver process would gain nothing (measured on 2
-        # cores: docs/performance.md) and cost its fork server's start (its imports: ~1.5 s of
-        # CPU): one thread draws.
+        # cores: docs/performance.md) and cost its fork server's start (its imports: 3.2-4.0 s of
+        # CPU here, 2026-11-28): one thread draws.
         self.savers = Savers(0 if shares_this_machine(client) else min(SAVER_PROCESSES, self.limit))
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.

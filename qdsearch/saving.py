@@ -97,10 +97,10 @@ def saver_processes(most: int) -> ProcessPoolExecutor:
     the driver closes them once its saves are written. They are forked from multiprocessing's
     fork server, started here (in the main thread, those signals ignored, a disposition its
     children keep), which imports once what a save needs (and the script, as a child of it
-    would). Starting it does not wait for those imports (~1.5 s): the first saver process, and
-    the saver thread that asks for it, do, while the driver's loop goes on. (Waited for here,
-    they held every run of the driver and its workers for ~1.5 s at its first save.) Later saver
-    processes start in ~30 ms."""
+    would). Starting it does not wait for those imports (3.2-4.0 s of CPU here, 2026-11-28): the
+    first saver process, and the saver thread that asks for it, do, while the driver's loop goes
+    on. (Waited for here, they held every run of the driver and its workers at its first save.)
+    Later saver processes start in ~30 ms."""
     if "forkserver" not in multiprocessing.get_all_start_methods():  # not on Windows
         return ProcessPoolExecutor(most, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=start_saving)

@@ -186,7 +186,7 @@ processes.shutdown()
 
 
 def test_a_drivers_first_save_does_not_wait_for_its_fork_servers_start(tmp_path):
-    """The fork server imports what a save needs (~1.5 s): the saver thread waits for it, the
+    """The fork server imports what a save needs (seconds): the saver thread waits for it, the
     driver's loop does not (it held every run of a driver, and its workers, at its first save)."""
     (tmp_path / "sitecustomize.py").write_text(HOLD)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
