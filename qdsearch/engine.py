@@ -167,7 +167,9 @@ class ClusterShare:
     every `every` seconds rather than for every batch (a round trip), since workers come and go
     and a stale count only sizes the chunks, never changes a result. Runs of other drivers on
     the same scheduler are not counted: no measurement showed that counting them pays (the
-    recipes give each part its own scheduler)."""
+    recipes give each part its own scheduler). A scheduler that cannot answer keeps the last
+    count: if it is lost, the driver says so (Driver.check_connected), rather than the run whose
+    batch was being sized failing with the question's broken connection."""
 
     def __init__(self, client, every: float = 2.0) -> None:
         self.client, self.every = client, every
@@ -177,5 +179,8 @@ class ClusterShare:
         """(worker threads, runs sharing them): the driver's own runs, as they are now."""
         if time.monotonic() - self.asked_at > self.every:
             self.asked_at = time.monotonic()
-            self.worker_threads = sum(self.client.nthreads().values())
+            try:
+                self.worker_threads = sum(self.client.nthreads().values())
+            except OSError:  # the comm's faults (CommClosedError, a reset, a refused connection)
+                pass
         return self.worker_threads, own_runs
