@@ -30,18 +30,31 @@ from util import (
 
 pytestmark = pytest.mark.slow  # real scheduler and worker processes
 
-# Two runs long enough for workers to come and go while they fly.
-RUNS = dict(algorithms="cma_me", seeds="1-2", iterations=50, n_emitters=2, batch_size=6, log_every=2)
+# Two runs long enough for workers to come and go while they fly (their comings and goings end
+# by iteration 20-22), and two that need only be under way when their cluster fails (past their
+# first checkpoint, at iteration 2, when it does: ~9 of their 40 iterations told).
+LONG_RUNS = dict(algorithms="cma_me", seeds="1-2", iterations=50, n_emitters=2, batch_size=6, log_every=2)
+SHORT_RUNS = dict(LONG_RUNS, iterations=20)
+
+
+def fly_twins(root, cluster, runs: dict) -> dict:
+    """Each run of `runs` flown alone by `search` on the session's cluster, by seed (saved once,
+    at its end: only the end is compared)."""
+    flags = {k: v for k, v in runs.items() if k not in ("algorithms", "seeds")}
+    for seed in (1, 2):
+        run.search(**tiny_flags(cluster, **flags, seed=seed) | {"log_every": runs["iterations"]},
+                   outdir=str(root / str(seed)))
+    return {seed: root / str(seed) for seed in (1, 2)}
 
 
 @pytest.fixture(scope="module")
-def twins(tmp_path_factory, dask_cluster):
-    """Each run of RUNS flown alone by `search` on the session's cluster, by seed."""
-    root = tmp_path_factory.mktemp("twins")
-    flags = {k: v for k, v in RUNS.items() if k not in ("algorithms", "seeds")}
-    for seed in (1, 2):
-        run.search(**tiny_flags(dask_cluster, **flags, seed=seed), outdir=str(root / str(seed)))
-    return {seed: root / str(seed) for seed in (1, 2)}
+def long_twins(tmp_path_factory, dask_cluster):
+    return fly_twins(tmp_path_factory.mktemp("long_twins"), dask_cluster, LONG_RUNS)
+
+
+@pytest.fixture(scope="module")
+def short_twins(tmp_path_factory, dask_cluster):
+    return fly_twins(tmp_path_factory.mktemp("short_twins"), dask_cluster, SHORT_RUNS)
 
 
 def plan_of(folder):
@@ -61,10 +74,10 @@ def executed(client, worker: str) -> int:
     return client.run(lambda dask_worker: dask_worker.state.executed_count, workers=[worker])[worker]
 
 
-def experiment_under_way(folder, scheduler_file, processes):
-    """The experiment of RUNS as a process joining the scheduler file's cluster, once both runs
+def experiment_under_way(folder, scheduler_file, processes, runs):
+    """The experiment of `runs` as a process joining the scheduler file's cluster, once both runs
     are past iteration 2 (it is added to `processes`)."""
-    experiment = launch("experiment", **RUNS, outdir=folder, scheduler_file=scheduler_file)
+    experiment = launch("experiment", **runs, outdir=folder, scheduler_file=scheduler_file)
     processes.append(experiment)
     wait_for(lambda: (folder / "experiment.json").exists() and all(
         checkpoint_iteration(folder / entry["name"]) >= 2 for entry in plan_of(folder)["runs"]),
@@ -72,12 +85,12 @@ def experiment_under_way(folder, scheduler_file, processes):
     return experiment
 
 
-def test_workers_that_join_retire_and_die_change_nothing(tmp_path, twins):
+def test_workers_that_join_retire_and_die_change_nothing(tmp_path, long_twins):
     scheduler, scheduler_file = start_scheduler(tmp_path / "elsewhere")
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     folder = tmp_path / "exp"
     try:
-        experiment = experiment_under_way(folder, scheduler_file, processes)
+        experiment = experiment_under_way(folder, scheduler_file, processes, LONG_RUNS)
         with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
             processes.append(start_worker(scheduler_file, tmp_path / "w1"))  # joins late
             short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",
@@ -98,18 +111,18 @@ def test_workers_that_join_retire_and_die_change_nothing(tmp_path, twins):
             assert experiment.poll() is None  # all of it happened while the runs flew
         out, err = experiment.communicate(timeout=300)
         assert experiment.returncode == 0, err
-        assert_runs_equal_their_twins(folder, twins)
+        assert_runs_equal_their_twins(folder, long_twins)
     finally:
         stop_all(processes)
 
 
 def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_it(
-        tmp_path, twins):
+        tmp_path, short_twins):
     scheduler, scheduler_file = start_scheduler(tmp_path / "first")
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     folder = tmp_path / "exp"
     try:
-        experiment = experiment_under_way(folder, scheduler_file, processes)
+        experiment = experiment_under_way(folder, scheduler_file, processes, SHORT_RUNS)
         os.killpg(scheduler.pid, signal.SIGKILL)  # its job preempted
         out, err = experiment.communicate(timeout=180)
         assert_one_line_error(Result(experiment.returncode, out, err), "lost the Dask scheduler",
@@ -128,8 +141,9 @@ def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_
         processes += [new_scheduler, start_worker(second, tmp_path / "w1")]
         out, err = resumed.communicate(timeout=300)
         assert resumed.returncode == 0, err
-        assert_runs_equal_their_twins(folder, twins)
-        assert plan_of(folder)["timing"]["iterations"] == sum(RUNS["iterations"] - i for i in held.values())
+        assert_runs_equal_their_twins(folder, short_twins)
+        told = sum(SHORT_RUNS["iterations"] - iteration for iteration in held.values())
+        assert plan_of(folder)["timing"]["iterations"] == told
     finally:
         stop_all(processes)
 
@@ -180,7 +194,7 @@ def part_state(folder, part, parts=2):
 
 
 def test_a_split_experiment_on_two_schedulers_ends_as_its_lone_twins_after_a_worker_and_a_scheduler_die(
-        tmp_path, twins):
+        tmp_path, short_twins):
     """Two parts, each its own process and `dask scheduler`, as two elements of a SLURM array:
     part 1 loses its worker (a new one joins), part 2 its scheduler (resumed on a new one)."""
     folder, processes = tmp_path / "exp", []
@@ -190,7 +204,7 @@ def test_a_split_experiment_on_two_schedulers_ends_as_its_lone_twins_after_a_wor
             scheduler, files[part] = start_scheduler(tmp_path / f"scheduler{part}")
             processes += [scheduler, start_worker(files[part], tmp_path / f"w{part}")]
         schedulers, first_worker = {1: processes[0], 2: processes[2]}, processes[1]
-        parts = {part: launch("experiment", **RUNS, outdir=folder, part=f"{part}/2",
+        parts = {part: launch("experiment", **SHORT_RUNS, outdir=folder, part=f"{part}/2",
                               scheduler_file=files[part]) for part in (1, 2)}
         processes += parts.values()
         wait_for(lambda: (folder / "experiment.json").exists(), parts[1], "the plan")
@@ -198,6 +212,7 @@ def test_a_split_experiment_on_two_schedulers_ends_as_its_lone_twins_after_a_wor
         for part in (1, 2):  # run i belongs to part i mod 2 + 1: one run each
             wait_for(lambda name=names[part]: checkpoint_iteration(folder / name) >= 2, parts[part],
                      f"part {part} under way")
+        assert parts[1].poll() is None  # part 1's run still under way
         os.killpg(first_worker.pid, signal.SIGKILL)  # part 1's worker dies; another joins
         processes.append(start_worker(files[1], tmp_path / "w1b"))
         os.killpg(schedulers[2].pid, signal.SIGKILL)  # part 2's scheduler dies
@@ -212,7 +227,7 @@ def test_a_split_experiment_on_two_schedulers_ends_as_its_lone_twins_after_a_wor
         for process in (parts[1], resumed):
             out, err = process.communicate(timeout=300)
             assert process.returncode == 0, err
-        assert_runs_equal_their_twins(folder, twins)  # experiment.json's plan with the parts' states
+        assert_runs_equal_their_twins(folder, short_twins)  # experiment.json's plan with the parts' states
         assert [part_state(folder, part)["runs"] for part in (1, 2)] == [
             {names[1]: {"state": "done"}}, {names[2]: {"state": "done"}}]
         assert len(part_state(folder, 2)["drives"]) == 2
