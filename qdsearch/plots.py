@@ -5,14 +5,16 @@ Map:
   strip for one measure; for more, the best elite over the others; `draw_cvt`: the Voronoi cells,
   or parallel axes past two measures);
 - `save_progress_plot` and `save_metric_panels`: QD score, coverage and best objective (the
-  PROGRESS_PANELS) against iterations or evaluations, one curve per run or the mean and its 95%
-  bootstrap band (`mean_band`) per group of runs.
+  PROGRESS_PANELS, laid out by `panel_figure`) against iterations or evaluations, one curve per
+  run or the mean and its 95% bootstrap band (`mean_band`) per group of runs; a run's saves draw
+  their thread's progress figure again.
 Each figure has a fixed layout (drawn once, no tight_layout: these run in the search loop) and is
 written whole (run_files.atomic_write).
 """
 
 from __future__ import annotations
 
+import threading
 import warnings
 from pathlib import Path
 
@@ -78,21 +80,55 @@ PROGRESS_PANELS = (("qd_score", "QD score"), ("coverage", "Coverage"),
 
 
 def save_progress_plot(metrics: list[dict], path: Path) -> None:
-    """QD score, coverage and best objective over iterations, side by side."""
-    save_metric_panels({"": [metrics]}, "iteration", "Iteration", path)
+    """QD score, coverage and best objective over iterations, side by side. A run's saves draw
+    this figure again and again: each thread keeps one and moves its curves, which costs about
+    half of drawing a new one (benchmarks/bench_saves.py), and gives the same picture."""
+    from matplotlib.transforms import Bbox
+
+    figure = getattr(_PROGRESS_FIGURES, "figure", None)
+    if figure is None:
+        figure, axes = panel_figure("Iteration")
+        for ax in axes:
+            ax.plot([], [])
+        _PROGRESS_FIGURES.figure = figure
+    x = [row["iteration"] for row in metrics]
+    for ax, (key, _) in zip(figure.axes, PROGRESS_PANELS):
+        ax.lines[0].set_data(x, [np.nan if row[key] is None else row[key] for row in metrics])
+        # The limits a new panel would take: without this, a panel with no value yet (a best
+        # objective still unknown) would keep the last picture's limits.
+        ax.viewLim.set_points(Bbox.unit().get_points())
+        ax.relim()
+        ax.autoscale_view()
+    atomic_write(path, lambda f: figure.savefig(f, format="png", dpi=100))
+
+
+_PROGRESS_FIGURES = threading.local()  # each thread's progress figure (matplotlib is not thread-safe)
+
+
+def panel_figure(x_label: str):
+    """A figure of one panel per metric of PROGRESS_PANELS, titled, with no curve yet: (figure,
+    its axes). Not pyplot's: nothing holds it but its caller."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    figure = Figure(figsize=(15, 4))
+    axes = figure.subplots(1, len(PROGRESS_PANELS))
+    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
+    figure.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
+    for ax, (_, label) in zip(axes, PROGRESS_PANELS):
+        ax.set_xlabel(x_label)
+        ax.xaxis.set_major_locator(MaxNLocator(5))  # evaluations run to 100,000s: labels apart
+        ax.set_title(label)
+        ax.grid(alpha=0.3)
+    return figure, axes
 
 
 def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label: str,
                        path: Path) -> None:
     """One panel per metric of PROGRESS_PANELS, one line per group of runs (labelled if it has a
     label): a run's own curve, or for several runs their mean and its 95% confidence band."""
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
-
-    fig, axes = plt.subplots(1, len(PROGRESS_PANELS), figsize=(15, 4))
-    # A fixed layout: tight_layout would cost more than the plotting (this runs in the search loop).
-    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.9, wspace=0.25)
-    for ax, (key, label) in zip(axes, PROGRESS_PANELS):
+    figure, axes = panel_figure(x_label)
+    for ax, (key, _) in zip(axes, PROGRESS_PANELS):
         for group_label, runs in groups.items():
             length = min(len(metrics) for metrics in runs)
             values = np.array([[np.nan if row[key] is None else row[key] for row in metrics[:length]]
@@ -102,16 +138,11 @@ def save_metric_panels(groups: dict[str, list[list[dict]]], x_key: str, x_label:
             if len(runs) > 1:
                 low, high = mean_band(values)
                 ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
-        ax.set_xlabel(x_label)
-        ax.xaxis.set_major_locator(MaxNLocator(5))  # evaluations run to 100,000s: labels apart
-        ax.set_title(label)
-        ax.grid(alpha=0.3)
     labelled = any(groups)
     if labelled:  # beside the panels, where it hides no curve
         axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100,
-                                             bbox_inches="tight" if labelled else None))
-    plt.close(fig)
+    atomic_write(path, lambda f: figure.savefig(f, format="png", dpi=100,
+                                                bbox_inches="tight" if labelled else None))
 
 
 def mean_band(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -276,12 +276,16 @@ def test_every_policy_row_says_its_own_flags():
 
 def test_curves_over_evaluations_keep_their_tick_labels_apart(tmp_path, monkeypatch):
     """Budgets of 100,000s of evaluations: at most 6 labels on a panel's x axis, none overlapping."""
-    import matplotlib.pyplot as plt
-
     from qdsearch import plots
 
-    drawn = []
-    monkeypatch.setattr(plt, "close", drawn.append)  # keep the figure to read its axes
+    drawn, panel_figure = [], plots.panel_figure
+
+    def kept(*args):  # the figure, to read its axes
+        figure, axes = panel_figure(*args)
+        drawn.append(figure)
+        return figure, axes
+
+    monkeypatch.setattr(plots, "panel_figure", kept)
     rows = [{"evaluations": 200 * i, "qd_score": i * 1e4, "coverage": i / 100, "best_objective": float(i)}
             for i in range(1, 81)]
     plots.save_metric_panels({"run": [rows]}, "evaluations", "Evaluations", tmp_path / "curves.png")

@@ -1,6 +1,7 @@
 """The runner: a tiny search writes a complete, valid run folder; seeds make runs repeatable."""
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pandas as pd
@@ -8,11 +9,35 @@ from matplotlib.image import imread
 from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
-from qdsearch import cpu_flags, run
+from qdsearch import cpu_flags, plots, run
 from util import archive_table, launch, load_pickle, read_checkpoint, run_archive, run_metrics, tiny_flags
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"]
+
+
+def test_a_progress_plot_drawn_again_is_the_picture_of_a_new_figure(tmp_path):
+    """A thread's saves draw its progress figure again (its curves moved): each picture must be
+    the one a new figure gives, in a thread that has drawn none, whatever came before it (a
+    longer run's curves, a best objective still unknown)."""
+    rng = np.random.default_rng(0)
+    rows = [{"iteration": i, "qd_score": float(q), "coverage": float(q) / 1e4,
+             "best_objective": None if i < 3 else float(b)}
+            for i, (q, b) in enumerate(zip(np.cumsum(rng.uniform(0, 500, 80)), rng.normal(0, 100, 80)), 1)]
+
+    def drawn(metrics, name):
+        plots.save_progress_plot(metrics, tmp_path / name)
+        return (tmp_path / name).read_bytes()
+
+    def drawn_anew(metrics, name):
+        with ThreadPoolExecutor(1) as thread:
+            return thread.submit(drawn, metrics, name).result()
+
+    with ThreadPoolExecutor(1) as saver:
+        again = [saver.submit(drawn, rows[:n], f"again{n}.png").result() for n in (80, 2, 40, 5)]
+    anew = [drawn_anew(rows[:n], f"anew{n}.png") for n in (80, 2, 40, 5)]
+    assert again == anew
+    assert len(set(anew)) == 4  # four different pictures
 
 
 def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys):
