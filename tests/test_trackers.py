@@ -122,7 +122,9 @@ def test_the_pictures_of_every_save_and_the_config_are_tracked(tracked):
 @pytest.mark.slow  # real tracked searches
 def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
-    flags = {**tiny_flags(dask_cluster, iterations=9, log_every=3, track=ALL), "outdir": run_dir}
+    # The first checkpoint (iteration 3) is written once the trackers have started, and the loop
+    # goes on meanwhile: the stop held iteration 8-12 here (2026-11-28; 4 tries). 24 leave room.
+    flags = {**tiny_flags(dask_cluster, iterations=24, log_every=3, track=ALL), "outdir": run_dir}
     process = launch(*[], **flags)
     wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "the run past iteration 3")
     process.send_signal(signal.SIGTERM)
@@ -130,7 +132,7 @@ def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_clu
     assert process.returncode == 130, err
     experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
 
-    steps = list(range(1, 10))
+    steps = list(range(1, 25))
     assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == steps
     assert [e.step for e in tensorboard_of(run_dir / "tensorboard", "by_evaluations").Scalars(
         "qd/qd_score")] == [row["evaluations"] for row in metrics_of(run_dir)]
