@@ -122,8 +122,8 @@ def test_the_pictures_of_every_save_and_the_config_are_tracked(tracked):
 @pytest.mark.slow  # real tracked searches
 def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
-    # The first checkpoint (iteration 3) is written once the trackers have started, and the loop
-    # goes on meanwhile: the stop held iteration 8-12 here (2026-11-28; 4 tries). 24 leave room.
+    # The loop goes on while the test sees the first checkpoint (iteration 3) and signals: the
+    # stop held iteration 8-12 here (2026-11-28, 4 tries). 24 iterations leave it room to land.
     flags = {**tiny_flags(dask_cluster, iterations=24, log_every=3, track=ALL), "outdir": run_dir}
     process = launch(*[], **flags)
     wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "the run past iteration 3")
