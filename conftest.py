@@ -10,7 +10,6 @@ processes the tests start inherit it.
 import atexit
 import contextlib
 import io
-import logging
 import os
 import shutil
 import signal
@@ -64,10 +63,9 @@ def pytest_collection_modifyitems(items):
 @pytest.fixture(scope="session")
 def dask_cluster():
     """A real local cluster of two single-threaded worker processes, as `--workers 2` starts."""
-    from dask.distributed import LocalCluster
+    from util import local_cluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster:
+    with local_cluster(2) as cluster:
         yield cluster
 
 
@@ -76,10 +74,9 @@ def one_worker_cluster():
     """A real local cluster of one single-threaded worker process, as `--workers 1` starts: what
     the runs that must equal their two-worker twins fly on (one cluster for all of them, not one
     each)."""
-    from dask.distributed import LocalCluster
+    from util import local_cluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster:
+    with local_cluster(1) as cluster:
         yield cluster
 
 
@@ -88,16 +85,15 @@ def off_loopback_cluster():
     """A real local cluster of one worker process on this machine's outward address, not
     loopback: what a driver takes for workers with cores of their own (cluster.shares_this_machine),
     so it draws in saver processes."""
-    from dask.distributed import LocalCluster
     from distributed.utils import get_ip
 
     from qdsearch.cluster import is_loopback
+    from util import local_cluster
 
     host = get_ip()
     if is_loopback(host):
         pytest.skip("this machine has no address but loopback")
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host=host,
-                      dashboard_address=f"{host}:0", silence_logs=logging.ERROR) as cluster:
+    with local_cluster(1, host) as cluster:
         yield cluster
 
 

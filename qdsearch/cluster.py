@@ -11,8 +11,9 @@ Map:
   the memory there is: `check_local_memory`; a worker per core pinned to it: pinning.py), the
   code shipped to it (`ship_code`); a lost scheduler leaves it as a `SchedulerLost`;
   `shares_this_machine` tells whether its workers run on the driver's machine (`is_loopback`);
-- the quiet: `quiet_dask_logs`, `not_dask_stop`, `QUIET_CLUSTER`; `preloading` imports what a run
-  needs while its cluster starts.
+- the quiet: `quiet_dask_logs` (with `not_a_future_released_late`), `not_dask_stop`,
+  `QUIET_CLUSTER` (`QUIET_ENVIRONMENT` for the processes started by hand); `preloading` imports
+  what a run needs while its cluster starts.
 Every wait is stoppable: Ctrl-C and SIGTERM (stopping.py's STOP) end it at once.
 """
 
@@ -426,6 +427,18 @@ def quiet_dask_logs() -> None:
     must know of is reported by this script, in one line."""
     for name in ("distributed", "distributed.client"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
+    if sys.unraisablehook is not not_a_future_released_late:
+        sys.unraisablehook = not_a_future_released_late
+
+
+def not_a_future_released_late(unraisable: Any) -> None:
+    """Python's hook for the faults of a `__del__`, less Dask's futures': a future collected after
+    its client has closed (the run stopped, its scheduler lost) can fail to release itself, and
+    its `__del__` means to be silent then, but knows only the interpreter's end, which exit_now
+    skips (dask/distributed#8500). Seen once in the suite, after an experiment's SIGTERM."""
+    where = getattr(unraisable.object, "__qualname__", ""), getattr(unraisable.object, "__module__", "")
+    if where != ("Future.__del__", "distributed.client"):
+        sys.__unraisablehook__(unraisable)
 
 
 def not_dask_stop(record: logging.LogRecord) -> bool:
@@ -436,15 +449,16 @@ def not_dask_stop(record: logging.LogRecord) -> bool:
     return not (record.exc_info and type(record.exc_info[1]).__name__ in ("AllExit", "CommClosedError"))
 
 
-# Dask's housekeeping runs in the main process (the scheduler, and the nannies of the local
-# workers): at its default pace (memory checks every 100 ms per worker, system monitor every
-# 500 ms, event-loop ticks every 20 ms) it took ~6% of a core here, from the workers' 2 cores.
-# And each worker's statistical profiler (the dashboard's Profile page) samples the running
-# task's stack every 10 ms, taking the GIL from rollouts that hold it: switched off, the
-# 2-worker, 4-run experiment drove its runs ~5% faster (13.5-14.0 s against 14.3-14.7 s in 7 of
-# 8 pairs, 2026-11-25). Workers started by hand take it from the environment
-# (DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False: docs/slurm.sbatch).
+# Dask's housekeeping (memory checks every 100 ms per worker, system monitor every 500 ms,
+# event-loop ticks every 20 ms) and each worker's statistical profiler (the dashboard's Profile
+# page, which samples the running task's stack every 10 ms and takes the GIL from its rollouts)
+# cost CPU that the rollouts need: at this pace an idle 2-worker cluster takes ~1/5 of what it
+# takes at Dask's, and a busy one drives its runs faster (docs/performance.md#dask-housekeeping).
 QUIET_CLUSTER = {"distributed.worker.memory.monitor-interval": "1s",
                  "distributed.admin.system-monitor.interval": "2s",
                  "distributed.admin.tick.interval": "200ms",
                  "distributed.worker.profile.enabled": False}
+# The same settings for schedulers and workers started by hand (`dask scheduler`, `dask worker`:
+# docs/slurm.sbatch), which read them from their environment.
+QUIET_ENVIRONMENT = {"DASK_" + key.upper().replace(".", "__").replace("-", "_"): str(value)
+                     for key, value in QUIET_CLUSTER.items()}

@@ -257,6 +257,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
                            f"0.02; at most {MAX_STEP:g}).", number_up_to(MAX_STEP), sweep=True, label=19),
     "log_every": Flag(25, "Log a line and refresh the run folder every this many iterations.",
                       positive_int),
+    "pictures": Flag(True, "Draw heatmap.png, heatmaps/ and progress.png at each refresh; false "
+                           "writes the data alone (archive.csv, archive.npz, metrics.json), which "
+                           "every results command reads: the pictures are most of a refresh's CPU.",
+                     boolean),
     "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "
                          "empty.", per_run=True),
     "scheduler_address": CLUSTER_FLAGS["scheduler_address"],

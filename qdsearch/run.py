@@ -74,7 +74,7 @@ def search(config: str | None = None, **flags: Any) -> None:
         with run_session(run_dir, config.workers, address) as (client, log):
             OneRun(client, log, run_dir, config.iterations,
                    lambda: Run.start(run_dir, config, client, log, seed_archive)).drive()
-    print(where_to_look(run_dir))
+    print(where_to_look(run_dir, config.pictures))
 
 
 # What --config does not take from its file: where the new run goes and the cluster it flies on.
@@ -132,13 +132,14 @@ def resume_run(run_dir: str, **flags: Any) -> None:
                 run.target = iterations  # --iterations below the run's own stops it there
                 return run
             OneRun(client, log, path, iterations, make).drive()
-    print(where_to_look(path))
+    print(where_to_look(path, config.pictures))
 
 
-def where_to_look(run_dir: Path) -> str:
+def where_to_look(run_dir: Path, pictures: bool) -> str:
     """The end of a finished search: where its results are, and the commands that show them."""
     folder = shlex.quote(str(run_dir))
-    return (f"Results in {run_dir}: heatmap.png, progress.png, metrics.json, archive.csv. Look at "
+    drawn = "heatmap.png, progress.png, " if pictures else ""
+    return (f"Results in {run_dir}: {drawn}metrics.json, archive.csv. Look at "
             f"them with:\n  python lunar_lander.py explore {folder}      # a page to browse the "
             f"archive and watch any elite\n  python lunar_lander.py video {folder} --best   # an "
             f"mp4 of the best elite")

@@ -3,8 +3,8 @@ cluster with cores of its own, the saver processes that draw the runs' CSVs and 
 
 Map:
 - `save_outputs`: a run folder's files besides the checkpoint (metrics, archive.pkl for pyribs'
-  users, archive.npz for the results commands, archive.csv, heatmaps, progress plot): what a save
-  costs, nearly all of it;
+  users, archive.npz for the results commands, archive.csv, and `save_pictures`: heatmaps,
+  progress plot): what a save costs, nearly all of it;
 - `Savers`: the threads a driver's saves run in, and the processes (`saver_processes`) they
   hand `save_outputs` to (`write_outputs`), started as saves come, with Ctrl-C and SIGTERM
   ignored; if one dies, the threads write the saves themselves.
@@ -36,14 +36,21 @@ SAVER_PROCESSES = 2
 
 def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
     """The run folder's files besides the checkpoint: metrics, the archive (a pickle for pyribs'
-    users, archive.npz for the results commands, which never unpickle), its CSV, the heatmaps and
-    the progress plot. At a full Lunar Lander archive (300 iterations) they take ~0.27 s of CPU,
-    the CSV and the pictures nearly all of it (benchmarks/bench_saves.py; archive.npz ~5 ms)."""
+    users, archive.npz for the results commands, which never unpickle), its CSV, and unless
+    --pictures is false the heatmaps and the progress plot. At a full Lunar Lander archive (300
+    iterations) they take ~0.27 s of CPU, the CSV and the pictures nearly all of it
+    (benchmarks/bench_saves.py; archive.npz ~5 ms)."""
     write_json(run_dir / "metrics.json", metrics)
     # archive.npz before archive.pkl: a reader that finds the pickle finds the data it reads too.
     write_archive_data(run_dir / "archive.npz", archive, config)
     write_pickle(run_dir / "archive.pkl", archive)
     write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
+    if config["pictures"]:
+        save_pictures(run_dir, archive, metrics, config, iteration)
+
+
+def save_pictures(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
+    """The heatmap (a snapshot in heatmaps/, and heatmap.png) and the progress plot."""
     title = f"{config['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
     save_heatmap(archive, [MEASURES[m] for m in config["measures"]], snapshot, title,

@@ -244,7 +244,7 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path, dask_cluster, tiny_runs,
                                                                        algorithm, one_worker_cluster):
     run_dir = tmp_path / "run"
-    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
+    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1, pictures=False), outdir=str(run_dir))
     experiments.resume(str(run_dir), iterations=2, scheduler_address=one_worker_cluster.scheduler_address)
 
     reference = tiny_runs[algorithm]

@@ -191,7 +191,7 @@ def test_scheduler_files_that_are_folders_or_empty_are_refused_at_once(run_cli, 
 @pytest.mark.slow
 def test_a_search_whose_scheduler_dies_says_so_in_one_line_and_resumes_to_its_twin(
         tmp_path, dask_cluster):
-    flags = tiny_flags(iterations=20, log_every=2, seed=11)
+    flags = tiny_flags(iterations=20, log_every=2, seed=11, pictures=False)  # no picture is compared
     scheduler, scheduler_file = start_scheduler(tmp_path / "first")
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     run_dir = tmp_path / "run"

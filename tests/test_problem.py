@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from qdsearch import engine, lander, options, run_config, tasks
-from util import LANDER, LANDER_W
+from util import LANDER, LANDER_W, local_cluster
 
 
 def step_trace(weights: np.ndarray, env_seed: int) -> list[tuple[int, np.ndarray, float]]:
@@ -140,12 +140,11 @@ def test_a_drivers_runs_in_flight_share_the_chunks_and_never_change_the_results(
     """ClusterShare counts the cluster's worker threads (a worker that joins is counted at the next
     refresh) and the driver's own runs; more runs in flight split each batch into fewer chunks, and
     the rows come back the same."""
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
 
     from qdsearch.engine import ClusterShare
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client:
+    with local_cluster(2) as cluster, Client(cluster) as client:
         share = ClusterShare(client, every=0.0)
         assert share(3) == (2, 3)
         cluster.scale(3)
@@ -164,12 +163,11 @@ def test_a_drivers_runs_in_flight_share_the_chunks_and_never_change_the_results(
 @pytest.mark.slow  # a cluster of its own
 def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
     """Each thread keeps its own environment: threads that shared one would mix their episodes."""
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
 
     solutions = np.random.default_rng(0).normal(0, 1, (150, tasks.ENVIRONMENTS[LANDER].solution_dim))
     serial = engine.fly_chunk(solutions, np.full(150, 52), (), True, LANDER)
-    with LocalCluster(n_workers=1, threads_per_worker=4, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client:
+    with local_cluster(1, threads=4) as cluster, Client(cluster) as client:
         futures = engine.submit_flights(client, solutions, [52], (), True, env_name=LANDER)
         assert len(futures) == 8  # 2 chunks for each of the 4 threads, flown at once
         assert np.array_equal(engine.per_terrain(client.gather(futures), [52])[:, 0], serial)

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from util import run_archive, run_metrics, tiny_flags
+from util import run_archive, run_metrics, start_scheduler, start_worker, stop_all, tiny_flags
 
 pytestmark = pytest.mark.slow  # real processes, signals, clusters: not in the quick subset
 
@@ -20,30 +20,15 @@ def external_cluster(tmp_path):
     from dask.distributed import Client
 
     elsewhere = tmp_path / "elsewhere"
-    elsewhere.mkdir()
-    scheduler_file = elsewhere / "scheduler.json"
-    processes = [subprocess.Popen(
-        [sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
-         "--no-dashboard", "--scheduler-file", str(scheduler_file)], cwd=elsewhere,
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    scheduler, scheduler_file = start_scheduler(elsewhere)
+    processes = [scheduler]
     try:
-        deadline = time.time() + 60
-        while not scheduler_file.exists() and time.time() < deadline:
-            time.sleep(0.1)
-        for i in range(2):
-            processes.append(subprocess.Popen(
-                [sys.executable, "-m", "dask", "worker", "--scheduler-file", str(scheduler_file),
-                 "--nthreads", "1", "--nworkers", "1", "--no-dashboard",
-                 "--local-directory", str(elsewhere / f"w{i}")],
-                cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        processes += [start_worker(scheduler_file, elsewhere / f"w{i}") for i in range(2)]
         with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
             client.wait_for_workers(2, timeout=60)
             yield client
     finally:
-        for process in reversed(processes):
-            process.terminate()
-        for process in processes:
-            process.wait(timeout=60)
+        stop_all(processes)
 
 
 def can_import_the_code(client) -> list[bool]:
@@ -217,19 +202,12 @@ def test_a_cluster_where_some_workers_have_the_code_and_some_do_not_gets_it_ever
 
     from conftest import ROOT
     from qdsearch.cluster import ship_code
-    from util import start_scheduler, stop_all
 
     scheduler, scheduler_file = start_scheduler(tmp_path / "scheduler")
     processes = [scheduler]
     try:
         for i, path in enumerate(("", str(ROOT))):
-            folder = tmp_path / f"w{i}"
-            folder.mkdir()
-            processes.append(subprocess.Popen(
-                [sys.executable, "-m", "dask", "worker", "--scheduler-file", str(scheduler_file),
-                 "--nthreads", "1", "--no-dashboard", "--local-directory", str(folder)],
-                cwd=folder, env={**os.environ, "PYTHONPATH": path}, stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL, start_new_session=True))
+            processes.append(start_worker(scheduler_file, tmp_path / f"w{i}", PYTHONPATH=path))
         with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
             client.wait_for_workers(2, timeout=60)
             assert sorted(can_import_the_code(client)) == [False, True]

@@ -10,7 +10,16 @@ from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
 from qdsearch import cpu_flags, plots, run
-from util import archive_table, launch, load_pickle, read_checkpoint, run_archive, run_metrics, tiny_flags
+from util import (
+    archive_table,
+    assert_same_run,
+    launch,
+    load_pickle,
+    read_checkpoint,
+    run_archive,
+    run_metrics,
+    tiny_flags,
+)
 
 RUN_FILES = ["config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"]
@@ -100,6 +109,26 @@ def test_same_seed_same_archive_with_one_or_two_workers(tmp_path, tiny_run, run_
     one = run_archive(tmp_path / "one")
     assert len(one) > 0 and one.equals(run_archive(tiny_run))
     assert run_metrics(tmp_path / "one") == run_metrics(tiny_run)
+
+
+def test_a_run_without_pictures_is_the_same_run_with_its_data_alone(tmp_path, tiny_run, run_cli,
+                                                                  dask_cluster):
+    """--pictures false, from the command line and kept by resume: the same archive, metrics and
+    next asks as the run that draws, no picture anywhere in its folder, and the results commands
+    read it."""
+    run_dir = tmp_path / "plain"
+    address = ["--scheduler_address", dask_cluster.scheduler_address]
+    flags = [f"--{k}={v}" for k, v in tiny_flags(iterations=1).items()]
+    started = run_cli(*flags, "--pictures", "false", "--outdir", run_dir, *address)
+    resumed = run_cli("resume", run_dir, "--iterations", "3", *address)
+    assert started.returncode == resumed.returncode == 0, (started.stderr, resumed.stderr)
+    assert_same_run(run_dir, tiny_run)
+    assert json.loads((run_dir / "config.json").read_text())["pictures"] is False
+    assert sorted(p.name for p in run_dir.rglob("*.png")) == []
+    assert {"heatmap.png", "progress.png"} <= {p.name for p in tiny_run.iterdir()}
+    assert f"Results in {run_dir}: metrics.json, archive.csv. Look at them with:" in resumed.stdout
+    assert run_cli("elites", run_dir, "--top", "2").returncode == 0
+    assert len(pd.read_csv(run_dir / "elites.csv")) == 2
 
 
 def test_another_seed_gives_another_archive(tmp_path, dask_cluster, tiny_run):

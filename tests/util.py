@@ -169,30 +169,52 @@ def checkpoint_iteration(run_dir: Path) -> int:
         return -1
 
 
-def start_scheduler(folder: Path) -> tuple[subprocess.Popen, Path]:
-    """`dask scheduler --scheduler-file` on loopback, started in `folder` (where no code of ours
-    is): the process and its scheduler file, once written."""
+def local_cluster(workers: int, host: str = "127.0.0.1", threads: int = 1):
+    """A real local cluster of `workers` worker processes of `threads` threads on `host`, with the
+    housekeeping a search's own local cluster has (cluster.QUIET_CLUSTER)."""
+    import logging
+
+    import dask
+    from dask.distributed import LocalCluster
+
+    from qdsearch.cluster import QUIET_CLUSTER
+
+    with dask.config.set(QUIET_CLUSTER):
+        return LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True, host=host,
+                            dashboard_address=f"{host}:0", silence_logs=logging.ERROR)
+
+
+def by_hand(command: list[str], folder: Path, **environment: str) -> subprocess.Popen:
+    """A `dask` command started in `folder` (where no code of ours is) in a session of its own, as
+    docs/slurm.sbatch starts it: with cluster.QUIET_ENVIRONMENT, and `environment`."""
+    import os
+
+    from qdsearch.cluster import QUIET_ENVIRONMENT
+
     folder.mkdir(parents=True, exist_ok=True)
+    return subprocess.Popen([sys.executable, "-m", "dask", *command], cwd=folder,
+                            env={**os.environ, **QUIET_ENVIRONMENT, **environment},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+def start_scheduler(folder: Path) -> tuple[subprocess.Popen, Path]:
+    """`dask scheduler --scheduler-file` on loopback, started in `folder`: the process and its
+    scheduler file, once written."""
     scheduler_file = folder / "scheduler.json"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
-         "--no-dashboard", "--scheduler-file", str(scheduler_file)], cwd=folder,
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    process = by_hand(["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                       "--scheduler-file", str(scheduler_file)], folder)
     deadline = time.time() + 60
     while not scheduler_file.exists() and time.time() < deadline:
         time.sleep(0.05)
     return process, scheduler_file
 
 
-def start_worker(scheduler_file: Path, folder: Path, *options: str) -> subprocess.Popen:
+def start_worker(scheduler_file: Path, folder: Path, *options: str, **environment: str) -> subprocess.Popen:
     """`dask worker --scheduler-file F --nthreads 1` (a nanny and its worker) in a folder of its
     own, as an HPC job starts one; `options` such as --lifetime."""
-    folder.mkdir(parents=True, exist_ok=True)
-    return subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file", str(scheduler_file),
-                             "--nthreads", "1", "--nworkers", "1", "--no-dashboard",
-                             "--local-directory", str(folder), *options],
-                            cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    return by_hand(["worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1",
+                    "--nworkers", "1", "--no-dashboard", "--local-directory", str(folder), *options],
+                   folder, **environment)
 
 
 def stop_all(processes: list[subprocess.Popen]) -> None:
