@@ -182,11 +182,12 @@ def test_a_row_whose_emitters_cannot_hold_the_network_is_refused_at_once(run_cli
 @pytest.fixture(scope="module")
 def dqd_runs(tmp_path_factory, dask_cluster, one_worker_cluster):
     """The tiny DQD run on the shared 2-worker cluster, on the 1-worker one, and stopped after 2
-    iterations then resumed to 4."""
-    root = tmp_path_factory.mktemp("dqd")
-    run.search(**tiny_flags(dask_cluster, **DQD, iterations=4, seed=11), outdir=str(root / "two"))
-    run.search(**tiny_flags(one_worker_cluster, **DQD, iterations=4, seed=11), outdir=str(root / "one"))
-    run.search(**tiny_flags(dask_cluster, **DQD, iterations=2, seed=11), outdir=str(root / "resumed"))
+    iterations then resumed to 4; their data alone (what they are compared by, what the results
+    commands read)."""
+    root, flags = tmp_path_factory.mktemp("dqd"), dict(DQD, pictures=False, seed=11)
+    run.search(**tiny_flags(dask_cluster, **flags, iterations=4), outdir=str(root / "two"))
+    run.search(**tiny_flags(one_worker_cluster, **flags, iterations=4), outdir=str(root / "one"))
+    run.search(**tiny_flags(dask_cluster, **flags, iterations=2), outdir=str(root / "resumed"))
     experiments.resume(str(root / "resumed"), iterations=4, scheduler_address=dask_cluster.scheduler_address)
     return root
 
