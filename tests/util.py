@@ -1,6 +1,7 @@
 """Helpers shared by the tests: the tiny run's flags, reading run folders, comparing runs, real
-processes, the one-line error check, policies that land and hover, a small real disk, and the
-explorer page's data."""
+processes, Dask clusters started as a search and an HPC job start them (local_cluster, by_hand),
+the one-line error check, policies that land and hover, a small real disk, and the explorer
+page's data."""
 
 import contextlib
 import dataclasses
