@@ -62,6 +62,14 @@ def local_cluster_cost(quiet: bool, seconds: float) -> dict:
     return {"driver_scheduler_nannies": costs[0], "workers": sum(costs[1:])}
 
 
+def waited_for(condition, what: str, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{what} did not come within {timeout:.0f} s")
+        time.sleep(0.1)
+
+
 def by_hand_cost(quiet: bool, seconds: float) -> dict:
     """A `dask scheduler` and a `dask worker` (its nanny and its worker process)."""
     environment = {**os.environ, **(QUIET_ENVIRONMENT if quiet else {})}
@@ -72,13 +80,12 @@ def by_hand_cost(quiet: bool, seconds: float) -> dict:
                                      "--port", "0", "--no-dashboard", "--scheduler-file",
                                      str(scheduler_file)], **quietly)]
         try:
-            while not scheduler_file.exists():
-                time.sleep(0.1)
+            waited_for(scheduler_file.exists, "the scheduler file")
             started.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file",
                                              str(scheduler_file), "--nthreads", "1", "--no-dashboard",
                                              "--local-directory", folder], **quietly))
-            while len(psutil.Process(started[1].pid).children()) < 2:  # its worker (and a tracker)
-                time.sleep(0.2)
+            waited_for(lambda: len(psutil.Process(started[1].pid).children()) >= 2,  # worker, tracker
+                       "the worker process")
             time.sleep(8)  # the worker's imports and its registration
             nanny = psutil.Process(started[1].pid)
             worker = max(nanny.children(), key=lambda child: child.memory_info().rss)
