@@ -150,7 +150,10 @@ def restarted(client, name: int, old_address: str, count: int) -> bool:
 def on_cores(cores: set[int]):
     """This process, every thread of it, on `cores` (a big machine's test starts two workers, not
     one per core), and back as it was."""
-    threads = {int(thread): os.sched_getaffinity(int(thread)) for thread in os.listdir("/proc/self/task")}
+    threads = {}
+    for thread in map(int, os.listdir("/proc/self/task")):
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile (CI saw one)
+            threads[thread] = os.sched_getaffinity(thread)
     for thread in threads:
         with contextlib.suppress(OSError):
             os.sched_setaffinity(thread, cores)
