@@ -36,11 +36,11 @@ os.environ["QDSEARCH_KEY"] = os.environ["QDSEARCH_TESTS_KEY"]
 # The files whose tests take longest (real processes, signals, full experiments), longest first.
 # pytest-xdist hands whole files to its workers in collection order (see pyproject.toml): the long
 # ones first keeps the workers' loads even, as the short files fill in at the end.
-# (Their order as `--durations=0` summed them per file on 2026-11-28.)
+# (Their order as `--durations=0` summed them per file on 2026-11-29.)
 LONGEST_FIRST = ["test_environments.py", "test_clusters.py", "test_faults.py", "test_experiment.py",
-                 "test_resume.py", "test_run_folder.py", "test_algorithms.py", "test_scale_out.py",
-                 "test_trackers.py", "test_first_hour.py", "test_safe_folders.py", "test_qdrl.py",
-                 "test_search.py", "test_terminal.py", "test_locomotion.py", "test_fast_lander.py"]
+                 "test_scale_out.py", "test_trackers.py", "test_run_folder.py", "test_first_hour.py",
+                 "test_terminal.py", "test_algorithms.py", "test_qdrl.py", "test_search.py", "test_resume.py",
+                 "test_guards.py", "test_safe_folders.py", "test_parsers.py", "test_locomotion.py"]
 
 
 # The quick subset (-m "not slow") is what runs in this process alone: a test that needs a Dask
@@ -107,12 +107,12 @@ def dask_client(dask_cluster):
 
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory, dask_cluster):
-    """A tiny finished run folder (3 iterations, a few dozen elites), shared: only read it; a test
-    that writes in a run folder copies it first."""
+    """A tiny finished run folder (3 iterations, a few dozen elites), with its pictures, as a user's
+    run has them; shared: only read it; a test that writes in a run folder copies it first."""
     from util import tiny_flags
 
     run_dir = tmp_path_factory.mktemp("tiny") / "run"
-    run.search(**tiny_flags(dask_cluster), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster, pictures=True), outdir=str(run_dir))
     return run_dir
 
 

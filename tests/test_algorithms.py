@@ -100,14 +100,16 @@ def next_asks(scheduler, dqd: bool) -> np.ndarray:
 
 
 class TinyRuns(dict):
-    """A 2-iteration run folder of each algorithm, made when a test first asks for it."""
+    """A 2-iteration run folder of each algorithm, with its pictures, made when a test first asks
+    for it."""
 
     def __init__(self, root, cluster) -> None:
         super().__init__()
         self.root, self.cluster = root, cluster
 
     def __missing__(self, algorithm: str):
-        run.search(**algorithm_flags(self.cluster, algorithm), outdir=str(self.root / algorithm))
+        run.search(**algorithm_flags(self.cluster, algorithm, pictures=True),
+                   outdir=str(self.root / algorithm))
         self[algorithm] = self.root / algorithm
         return self[algorithm]
 
@@ -244,7 +246,7 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path, dask_cluster, tiny_runs,
                                                                        algorithm, one_worker_cluster):
     run_dir = tmp_path / "run"
-    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1, pictures=False), outdir=str(run_dir))
+    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
     experiments.resume(str(run_dir), iterations=2, scheduler_address=one_worker_cluster.scheduler_address)
 
     reference = tiny_runs[algorithm]

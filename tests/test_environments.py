@@ -29,9 +29,6 @@ from util import (
 RNG = np.random.default_rng(20)
 OTHER_ROWS = [name for name in tasks.ENVIRONMENTS if name != tasks.DEFAULT_ENV]
 WALKER = "BipedalWalker-v3"
-# The rows' runs are compared by their data, and the results commands read it: their pictures, which
-# cost more than their rollouts, are left out (test_search: a run without them is the same run).
-PLAIN = {"pictures": False}
 
 
 def policies(env_name: str, count: int = 4) -> np.ndarray:
@@ -101,7 +98,7 @@ def task_runs(tmp_path_factory, dask_cluster):
     runs = {}
     for env_name in OTHER_ROWS:
         runs[env_name] = tmp_path_factory.mktemp("tasks") / env_name
-        run.search(**tiny_flags(dask_cluster, env=env_name, **PLAIN), outdir=str(runs[env_name]))
+        run.search(**tiny_flags(dask_cluster, env=env_name), outdir=str(runs[env_name]))
     return runs
 
 
@@ -114,9 +111,9 @@ def test_one_worker_and_a_resumed_run_equal_the_straight_run(env_name, task_runs
     assert config["env"] == env_name and config["measures"] == list(tasks.ENVIRONMENTS[env_name].measures)
     archive = run_archive(straight)
     assert len(archive) > 0 and archive["solution_0"].notna().all()
-    run.search(**tiny_flags(one_worker_cluster, env=env_name, **PLAIN), outdir=str(tmp_path / "one"))
+    run.search(**tiny_flags(one_worker_cluster, env=env_name), outdir=str(tmp_path / "one"))
     assert_same_run(tmp_path / "one", straight)
-    run.search(**tiny_flags(dask_cluster, env=env_name, iterations=1, **PLAIN),
+    run.search(**tiny_flags(dask_cluster, env=env_name, iterations=1),
                outdir=str(tmp_path / "resumed"))
     experiments.resume(str(tmp_path / "resumed"), iterations=3,
                        scheduler_address=dask_cluster.scheduler_address)
@@ -131,7 +128,7 @@ def experiment_flags(search_flags: dict) -> dict:
 @pytest.mark.slow
 @pytest.mark.parametrize("env_name", OTHER_ROWS)
 def test_an_experiments_run_equals_its_lone_twin(env_name, task_runs, tmp_path, dask_cluster):
-    flags = experiment_flags(tiny_flags(dask_cluster, env=env_name, **PLAIN))
+    flags = experiment_flags(tiny_flags(dask_cluster, env=env_name))
     experiments.experiment(algorithms="cma_me", seeds="7", outdir=str(tmp_path / "exp"), **flags)
     [entry] = json.loads((tmp_path / "exp" / "experiment.json").read_text())["runs"]
     assert_same_run(tmp_path / "exp" / entry["name"], task_runs[env_name])
@@ -140,7 +137,7 @@ def test_an_experiments_run_equals_its_lone_twin(env_name, task_runs, tmp_path, 
 @pytest.fixture(scope="module")
 def walker_experiment(tmp_path_factory, dask_cluster):
     folder = tmp_path_factory.mktemp("walkers") / "experiment"
-    flags = experiment_flags(tiny_flags(dask_cluster, env=WALKER, iterations=2, **PLAIN))
+    flags = experiment_flags(tiny_flags(dask_cluster, env=WALKER, iterations=2))
     experiments.experiment(algorithms=["cma_me", "cma_mae"], seeds="7-8", outdir=str(folder), **flags)
     return folder
 
@@ -148,7 +145,7 @@ def walker_experiment(tmp_path_factory, dask_cluster):
 @pytest.mark.slow
 def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experiment, tmp_path,
                                                                dask_cluster, run_cli):
-    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8, **PLAIN),
+    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8),
                outdir=str(tmp_path / "twin"))
     name = f"cma_me_n_emitters_2_batch_size_6_episode_length_{TINY_EPISODE}_seed8"
     assert_same_run(walker_experiment / name, tmp_path / "twin")

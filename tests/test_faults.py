@@ -170,7 +170,7 @@ def test_a_scheduler_without_workers_says_it_waits_and_ends_or_goes_on_when_one_
         assert "waiting for workers at" in err
         log = (tmp_path / "run" / "run.log").read_text()
         assert "1 worker(s); no dashboard" in log and ":8787" not in log  # it has none
-        run.search(**tiny_flags(dask_cluster, iterations=2, log_every=2), outdir=str(tmp_path / "twin"))
+        run.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
         assert_same_run(tmp_path / "run", tmp_path / "twin")
     finally:
         stop_all(processes)
@@ -191,7 +191,7 @@ def test_scheduler_files_that_are_folders_or_empty_are_refused_at_once(run_cli, 
 @pytest.mark.slow
 def test_a_search_whose_scheduler_dies_says_so_in_one_line_and_resumes_to_its_twin(
         tmp_path, dask_cluster):
-    flags = tiny_flags(iterations=20, log_every=2, seed=11, pictures=False)  # no picture is compared
+    flags = tiny_flags(iterations=20, log_every=2, seed=11)
     scheduler, scheduler_file = start_scheduler(tmp_path / "first")
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     run_dir = tmp_path / "run"

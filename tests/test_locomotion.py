@@ -114,7 +114,8 @@ def test_ant_omni_leaves_the_forward_reward_out_of_the_objective():
 def cvt_run(tmp_path_factory, dask_cluster):
     """A tiny CVT run of the lander on two measures (the Voronoi heatmap) and its config."""
     run_dir = tmp_path_factory.mktemp("cvt") / "run"
-    run.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=4), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=4, pictures=True),
+               outdir=str(run_dir))
     return run_dir
 
 

@@ -26,8 +26,8 @@ RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "met
 
 
 def tiny(dask_cluster, **overrides):
-    """The tiny run's flags, for 2 iterations."""
-    return tiny_flags(dask_cluster, **{"iterations": 2, **overrides})
+    """The tiny run's flags, for 2 iterations, with the pictures that draw its measures."""
+    return tiny_flags(dask_cluster, **{"iterations": 2, "pictures": True, **overrides})
 
 
 @pytest.fixture(scope="module")

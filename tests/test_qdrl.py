@@ -20,7 +20,7 @@ from util import assert_one_line_error, load_pickle, run_archive, run_metrics, t
 HOPPER = "Hopper-v5"
 # A tiny DQD run: 2 emitters, each flying its point, 10 gradient samples and 6 branches: 34 an iteration.
 DQD = dict(env=HOPPER, policy="mlp", hidden=[8, 8], algorithm="cma_mega_es", n_emitters=2,
-           batch_size=6, es_samples=10, es_sigma=0.02, episode_length=60)
+           batch_size=6, es_samples=10, es_sigma=0.02, episode_length=30)
 
 
 def hand_network(solution, shape, hidden, obs):
@@ -184,7 +184,7 @@ def dqd_runs(tmp_path_factory, dask_cluster, one_worker_cluster):
     """The tiny DQD run on the shared 2-worker cluster, on the 1-worker one, and stopped after 2
     iterations then resumed to 4; their data alone (what they are compared by, what the results
     commands read)."""
-    root, flags = tmp_path_factory.mktemp("dqd"), dict(DQD, pictures=False, seed=11)
+    root, flags = tmp_path_factory.mktemp("dqd"), dict(DQD, seed=11)
     run.search(**tiny_flags(dask_cluster, **flags, iterations=4), outdir=str(root / "two"))
     run.search(**tiny_flags(one_worker_cluster, **flags, iterations=4), outdir=str(root / "one"))
     run.search(**tiny_flags(dask_cluster, **flags, iterations=2), outdir=str(root / "resumed"))
@@ -217,11 +217,11 @@ def test_a_dqd_run_of_an_experiment_is_its_lone_twin(dqd_runs, tmp_path, dask_cl
 @pytest.mark.slow  # real MuJoCo searches
 def test_elites_of_a_dqd_run_are_their_networks_flown_by_hand(dqd_runs):
     """Every elite's stored objective and foot contact is its network flown in gym.make's env
-    (the run's 60-step episodes), computed here without the tool's policy or family code."""
+    (the run's 30-step episodes), computed here without the tool's policy or family code."""
     import mujoco
 
     elites = load_pickle(dqd_runs / "two" / "archive.pkl").data()
-    env = rules_env(HOPPER, 60, None)
+    env = rules_env(HOPPER, DQD["episode_length"], None)
     model = env.unwrapped.model
     foot = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "foot_geom")
     for solution, objective, measures in zip(elites["solution"], elites["objective"], elites["measures"]):

@@ -41,7 +41,7 @@ def run_flags(dask_cluster, **overrides):
 @pytest.mark.parametrize("stop_at", [1, 4])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, reference, stop_at):
     run_dir = tmp_path / "run"
-    run.search(**run_flags(dask_cluster, iterations=stop_at, pictures=False), outdir=str(run_dir))
+    run.search(**run_flags(dask_cluster, iterations=stop_at), outdir=str(run_dir))
     experiments.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
 
     assert_same_run(run_dir, reference)

@@ -49,7 +49,9 @@ def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path,
                                                                         reference):
     with small_disk(tmp_path, "2400k") as disk:
         run_dir = disk / "run"
-        process = launch(**FLAGS, outdir=run_dir, scheduler_address=dask_cluster.scheduler_address)
+        # with its pictures: its heatmaps' snapshots are what fill the disk
+        process = launch(**{**FLAGS, "pictures": True}, outdir=run_dir,
+                         scheduler_address=dask_cluster.scheduler_address)
         out, err = process.communicate(timeout=300)
 
         held = checkpoint_iteration(run_dir)

@@ -74,7 +74,7 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
     from util import read_checkpoint
 
     cluster = request.getfixturevalue("off_loopback_cluster" if workers == "elsewhere" else "dask_cluster")
-    flags = {**tiny_flags(cluster), "outdir": str(tmp_path / "run")}
+    flags = {**tiny_flags(cluster, pictures=True), "outdir": str(tmp_path / "run")}
     code = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
             "print('driver imported matplotlib:', 'matplotlib' in sys.modules)")
     result = subprocess.run([sys.executable, "-c", code, json.dumps(flags)], cwd=ROOT,

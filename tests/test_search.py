@@ -51,7 +51,7 @@ def test_a_progress_plot_drawn_again_is_the_picture_of_a_new_figure(tmp_path):
 
 def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys):
     run_dir = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, log_every=2), outdir=str(run_dir))
+    run.search(**tiny_flags(dask_cluster, log_every=2, pictures=True), outdir=str(run_dir))
 
     for name in RUN_FILES:
         assert (run_dir / name).is_file(), name
@@ -118,7 +118,7 @@ def test_a_run_without_pictures_is_the_same_run_with_its_data_alone(tmp_path, ti
     read it."""
     run_dir = tmp_path / "plain"
     address = ["--scheduler_address", dask_cluster.scheduler_address]
-    flags = [f"--{k}={v}" for k, v in tiny_flags(iterations=1).items()]
+    flags = [f"--{k}={v}" for k, v in tiny_flags(iterations=1).items() if k != "pictures"]
     started = run_cli(*flags, "--pictures", "false", "--outdir", run_dir, *address)
     resumed = run_cli("resume", run_dir, "--iterations", "3", *address)
     assert started.returncode == resumed.returncode == 0, (started.stderr, resumed.stderr)
@@ -151,7 +151,7 @@ def searching_on_kernels(tmp_path, cluster, monkeypatch, name, **kernels):
             monkeypatch.setenv(variable, kernels[variable])
         else:
             monkeypatch.delenv(variable, raising=False)
-    return launch(iterations=4, seed=3, outdir=tmp_path / name,
+    return launch(iterations=4, seed=3, outdir=tmp_path / name, pictures=False,
                   scheduler_address=cluster.scheduler_address), tmp_path / name
 
 

@@ -33,7 +33,7 @@ from util import (  # noqa: E402
 )
 
 ALL = "tensorboard,wandb,mlflow"
-TRACKED = dict(iterations=6, log_every=3)
+TRACKED = dict(iterations=6, log_every=3, pictures=True)
 
 
 @pytest.fixture(autouse=True)
@@ -123,8 +123,10 @@ def test_the_pictures_of_every_save_and_the_config_are_tracked(tracked):
 def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
     # The loop goes on while the test sees the first checkpoint (iteration 3) and signals: the
-    # stop held iteration 8-12 here (2026-11-28, 4 tries). 24 iterations leave it room to land.
-    flags = {**tiny_flags(dask_cluster, iterations=24, log_every=3, track=ALL), "outdir": run_dir}
+    # stop held iteration 8-12 here, with pictures (2026-11-28, 4 tries). 24 iterations leave it
+    # room to land.
+    flags = {**tiny_flags(dask_cluster, iterations=24, log_every=3, track=ALL, pictures=True),
+             "outdir": run_dir}
     process = launch(*[], **flags)
     wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "the run past iteration 3")
     process.send_signal(signal.SIGTERM)

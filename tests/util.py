@@ -6,9 +6,12 @@ page's data."""
 import contextlib
 import dataclasses
 import json
+import os
 import pickle
+import signal
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -19,16 +22,17 @@ import pytest
 
 LANDER = "LunarLander-v3"  # the tutorial's task: what the lander-only tests fly
 
-# A seconds-long search: 3 iterations of 2 emitters x 6 policies, saved at its end.
+# A seconds-long search: 3 iterations of 2 emitters x 6 policies, saved at its end, its data alone
+# (a save's two pictures cost ~0.2 s of CPU each: a test that looks at them asks for them).
 TINY = dict(iterations=3, workers=2, seed=7, env_seed=52, algorithm="cma_me", n_emitters=2,
-            sigma0=1.0, batch_size=6, log_every=3)
+            sigma0=1.0, batch_size=6, log_every=3, pictures=False)
 REFERENCE_ITERATIONS = 12  # the uninterrupted run that stopped-and-resumed runs must equal
 # Tiny runs of the walkers and robots fly episodes of this many steps (--episode_length), not their
-# tasks' 1,000-2,000: a twentieth of the time, and nothing a test checks needs a long walk (the tasks'
+# tasks' 1,000-2,000: a fortieth of the time or less, and nothing a test checks needs a long walk (the tasks'
 # own episodes are checked by the hand-made traces). A test that flies a tiny run's elite by hand
 # makes its env with `tiny_env`. The landers keep their own episodes (most end in a crash or a
 # landing well before their limit).
-TINY_EPISODE = 50
+TINY_EPISODE = 25
 
 
 def tiny_episode(env_name: str):
@@ -162,6 +166,52 @@ def wait_for(condition, process, what, timeout=120):
     raise AssertionError(f"never saw {what}: {process.communicate()}")
 
 
+@contextlib.contextmanager
+def slowed(*processes: subprocess.Popen, share: float = 0.1, period: float = 0.25):
+    """While the block runs, `processes` run a `share` of each `period` and are stopped the rest
+    (SIGSTOP and SIGCONT, as cpulimit holds a process down): runs that must outlast what a test
+    waits for (workers joining, retiring, dying) need not be long, nor burn CPU to pass the time."""
+    done = threading.Event()
+
+    def signal_each(sent: signal.Signals) -> None:
+        for process in processes:
+            process.send_signal(sent)  # nothing once the process has ended
+
+    def hold() -> None:
+        while not done.is_set():
+            signal_each(signal.SIGSTOP)
+            done.wait(period * (1 - share))
+            signal_each(signal.SIGCONT)
+            done.wait(period * share)
+
+    holder = threading.Thread(target=hold, daemon=True)
+    holder.start()
+    try:
+        yield
+    finally:
+        done.set()
+        holder.join()
+        signal_each(signal.SIGCONT)
+
+
+@contextlib.contextmanager
+def slowed_once(under_way: dict, what: str, share: float = 0.1, timeout: float = 120):
+    """Waits until each process's condition in `under_way` holds, and slows each (`slowed`) from the
+    moment its own holds until the block ends: processes that must all be under way at once, one
+    of which alone would be done before another has started."""
+    with contextlib.ExitStack() as held:
+        waiting, deadline = dict(under_way), time.time() + timeout
+        while waiting:
+            for process, condition in list(waiting.items()):
+                if condition():
+                    held.enter_context(slowed(process, share=share))
+                    del waiting[process]
+                elif process.poll() is not None or time.time() > deadline:
+                    raise AssertionError(f"never saw {what}: {process.communicate(timeout=60)}")
+            time.sleep(0.01)
+        yield
+
+
 def checkpoint_iteration(run_dir: Path) -> int:
     """The iteration of a run folder's checkpoint, -1 while there is none (or it is being replaced)."""
     try:
@@ -188,8 +238,6 @@ def local_cluster(workers: int, host: str = "127.0.0.1", threads: int = 1):
 def by_hand(command: list[str], folder: Path, **environment: str) -> subprocess.Popen:
     """A `dask` command started in `folder` (where no code of ours is) in a session of its own, as
     docs/slurm.sbatch starts it: with cluster.QUIET_ENVIRONMENT, and `environment`."""
-    import os
-
     from qdsearch.cluster import QUIET_ENVIRONMENT
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -220,10 +268,6 @@ def start_worker(scheduler_file: Path, folder: Path, *options: str, **environmen
 
 def stop_all(processes: list[subprocess.Popen]) -> None:
     """End the processes a test started, each with its process group (a nanny and its worker)."""
-    import contextlib
-    import os
-    import signal
-
     for process in processes:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(process.pid, signal.SIGTERM)
