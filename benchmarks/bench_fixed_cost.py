@@ -5,10 +5,11 @@ that no change to this script can remove (importing the libraries a search needs
     python benchmarks/bench_fixed_cost.py                           # this checkout, 5 runs
     python benchmarks/bench_fixed_cost.py --baseline OLD/lunar_lander.py --repeats 5
 
-Each run is `lunar_lander.py --iterations 20 --workers 2`, timed from start to exit as a user runs
-it. Its search loop is the `elapsed_s` its metrics.json records (first ask to last tell); the fixed
-cost is the rest: imports, the cluster's start, the final outputs and the shutdown. With
---baseline, the other script's runs alternate with this checkout's, so both see the same noise.
+Each run is `lunar_lander.py --iterations 20 --workers 2`, with its pictures and without them
+(SEARCHES), timed from start to exit as a user runs it. Its search loop is the `elapsed_s` its
+metrics.json records (first ask to last tell); the fixed cost is the rest: imports, the cluster's
+start, the final outputs and the shutdown. With --baseline, the other script's runs alternate
+with this checkout's, so both see the same noise.
 
 The import floor is a fresh process importing what a search imports before its first ask (this
 script, its run imports and dask.distributed), with nothing else running: the search's start
@@ -49,8 +50,9 @@ def one_search(script: Path, folder: Path, iterations: int = 20, extra: tuple[st
 
 def import_floor() -> float:
     """Wall seconds of a fresh process that only imports what a search imports."""
-    code = ("import importlib, lunar_lander, qdsearch.run, qdsearch.cluster\n"
-            "for name in (*qdsearch.cluster.RUN_IMPORTS, 'dask.distributed'):\n"
+    code = ("import importlib, lunar_lander, qdsearch.run\n"
+            "from qdsearch.cluster import DRAWING_IMPORTS, RUN_IMPORTS\n"
+            "for name in (*RUN_IMPORTS, *DRAWING_IMPORTS, 'dask.distributed'):\n"
             "    importlib.import_module(name)\n")
     tic = time.perf_counter()
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
@@ -65,29 +67,40 @@ def summary(rows: list[dict]) -> dict:
             "runs": rows}
 
 
+# The searches timed: as the README runs it, and one that writes its data alone (its driver never
+# imports matplotlib).
+SEARCHES = {"pictures": (), "data_alone": ("--pictures", "false")}
+
+
 def main(repeats: int = 5, baseline: str | None = None,
          out: str = "benchmarks/fixed_cost_results.json") -> None:
     scripts = {"now": SCRIPT, **({"baseline": Path(baseline).resolve()} if baseline else {})}
-    rows: dict[str, list[dict]] = {name: [] for name in scripts}
+    rows: dict[str, dict[str, list[dict]]] = {name: {search: [] for search in SEARCHES} for name in scripts}
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(repeats):
-            for name, script in scripts.items():
-                rows[name].append(one_search(script, Path(tmp) / f"{name}_{repeat}"))
-                print(name, rows[name][-1], flush=True)
+            for search, extra in SEARCHES.items():
+                for name, script in scripts.items():
+                    found = one_search(script, Path(tmp) / f"{name}_{search}_{repeat}", extra=extra)
+                    rows[name][search].append(found)
+                    print(name, search, found, flush=True)
     floors = [import_floor() for _ in range(repeats)]
     result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
               "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
-              "search": "--iterations 20 --workers 2 --seed 1",
-              **{name: summary(found) for name, found in rows.items()},
+              "search": "--iterations 20 --workers 2 --seed 1", "searches": SEARCHES,
+              **{name: {search: summary(found) for search, found in by_search.items()}
+                 for name, by_search in rows.items()},
               "import_floor_median_s": round(statistics.median(floors), 2),
               "import_floor_s": [round(f, 2) for f in floors]}
     if baseline:
-        pairs = [now["wall_s"] / old["wall_s"] for now, old in zip(rows["now"], rows["baseline"])]
-        result["wall_ratio_now_over_baseline_median"] = round(statistics.median(pairs), 3)
-        result["fixed_ratio_now_over_baseline"] = round(
-            result["now"]["fixed_median_s"] / result["baseline"]["fixed_median_s"], 3)
-    print(json.dumps({k: v for k, v in result.items() if k not in ("now", "baseline")} | {
-        name: {k: v for k, v in result[name].items() if k != "runs"} for name in rows}, indent=2))
+        for search in SEARCHES:
+            pairs = [now["wall_s"] / old["wall_s"] for now, old in zip(rows["now"][search],
+                                                                         rows["baseline"][search])]
+            result[f"{search}_wall_ratio_now_over_baseline_median"] = round(statistics.median(pairs), 3)
+            result[f"{search}_fixed_ratio_now_over_baseline"] = round(
+                result["now"][search]["fixed_median_s"] / result["baseline"][search]["fixed_median_s"], 3)
+    shown = {name: {search: {k: v for k, v in found.items() if k != "runs"}
+                    for search, found in result[name].items()} for name in rows}
+    print(json.dumps({k: v for k, v in result.items() if k not in rows} | shown, indent=2))
     Path(out).write_text(json.dumps(result, indent=2) + "\n")
 
 

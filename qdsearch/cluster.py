@@ -203,9 +203,11 @@ def wait_for_workers(address: str, identity: dict, timeout: float,
 # ------------------------------------------------------------------------------------------------
 
 @contextlib.contextmanager
-def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger) -> Iterator[Any]:
+def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger,
+                drawing: bool = True) -> Iterator[Any]:
     """A Dask client: of an existing cluster if `scheduler_address` is given (left running on
-    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit).
+    exit), else of a new local cluster of `workers` single-threaded processes (shut down on exit),
+    started while this process imports what it will need (`drawing`: matplotlib too).
     A scheduler lost while the block runs ends it with a SchedulerLost.
 
     A local cluster listens on localhost only: it runs whatever code it is sent.
@@ -242,7 +244,7 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
     # controller whenever the number of imported modules has changed.
     # Its start takes seconds (~10 s on a loaded machine): said before, and when it is ready.
     log.info(f"Starting a local Dask cluster of {workers} worker process(es)...")
-    with preloading(RUN_IMPORTS), dask.config.set(QUIET_CLUSTER):
+    with preloading(RUN_IMPORTS + (DRAWING_IMPORTS if drawing else ())), dask.config.set(QUIET_CLUSTER):
         cluster = start_local_cluster(workers, log)
     quiet_dask_logs()  # LocalCluster's silence_logs set its own level
     with cluster, Client(cluster) as client, losing_the_scheduler(client, cluster.scheduler_address):
@@ -396,9 +398,10 @@ def package_zip() -> Path:
 
 
 # What a run imports while its cluster starts (ribs alone brings scikit-learn, scipy, numba and
-# pandas: ~2 s of the main process).
-RUN_IMPORTS = ("ribs.archives", "ribs.emitters", "ribs.schedulers", "ribs.visualize",
-               "matplotlib.pyplot", "matplotlib.backends.backend_agg", "pandas.io.formats.csvs", "tqdm")
+# pandas: ~2 s of the main process), and what a run that draws (--pictures) imports besides: one
+# that writes its data alone never imports matplotlib (docs/performance.md#fixed-cost).
+RUN_IMPORTS = ("ribs.archives", "ribs.emitters", "ribs.schedulers", "pandas.io.formats.csvs", "tqdm")
+DRAWING_IMPORTS = ("ribs.visualize", "matplotlib.pyplot", "matplotlib.backends.backend_agg")
 
 
 @contextlib.contextmanager

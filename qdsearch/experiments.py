@@ -258,9 +258,11 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
     opening = (f"Experiment folder: {folder}: {len(plan['runs'])} runs "
                f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
                + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
+    drawing = any(entry["config"].get("pictures", SEARCH_FLAGS["pictures"].default)  # (a plan from before it)
+                  for entry in runs_of_part(plan, part))
+    stopped = f"every run keeps its last checkpoint; continue with: {again}"
     with session(where / ("experiment.log" if part is None else "part.log"), opening, workers,
-                 scheduler_address, lambda flags: f"every run keeps its last checkpoint; continue "
-                                                  f"with: {again}{flags}", (RunsFailed,)) as (client, log):
+                 scheduler_address, lambda flags: stopped + flags, (RunsFailed,), drawing) as (client, log):
         Experiment(folder, plan, client, log, part).drive()
 
 

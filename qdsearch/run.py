@@ -71,7 +71,7 @@ def search(config: str | None = None, **flags: Any) -> None:
             versions=library_versions(),
             from_archive=str(Path(config.from_archive).resolve()) if config.from_archive else None)
         write_config(run_dir, config)
-        with run_session(run_dir, config.workers, address) as (client, log):
+        with run_session(run_dir, config.workers, address, config.pictures) as (client, log):
             OneRun(client, log, run_dir, config.iterations,
                    lambda: Run.start(run_dir, config, client, log, seed_archive)).drive()
     print(where_to_look(run_dir, config.pictures))
@@ -125,7 +125,7 @@ def resume_run(run_dir: str, **flags: Any) -> None:
             *config.resumed, {"at": datetime.datetime.now().isoformat(), "from_iteration": done,
                               "to_iteration": iterations, "workers": workers}])
         write_config(path, config)
-        with run_session(path, workers, scheduler_address) as (client, log):
+        with run_session(path, workers, scheduler_address, config.pictures) as (client, log):
             def make() -> Run:
                 run = (Run.start(path, config, client, log, seed_archive) if checkpoint is None
                        else Run.from_checkpoint(path, {**checkpoint, "config": config}, log))
@@ -147,9 +147,10 @@ def where_to_look(run_dir: Path, pictures: bool) -> str:
 
 @contextlib.contextmanager
 def session(log_path: Path, opening: str, workers: int, scheduler_address: str | None,
-            state: Callable[[str], str], passing: tuple[type[BaseException], ...] = ()) -> Iterator[tuple]:
+            state: Callable[[str], str], passing: tuple[type[BaseException], ...] = (),
+            drawing: bool = True) -> Iterator[tuple]:
     """The Dask client and the log of a command that writes run folders (search, resume,
-    experiment), shut down however it ends.
+    experiment), shut down however it ends (`drawing`: whether a run of it draws its pictures).
 
     A stop or a fault (a full disk, a lost cluster) ends with one line: `state(flags)` says what
     the folders hold and the command that continues them (with `flags`, such as a new cluster's).
@@ -161,7 +162,7 @@ def session(log_path: Path, opening: str, workers: int, scheduler_address: str |
     with logging_redirect_tqdm(loggers=[log]):
         log.info(opening)
         try:
-            with dask_client(workers, scheduler_address, log) as client:
+            with dask_client(workers, scheduler_address, log, drawing) as client:
                 yield client, log
         except KeyboardInterrupt:
             log.info(f"Stopped; {state('')}")
@@ -173,11 +174,11 @@ def session(log_path: Path, opening: str, workers: int, scheduler_address: str |
             raise RunError(f"{fault_text(error)}; {state(elsewhere)}") from None
 
 
-def run_session(run_dir: Path, workers: int, scheduler_address: str | None):
+def run_session(run_dir: Path, workers: int, scheduler_address: str | None, pictures: bool):
     """A run folder's session: its log is run.log, and a stop or a fault says which iteration its
     checkpoint holds and how to continue."""
     return session(run_dir / "run.log", f"Run folder: {run_dir}", workers, scheduler_address,
-                   lambda flags: checkpoint_state(run_dir, flags))
+                   lambda flags: checkpoint_state(run_dir, flags), drawing=pictures)
 
 
 def checkpoint_state(run_dir: Path, flags: str = "") -> str:

@@ -91,9 +91,9 @@ def test_a_port_where_no_scheduler_answers_is_one_line_within_the_timeout(run_cl
         for joined in (["--scheduler_address", address], ["--scheduler_file", scheduler_file]):
             for command in (["--iterations", 2, "--outdir", tmp_path / "out"],
                             ["experiment", "--outdir", tmp_path / "out"], ["explore", tiny_run]):
-                result, took = timed(run_cli, *command, *joined, "--scheduler_timeout", 0.5)
+                result, took = timed(run_cli, *command, *joined, "--scheduler_timeout", 0.2)
                 assert_one_line_error(result, f"{address} is not a Dask scheduler")
-                assert took < 0.5 + 10, took
+                assert took < 0.2 + 10, took
     assert not (tmp_path / "out").exists()
     assert folder_state(tiny_run) == before
 
@@ -126,22 +126,29 @@ def test_ctrl_c_and_sigterm_stop_every_wait(tmp_path):
     """Waiting on a silent port's handshake, on workers that never come, or on a scheduler file
     that never appears: SIGTERM or Ctrl-C ends the command at once, with nothing written."""
     scheduler, scheduler_file = start_scheduler(tmp_path / "no-workers")
+    processes = [scheduler]
     try:
         with listening("silent") as address:
-            for flags, signum in [({"scheduler_address": address, "scheduler_timeout": 60}, signal.SIGTERM),
-                                  ({"scheduler_file": scheduler_file}, signal.SIGINT),
-                                  ({"scheduler_file": tmp_path / "never.json"}, signal.SIGTERM)]:
-                process = launch(iterations=2, outdir=tmp_path / "out", **flags)
+            waiting = {launch(iterations=2, outdir=tmp_path / "out", **flags): (signum, said)
+                       for flags, signum, said in [  # all at once
+                           ({"scheduler_address": address, "scheduler_timeout": 60}, signal.SIGTERM, ""),
+                           ({"scheduler_file": scheduler_file}, signal.SIGINT, "waiting for workers at"),
+                           ({"scheduler_file": tmp_path / "never.json"}, signal.SIGTERM, "")]}
+            processes += waiting
+            for process in waiting:
                 wait_for(lambda pid=process.pid: catches_sigterm(pid), process, "the stop handlers installed")
-                time.sleep(1)  # into the wait, which follows at once
+            time.sleep(2)  # into the waits, which follow at once
+            for process, (signum, _) in waiting.items():
                 assert process.poll() is None
                 process.send_signal(signum)
+            for process, (_, said) in waiting.items():
                 out, err = process.communicate(timeout=15)
                 assert process.returncode == 130, err
                 assert "Traceback" not in err and err.strip().splitlines()[-1] == "stopped", err
-                assert not (tmp_path / "out").exists()
+                assert said in err
+            assert not (tmp_path / "out").exists()
     finally:
-        stop_all([scheduler])
+        stop_all(processes)
 
 
 @pytest.mark.slow

@@ -1,10 +1,13 @@
 """The runner: a tiny search writes a complete, valid run folder; seeds make runs repeatable."""
 
 import json
+import subprocess
+import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pandas as pd
+import pytest
 from matplotlib.image import imread
 from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
@@ -129,6 +132,25 @@ def test_a_run_without_pictures_is_the_same_run_with_its_data_alone(tmp_path, ti
     assert f"Results in {run_dir}: metrics.json, archive.csv. Look at them with:" in resumed.stdout
     assert run_cli("elites", run_dir, "--top", "2").returncode == 0
     assert len(pd.read_csv(run_dir / "elites.csv")) == 2
+
+
+DRAWING_PROBE = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
+                 "print('imported:', *sorted({'matplotlib', 'ribs.visualize'} & set(sys.modules)))")
+
+
+@pytest.mark.slow  # a process of its own and its local cluster
+def test_a_search_without_pictures_never_imports_the_drawing(tmp_path):
+    """Its driver imports what the run needs while its local cluster starts (cluster.preloading):
+    without pictures, that is not matplotlib, which a run that draws imports then."""
+    from conftest import ROOT
+
+    flags = {**tiny_flags(workers=1), "outdir": str(tmp_path / "run")}
+    assert flags["pictures"] is False
+    result = subprocess.run([sys.executable, "-c", DRAWING_PROBE, json.dumps(flags)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1] == "imported:"
+    assert (tmp_path / "run" / "archive.csv").exists()
 
 
 def test_another_seed_gives_another_archive(tmp_path, dask_cluster, tiny_run):
