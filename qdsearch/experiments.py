@@ -67,7 +67,7 @@ from qdsearch.parts import (
     write_part_state,
 )
 from qdsearch.run import resume_run, session
-from qdsearch.run_config import check_run_config, load_run_state, write_config
+from qdsearch.run_config import check_run_config, load_run_state, upgrade, write_config
 from qdsearch.run_files import (
     RunError,
     atomic_write,
@@ -258,8 +258,7 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
     opening = (f"Experiment folder: {folder}: {len(plan['runs'])} runs "
                f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
                + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
-    drawing = any(entry["config"].get("pictures", SEARCH_FLAGS["pictures"].default)  # (a plan from before it)
-                  for entry in runs_of_part(plan, part))
+    drawing = any(upgrade(entry["config"])["pictures"] for entry in runs_of_part(plan, part))
     stopped = f"every run keeps its last checkpoint; continue with: {again}"
     with session(where / ("experiment.log" if part is None else "part.log"), opening, workers,
                  scheduler_address, lambda flags: stopped + flags, (RunsFailed,), drawing) as (client, log):
