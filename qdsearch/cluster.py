@@ -81,9 +81,14 @@ def scheduler_of(cluster: dict[str, Any]) -> str | None:
     return address
 
 
+# A scheduler file found unreadable is read again for this long: the scheduler may be writing it.
+UNFINISHED_FILE_WAIT = 2.0
+
+
 def read_scheduler_file(named: Any, timeout: float) -> str:
     """The scheduler's address in a scheduler file, waiting up to `timeout` seconds for the file
-    to appear (Ctrl-C stops the wait), and a moment more for a file still being written."""
+    to appear (Ctrl-C stops the wait), and a moment more (UNFINISHED_FILE_WAIT, or `timeout` if
+    shorter) for a file still being written."""
     if not str(named).strip():
         raise UsageError("--scheduler_file is empty: name the file the scheduler writes")
     path = Path(str(named))
@@ -96,7 +101,8 @@ def read_scheduler_file(named: Any, timeout: float) -> str:
             raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
                              f"scheduler running? --scheduler_timeout waits longer)")
         time.sleep(0.2)
-    for _ in range(10):
+    give_up = time.monotonic() + min(timeout, UNFINISHED_FILE_WAIT)
+    while True:
         try:
             address = json.loads(path.read_text())["address"]
             if isinstance(address, str):
@@ -104,8 +110,9 @@ def read_scheduler_file(named: Any, timeout: float) -> str:
             why = f"its address is {clipped(address)}"
         except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
             why = f"{type(error).__name__}: {clipped(fault_text(error))}"
+        if time.monotonic() >= give_up:
+            raise UsageError(f"{path}: not a Dask scheduler file ({why})")
         time.sleep(0.2)
-    raise UsageError(f"{path}: not a Dask scheduler file ({why})")
 
 
 def check_scheduler_reachable(address: str, scheduler_file: Any = None,

@@ -48,13 +48,15 @@ def test_a_rows_own_flag_is_taken_where_a_row_uses_it(run_cli, tmp_path, dask_cl
     """The refusal is of flags typed for rows that ignore them: cma_mae takes --learning_rate;
     an experiment of rows one of which uses it takes it too (the other runs ignore it); and a
     run's recorded config, every flag in it, starts its twin (search called with it)."""
-    result = run_cli("--algorithm=cma_mae", "--learning_rate", "0.2", "--iterations", "1", "--workers", "1",
-                     "--n_emitters", "1", "--batch_size", "2", "--outdir", tmp_path / "mae")
+    address = dask_cluster.scheduler_address
+    result = run_cli("--algorithm=cma_mae", "--learning_rate", "0.2", "--iterations", "1",
+                     "--n_emitters", "1", "--batch_size", "2", "--pictures", "false",
+                     "--scheduler_address", address, "--outdir", tmp_path / "mae")
     assert result.returncode == 0, result.stderr
     recorded = json.loads((tmp_path / "mae" / "config.json").read_text())
     flags = {k: v for k, v in recorded.items() if k in options.search_defaults()}
     run.search(**{**flags, "algorithm": "cma_me", "outdir": str(tmp_path / "me"),
-                  "scheduler_address": dask_cluster.scheduler_address})
+                  "scheduler_address": address})
     assert json.loads((tmp_path / "me" / "config.json").read_text())["learning_rate"] == 0.2
     assert experiments.experiment_grid("cma_me,cma_mae", "1", {"learning_rate": [0.1]})[0] == {
         "algorithm": ["cma_me", "cma_mae"], "learning_rate": [0.1]}
@@ -97,7 +99,7 @@ def test_compare_of_a_half_finished_split_experiment_names_the_runs_it_lacks(tmp
                                                                               run_cli):
     folder = tmp_path / "exp"
     experiments.experiment(algorithms="cma_me", seeds="1-4", outdir=str(folder), part="1/2",
-                           iterations=2, n_emitters=1, batch_size=4, log_every=2,
+                           iterations=2, n_emitters=1, batch_size=4, log_every=2, pictures=False,
                            scheduler_address=dask_cluster.scheduler_address)
     plan = json.loads((folder / "experiment.json").read_text())
     missing = [entry["name"] for entry in runs_of_part(plan, 2)]

@@ -186,7 +186,8 @@ def test_scheduler_files_that_never_appear_are_stale_or_garbled(run_cli, tmp_pat
     for args, words in [
         (["--scheduler_file", tmp_path / "never.json", "--scheduler_timeout", "0.5"],
          ["never.json: no scheduler file appeared in 0.5 s"]),
-        (["--scheduler_file", garbled], ["garbled.json: not a Dask scheduler file"]),
+        (["--scheduler_file", garbled, "--scheduler_timeout", "0.2"],
+         ["garbled.json: not a Dask scheduler file"]),
         (["--scheduler_file", stale], ["cannot reach the Dask scheduler at tcp://127.0.0.1:9",
                                        "named by", "stale.json"]),
         (["--scheduler_file", stale, "--scheduler_address", "tcp://127.0.0.1:9"], ["not both"]),

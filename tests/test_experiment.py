@@ -207,10 +207,11 @@ def test_an_existing_folder_is_not_touched(run_cli, tmp_path):
     assert folder_state(tmp_path / "exp") == before
 
 
-def test_parts_refuse_what_would_mix_two_experiments(run_cli, tmp_path, tiny_run):
+def test_parts_refuse_what_would_mix_two_experiments(run_cli, tmp_path, tiny_run, dask_cluster):
     assert_one_line_error(run_cli("experiment", "--part", "1/2"), "--part needs --outdir")
     flags = ["--seeds", "1-2", "--iterations", "2", "--n_emitters", "2", "--batch_size", "6",
-             "--workers", "1", "--outdir", tmp_path / "exp"]
+             "--pictures", "false", "--scheduler_address", dask_cluster.scheduler_address,
+             "--outdir", tmp_path / "exp"]
     assert run_cli("experiment", *flags, "--part", "1/2").returncode == 0
     before = folder_state(tmp_path / "exp")
     other = [*flags[:3], "3", *flags[4:]]  # --iterations 3: another plan

@@ -157,9 +157,9 @@ def test_a_scheduler_without_workers_says_it_waits_and_ends_or_goes_on_when_one_
     scheduler, scheduler_file = start_scheduler(tmp_path / "cluster")  # --no-dashboard
     processes = [scheduler]
     try:
-        result, took = timed(run_cli, "--scheduler_file", scheduler_file, "--worker_timeout", 1.5,
+        result, took = timed(run_cli, "--scheduler_file", scheduler_file, "--worker_timeout", 0.5,
                              "--outdir", tmp_path / "out")
-        assert result.returncode == 2 and took < 1.5 + 10, (took, result.stderr)
+        assert result.returncode == 2 and took < 0.5 + 10, (took, result.stderr)
         waiting, error = result.stderr.strip().splitlines()
         assert waiting.startswith("waiting for workers at tcp://127.0.0.1:") and "--worker_timeout" in waiting
         assert error.startswith("error: no worker joined the Dask scheduler") and "Traceback" not in error

@@ -132,6 +132,7 @@ iterations = 2
 n_emitters = 2
 batch_size = 6
 log_every = 2
+pictures = false
 """
 
 
@@ -142,7 +143,7 @@ def test_an_experiment_runs_from_a_plan_file_as_from_its_flags(tmp_path, run_cli
     assert result.returncode == 0, result.stderr
     result = run_cli("experiment", "--algorithms", "[cma_me, cma_mae]", "--seeds", "1-2", "--learning_rate",
                      "[0.5]", "--iterations", 2, "--n_emitters", 2, "--batch_size", 6, "--log_every", 2,
-                     *on_cluster, "--outdir", tmp_path / "b")
+                     "--pictures", "false", *on_cluster, "--outdir", tmp_path / "b")
     assert result.returncode == 0, result.stderr
     planned, typed = (json.loads((tmp_path / d / "experiment.json").read_text()) for d in "ab")
     def runs(plan):

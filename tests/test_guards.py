@@ -1,8 +1,8 @@
 """Guards against small bugs the rest of the suite let through: the hardcore walker flies its own
 course (with obstacles), the continuous lander's side flame is drawn where Gymnasium blows the
-exhaust, --scheduler_timeout is obeyed by every command that joins a cluster, a multi-terrain
-run's results are shown on its first terrain by default, and an experiment's run named `.`, `..`
-or `...` is refused."""
+exhaust, --scheduler_timeout is obeyed by every command that joins a cluster (and bounds the wait
+for a scheduler file still being written), a multi-terrain run's results are shown on its first
+terrain by default, and an experiment's run named `.`, `..` or `...` is refused."""
 
 import base64
 import json
@@ -166,6 +166,36 @@ def test_a_scheduler_file_that_never_appears_fails_after_the_timeout_asked(run_c
         assert elapsed < 10, (command, elapsed)  # a fixed 120 s wait would be far longer
         assert_one_line_error(result, "never.json: no scheduler file appeared in 0.5 s")
     assert not (tmp_path / "out").exists() and folder_state(run_dir) == before
+
+
+
+def test_a_scheduler_file_being_written_is_read_once_finished_and_a_garbled_one_within_the_timeout(
+        tmp_path, monkeypatch):
+    """A scheduler file found half-written is read again for a moment (as a scheduler may be
+    writing it); one that stays garbled is refused after that moment (here 0.4 s), or the timeout
+    if shorter."""
+    import threading
+
+    from qdsearch import cluster
+    from qdsearch.cluster import read_scheduler_file
+    from qdsearch.flags import UsageError
+
+    monkeypatch.setattr(cluster, "UNFINISHED_FILE_WAIT", 0.4)
+
+    path = tmp_path / "scheduler.json"
+    path.write_text('{"type": "Sched')
+    finish = threading.Timer(0.2, path.write_text, [json.dumps({"address": "tcp://127.0.0.1:8786"})])
+    finish.start()
+    try:
+        assert read_scheduler_file(path, timeout=60) == "tcp://127.0.0.1:8786"
+    finally:
+        finish.join()
+    path.write_text("{not json")
+    for timeout, waits in ((0.1, 0.1), (60, 0.4)):
+        start = time.monotonic()
+        with pytest.raises(UsageError, match="not a Dask scheduler file"):
+            read_scheduler_file(path, timeout=timeout)
+        assert waits <= time.monotonic() - start < waits + 1.0
 
 
 # ---- a multi-terrain run's results -----------------------------------------------------------

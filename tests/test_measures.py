@@ -92,7 +92,7 @@ def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
 
 def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_cluster):
     """Old config.json and checkpoint: no env, no measures, no grid, env_seed a plain number."""
-    flags = tiny(dask_cluster, iterations=3, env_seed=52)
+    flags = tiny(dask_cluster, iterations=3, env_seed=52, pictures=False)
     run.search(**flags, outdir=str(tmp_path / "whole"))
     old = tmp_path / "old"
     run.search(**{**flags, "iterations": 1}, outdir=str(old))

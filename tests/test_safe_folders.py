@@ -211,7 +211,8 @@ def test_experiments_resume_with_their_own_key_and_trust_anothers(tmp_path, dask
     folder, own = tmp_path / "exp", os.environ["QDSEARCH_KEY"]
     monkeypatch.setenv("QDSEARCH_KEY", str(tmp_path / "theirs" / "key"))
     experiments.experiment(algorithms="cma_me", seeds="1-2", outdir=str(folder), iterations=2, n_emitters=2,
-                           batch_size=6, log_every=2, scheduler_address=dask_cluster.scheduler_address)
+                           batch_size=6, log_every=2, pictures=False,
+                           scheduler_address=dask_cluster.scheduler_address)
     monkeypatch.setenv("QDSEARCH_KEY", own)
     address = ("--scheduler_address", dask_cluster.scheduler_address)
 

@@ -164,17 +164,17 @@ def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, dask_cluster):
     assert isinstance(config["seed"], int) and config["seed"] >= 0
 
 
+# The seed-3, 4-iteration lander search: its archive differed on AVX-512's kernels and AVX2's.
+ON_KERNELS = dict(iterations=4, seed=3, pictures=False)
+
+
 def searching_on_kernels(tmp_path, cluster, monkeypatch, name, **kernels):
-    """The seed-3, 4-iteration lander search (its archive differed on AVX-512's kernels and AVX2's)
-    started as a real process, with the environment variables `kernels` (none: the package's
-    choice): the process (it copies the environment as it starts) and its run folder."""
-    for variable in ("OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES"):
-        if variable in kernels:
-            monkeypatch.setenv(variable, kernels[variable])
-        else:
-            monkeypatch.delenv(variable, raising=False)
-    return launch(iterations=4, seed=3, outdir=tmp_path / name, pictures=False,
-                  scheduler_address=cluster.scheduler_address), tmp_path / name
+    """That search started as a real process, with the environment variables `kernels` (it copies
+    the environment as it starts): the process and its run folder."""
+    for variable, value in kernels.items():
+        monkeypatch.setenv(variable, value)
+    folder = tmp_path / name
+    return launch(**ON_KERNELS, outdir=folder, scheduler_address=cluster.scheduler_address), folder
 
 
 AVX2 = {"OPENBLAS_CORETYPE": "Haswell", "NPY_DISABLE_CPU_FEATURES": "X86_V4,AVX512_ICL,AVX512_SPR"}
@@ -185,11 +185,13 @@ def test_a_seed_gives_one_archive_whatever_kernels_the_cpu_offers(tmp_path, dask
     """An x86-64 CPU with AVX2 runs OpenBLAS's and numpy's AVX2 kernels, whatever more it has: a
     plain search's archive is the one of a search held to them by hand, and config.json says so;
     where the CPU has AVX-512, a search on its kernels gives other bits (why the hold is there).
-    The searches fly at once, on one cluster."""
-    settings = {"plain": {}, "held": AVX2, **({"avx512": AVX512} if "avx512f" in cpu_flags() else {})}
+    The searches fly at once, on one cluster; the plain one in this process, whose kernels are the
+    command line's (the test below)."""
+    settings = {"held": AVX2, **({"avx512": AVX512} if "avx512f" in cpu_flags() else {})}
     searches = {name: searching_on_kernels(tmp_path, dask_cluster, monkeypatch, name, **kernels)
                 for name, kernels in settings.items()}
-    archives = {}
+    run.search(**ON_KERNELS, scheduler_address=dask_cluster.scheduler_address, outdir=str(tmp_path / "plain"))
+    archives = {"plain": (tmp_path / "plain" / "archive.csv").read_bytes()}
     for name, (search, folder) in searches.items():
         assert search.wait(timeout=300) == 0, search.communicate()
         archives[name] = (folder / "archive.csv").read_bytes()

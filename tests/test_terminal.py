@@ -62,9 +62,10 @@ def test_a_search_says_its_cluster_starts_and_draws_its_finished_bar_once(tmp_pa
     assert text[:done].rstrip(" \r\n").endswith(finished[-1].rstrip())  # the last frame, then Done
 
 
-def test_an_experiments_bar_shows_its_runs_done_and_the_best_over_every_run(tmp_path):
+def test_an_experiments_bar_shows_its_runs_done_and_the_best_over_every_run(tmp_path, dask_cluster):
     text, code = on_a_terminal("experiment", "--algorithms", "cma_me", "--seeds", "1-3", "--iterations", "4",
-                               *TINY[:4], "--max_in_flight", "3", "--workers", "1", "--pictures", "false",
+                               *TINY[:4], "--max_in_flight", "3", "--pictures", "false",
+                               "--scheduler_address", dask_cluster.scheduler_address,
                                "--outdir", tmp_path / "exp", cwd=tmp_path)
     assert code == 0, text
     shown = [re.search(r"runs_done=(\d+)/3, best=(-?[\d.]+|nan)", frame)
