@@ -4,9 +4,9 @@ while it starts), and reported in one line when it is lost.
 
 Map:
 - finding a scheduler: `scheduler_of` (--scheduler_address, or --scheduler_file through
-  `read_scheduler_file`), `check_scheduler_reachable`, `scheduler_identity` (the bounded
-  handshake that tells a Dask scheduler from a web server or a silent port) and
-  `wait_for_workers` (the first worker, up to --worker_timeout);
+  `read_scheduler_file`, which waits for it: `wait_for_file`), `check_scheduler_reachable`,
+  `scheduler_identity` (the bounded handshake that tells a Dask scheduler from a web server or a
+  silent port) and `wait_for_workers` (the first worker, up to --worker_timeout);
 - `dask_client`: a client of that scheduler or of a new local cluster (`start_local_cluster`, in
   the memory there is: `check_local_memory`; a worker per core pinned to it: pinning.py), the
   code shipped to it (`ship_code`); a lost scheduler leaves it as a `SchedulerLost`;
@@ -83,24 +83,19 @@ def scheduler_of(cluster: dict[str, Any]) -> str | None:
 
 # A scheduler file found unreadable is read again for this long: the scheduler may be writing it.
 UNFINISHED_FILE_WAIT = 2.0
+# A wait for a scheduler file longer than this is said in one line, as a wait for workers is (a
+# file that is there, or a short --scheduler_timeout, keeps a refusal to its one line).
+SAY_FILE_WAIT_AFTER = 1.0
 
 
 def read_scheduler_file(named: Any, timeout: float) -> str:
     """The scheduler's address in a scheduler file, waiting up to `timeout` seconds for the file
-    to appear (Ctrl-C stops the wait), and a moment more (UNFINISHED_FILE_WAIT, or `timeout` if
+    to appear (`wait_for_file`), and a moment more (UNFINISHED_FILE_WAIT, or `timeout` if
     shorter) for a file still being written."""
     if not str(named).strip():
         raise UsageError("--scheduler_file is empty: name the file the scheduler writes")
     path = Path(str(named))
-    deadline = time.monotonic() + timeout
-    while not path.is_file():
-        STOP.check()
-        if path.is_dir():
-            raise UsageError(f"{path} is a folder, not a scheduler file")
-        if time.monotonic() > deadline:
-            raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
-                             f"scheduler running? --scheduler_timeout waits longer)")
-        time.sleep(0.2)
+    wait_for_file(path, timeout)
     give_up = time.monotonic() + min(timeout, UNFINISHED_FILE_WAIT)
     while True:
         try:
@@ -112,6 +107,26 @@ def read_scheduler_file(named: Any, timeout: float) -> str:
             why = f"{type(error).__name__}: {clipped(fault_text(error))}"
         if time.monotonic() >= give_up:
             raise UsageError(f"{path}: not a Dask scheduler file ({why})")
+        time.sleep(0.2)
+
+
+def wait_for_file(path: Path, timeout: float) -> None:
+    """Return once `path` is a file, saying so once if it takes more than SAY_FILE_WAIT_AFTER
+    seconds (a job started before its scheduler's); a UsageError after `timeout` seconds, or at
+    once for a folder. Ctrl-C stops the wait."""
+    start, said = time.monotonic(), False
+    while not path.is_file():
+        STOP.check()
+        if path.is_dir():
+            raise UsageError(f"{path} is a folder, not a scheduler file")
+        waited = time.monotonic() - start
+        if waited > timeout:
+            raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
+                             f"scheduler running? --scheduler_timeout waits longer)")
+        if not said and waited >= SAY_FILE_WAIT_AFTER:
+            print(f"waiting for the scheduler file {path} to appear (up to {timeout:g} s, "
+                  f"--scheduler_timeout)", file=sys.stderr, flush=True)
+            said = True
         time.sleep(0.2)
 
 

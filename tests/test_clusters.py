@@ -139,11 +139,12 @@ def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_
         assert {entry["state"] for entry in plan_of(folder)["runs"]} == {"stopped"}, plan_of(folder)["runs"]
         assert all(iteration >= 2 for iteration in held.values())
 
-        # resume is started before the new scheduler exists: it waits for the file
+        # resume is started before the new scheduler exists: it waits for the file, and says so
         second = tmp_path / "second" / "scheduler.json"
         resumed = launch("resume", folder, scheduler_file=second)
         processes.append(resumed)
-        time.sleep(2)
+        said = resumed.stderr.readline()  # its first line (the end of its output if it has ended)
+        assert said.startswith(f"waiting for the scheduler file {second} to appear"), said
         new_scheduler, _ = start_scheduler(second.parent)
         processes += [new_scheduler, start_worker(second, tmp_path / "w1")]
         out, err = resumed.communicate(timeout=300)
