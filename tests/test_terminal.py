@@ -16,7 +16,7 @@ import pytest
 
 from conftest import SCRIPT
 
-pytestmark = pytest.mark.slow  # real processes on a pseudo-terminal, each with a cluster of its own
+pytestmark = pytest.mark.slow  # real processes on a pseudo-terminal (a search with a cluster of its own)
 
 TINY = ["--n_emitters", "2", "--batch_size", "6", "--workers", "2", "--seed", "7"]
 
