@@ -260,8 +260,9 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
                + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
     drawing = any(upgrade(entry["config"])["pictures"] for entry in runs_of_part(plan, part))
     stopped = f"every run keeps its last checkpoint; continue with: {again}"
-    with session(where / ("experiment.log" if part is None else "part.log"), opening, workers,
-                 scheduler_address, lambda flags: stopped + flags, (RunsFailed,), drawing) as (client, log):
+    log_path = where / ("experiment.log" if part is None else "part.log")
+    with session(log_path, opening, workers, scheduler_address, lambda flags: stopped + flags, (RunsFailed,),
+                 drawing=drawing) as (client, log):
         Experiment(folder, plan, client, log, part).drive()
 
 

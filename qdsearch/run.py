@@ -147,8 +147,8 @@ def where_to_look(run_dir: Path, pictures: bool) -> str:
 
 @contextlib.contextmanager
 def session(log_path: Path, opening: str, workers: int, scheduler_address: str | None,
-            state: Callable[[str], str], passing: tuple[type[BaseException], ...] = (),
-            drawing: bool = True) -> Iterator[tuple]:
+            state: Callable[[str], str], passing: tuple[type[BaseException], ...] = (), *,
+            drawing: bool) -> Iterator[tuple]:
     """The Dask client and the log of a command that writes run folders (search, resume,
     experiment), shut down however it ends (`drawing`: whether a run of it draws its pictures).
 

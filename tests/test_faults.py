@@ -133,7 +133,8 @@ def test_ctrl_c_and_sigterm_stop_every_wait(tmp_path):
                        for flags, signum, said in [  # all at once
                            ({"scheduler_address": address, "scheduler_timeout": 60}, signal.SIGTERM, ""),
                            ({"scheduler_file": scheduler_file}, signal.SIGINT, "waiting for workers at"),
-                           ({"scheduler_file": tmp_path / "never.json"}, signal.SIGTERM, "")]}
+                           ({"scheduler_file": tmp_path / "never.json"}, signal.SIGTERM,
+                            "waiting for the scheduler file")]}
             processes += waiting
             for process in waiting:
                 wait_for(lambda pid=process.pid: catches_sigterm(pid), process, "the stop handlers installed")
