@@ -20,12 +20,12 @@ Every wait is stoppable: Ctrl-C and SIGTERM (stopping.py's STOP) end it at once.
 from __future__ import annotations
 
 import contextlib
-import functools
 import importlib
 import json
 import logging
 import os
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -402,16 +402,17 @@ def ship_code(client) -> None:
     theirs = [client.run_on_scheduler(digest_of_importable_package, PACKAGE.name),
               *client.run(digest_of_importable_package, PACKAGE.name).values()]
     if any(digest != ours for digest in theirs):
-        client.upload_file(str(package_zip()))
+        # Dask reads the file's bytes as it uploads (and keeps them for workers that join later):
+        # the zip's folder goes once it is sent, where it was left behind by every command.
+        with tempfile.TemporaryDirectory(prefix="qdsearch-") as folder:
+            client.upload_file(str(package_zip(Path(folder))))
 
 
-@functools.cache
-def package_zip() -> Path:
-    """The package's files zipped (made once per process, in a temporary folder)."""
-    import tempfile
+def package_zip(folder: Path) -> Path:
+    """The package's files zipped, in `folder`."""
     import zipfile
 
-    path = Path(tempfile.mkdtemp(prefix="qdsearch-")) / f"{PACKAGE.name}.zip"
+    path = folder / f"{PACKAGE.name}.zip"
     with zipfile.ZipFile(path, "w") as archive:
         for file in sorted(PACKAGE.glob("*")):
             if file.suffix in (".py", ".html"):

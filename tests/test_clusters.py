@@ -34,11 +34,12 @@ from util import (
 pytestmark = pytest.mark.slow  # real scheduler and worker processes
 
 # Runs that must still fly while workers come and go, or when their cluster fails, are held to a
-# tenth of their time (util.slowed) while they wait for it: short runs that write their data alone
-# (what they are compared by) outlast it without pictures drawn to pass the time (the workers'
-# comings and goings ended at iteration 18 of 40 with the other core busy, 2026-11-29). Their first
-# checkpoint is at iteration 2.
-LONG_RUNS = dict(algorithms="cma_me", seeds="1-2", iterations=40, n_emitters=2, batch_size=6, log_every=2,
+# twentieth of their time (util.slowed, HELD) while they wait for it: short runs that write their
+# data alone (what they are compared by) outlast it without pictures drawn to pass the time (the
+# workers' comings and goings ended by iteration 12 of 24 with the other core busy, 2026-11-29).
+# Their first checkpoint is at iteration 2.
+HELD = 0.05
+LONG_RUNS = dict(algorithms="cma_me", seeds="1-2", iterations=24, n_emitters=2, batch_size=6, log_every=2,
                  pictures=False)
 SHORT_RUNS = dict(LONG_RUNS, iterations=12)
 
@@ -97,7 +98,7 @@ def test_workers_that_join_retire_and_die_change_nothing(tmp_path, long_twins):
     folder = tmp_path / "exp"
     try:
         experiment = experiment_under_way(folder, scheduler_file, processes, LONG_RUNS)
-        with slowed(experiment), \
+        with slowed(experiment, share=HELD), \
                 Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
             processes.append(start_worker(scheduler_file, tmp_path / "w1"))  # joins late
             short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",

@@ -250,10 +250,10 @@ def normalised(row: dict, run_dir) -> float:
 
 @pytest.fixture(scope="module")
 def walker_run(tmp_path_factory, dask_cluster):
-    """A tiny run (2 iterations) of another task: the walker, with the tiny run's setting (and
+    """A tiny run (1 iteration) of another task: the walker, with the tiny run's setting (and
     its task's own episodes: a setting that names the same flags as the lander's)."""
     folder = tmp_path_factory.mktemp("walker") / "cma_me"
-    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, log_every=2, episode_length=None),
+    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=1, log_every=1, episode_length=None),
                outdir=str(folder))
     return folder
 

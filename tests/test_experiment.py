@@ -31,10 +31,12 @@ TINY = dict(iterations=4, n_emitters=2, batch_size=6, log_every=4)  # each run s
 
 @pytest.fixture(scope="module")
 def experiment_dir(tmp_path_factory, dask_cluster):
-    """cma_me, map_elites and cma_mae at two learning rates, two seeds each: 8 runs in one go."""
+    """cma_me, map_elites and cma_mae at two learning rates, two seeds each: 8 runs in one go,
+    their data alone (an experiment's pictures are the kill -9 test's)."""
     folder = tmp_path_factory.mktemp("experiment") / "exp"
     experiments.experiment(algorithms="cma_me,map_elites,cma_mae", seeds="1-2", learning_rate=[0.01, 0.5],
-                  outdir=str(folder), scheduler_address=dask_cluster.scheduler_address, **TINY)
+                           outdir=str(folder), scheduler_address=dask_cluster.scheduler_address,
+                           pictures=False, **TINY)
     return folder
 
 
@@ -54,8 +56,9 @@ def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
     assert plan["axes"] == {"algorithm": ["cma_me", "map_elites", "cma_mae"], "learning_rate": [0.01, 0.5]}
     for entry in plan["runs"]:
         run_dir = experiment_dir / entry["name"]
-        assert {"config.json", "checkpoint.pkl", "archive.pkl", "metrics.json", "heatmap.png",
-                "progress.png", "run.log"} <= {p.name for p in run_dir.iterdir()}
+        written = {p.name for p in run_dir.iterdir() if not p.name.startswith(".")}  # not its .lock
+        assert written == {"config.json", "checkpoint.pkl", "archive.pkl", "archive.npz", "archive.csv",
+                           "metrics.json", "run.log"}  # and no picture: none was asked for
         assert [row["iteration"] for row in run_metrics(run_dir)] == [1, 2, 3, 4]
     assert "Done: 8 of 8 runs" in (experiment_dir / "experiment.log").read_text()
 
@@ -167,15 +170,15 @@ def test_a_failing_run_is_recorded_and_the_others_go_on(tmp_path, dask_cluster, 
     folder = tmp_path / "exp"
     shutil.copytree(experiment_dir, folder)
     broken = plan_of(folder)["runs"][2]["name"]
-    shutil.rmtree(folder / broken / "heatmaps")
-    (folder / broken / "heatmaps").write_text("not a folder")  # its next save cannot write there
+    (folder / broken / "archive.csv").unlink()
+    (folder / broken / "archive.csv").mkdir()  # its next save cannot write there
 
     code = ll.main(["resume", str(folder), "--iterations", "6",
                     "--scheduler_address", dask_cluster.scheduler_address])
 
     assert_one_line_error(Result(code, "", capsys.readouterr().err), "1 of 8 runs failed", broken, code=1)
     runs = plan_of(folder)["runs"]
-    assert runs[2]["state"] == "failed" and "heatmaps" in runs[2]["error"]
+    assert runs[2]["state"] == "failed" and "archive.csv" in runs[2]["error"]
     for entry in runs[:2] + runs[3:]:
         assert entry["state"] == "done" and run_metrics(folder / entry["name"])[-1]["iteration"] == 6
     assert checkpoint_iteration(folder / broken) >= 4  # its checkpoint is intact
@@ -281,4 +284,7 @@ def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
 
     experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
     assert all(entry["state"] == "done" for entry in plan_of(folder)["runs"])
-    assert all(run_metrics(folder / entry["name"])[-1]["iteration"] == 8 for entry in plan_of(folder)["runs"])
+    for entry in plan_of(folder)["runs"]:
+        assert run_metrics(folder / entry["name"])[-1]["iteration"] == 8
+        drawn = {p.name for p in (folder / entry["name"]).iterdir()}
+        assert {"heatmap.png", "progress.png", "heatmaps"} <= drawn

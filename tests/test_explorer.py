@@ -128,7 +128,7 @@ def test_a_click_plays_the_landing_where_the_poses_put_the_lander(page, explored
     elite = best_elite(explored)
     page.mouse.click(*cell_centre(page, elite["index"]))
     first = canvas_pixels(page)
-    page.wait_for_timeout(400)  # 20 steps at 50 per second
+    page.wait_for_function(f"() => step >= {min(20, elite['steps'])}")  # 20 steps at 50 per second
     assert canvas_pixels(page) != first  # it moves
     if page.evaluate("playing"):  # (a loaded machine may have played it to its end already)
         page.click("#play")  # pause

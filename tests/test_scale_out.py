@@ -197,15 +197,20 @@ def test_a_local_worker_per_core_is_pinned_to_its_core_and_so_is_its_restart():
             assert all(cores_of == {frozenset(cores)} for _, cores_of in pinned_workers(client).values())
 
 
-def test_a_cluster_where_some_workers_have_the_code_and_some_do_not_gets_it_everywhere(tmp_path):
+def test_a_cluster_where_some_workers_have_the_code_and_some_do_not_gets_it_everywhere(tmp_path, monkeypatch):
     """A mixed cluster: the scheduler and one worker elsewhere, one worker with the package on its
     path (PYTHONPATH). ship_code sends the package when any of them lacks it, so that every
-    worker can run a task."""
+    worker can run a task, and a worker that joins later gets it too; the zip it sent is not left
+    behind in the temporary folder."""
+    import tempfile
+
     from dask.distributed import Client
 
     from conftest import ROOT
     from qdsearch.cluster import ship_code
 
+    (tmp_path / "temp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "temp"))
     scheduler, scheduler_file = start_scheduler(tmp_path / "scheduler")
     processes = [scheduler]
     try:
@@ -216,5 +221,9 @@ def test_a_cluster_where_some_workers_have_the_code_and_some_do_not_gets_it_ever
             assert sorted(can_import_the_code(client)) == [False, True]
             ship_code(client)
             assert can_import_the_code(client) == [True, True]
+            assert list((tmp_path / "temp").iterdir()) == []
+            processes.append(start_worker(scheduler_file, tmp_path / "w2", PYTHONPATH=""))
+            client.wait_for_workers(3, timeout=60)
+            assert can_import_the_code(client) == [True, True, True]
     finally:
         stop_all(processes)
