@@ -92,46 +92,35 @@ def experiment_under_way(folder, scheduler_file, processes, runs):
     return experiment
 
 
-def test_workers_that_join_retire_and_die_change_nothing(tmp_path, long_twins):
+def test_workers_that_join_retire_and_die_then_a_lost_scheduler_change_nothing(tmp_path, long_twins):
+    """An experiment on a cluster started by hand: workers join late, retire and die while it
+    flies; then its scheduler dies (its job preempted), and resume, started before the new
+    scheduler is, waits for its file and finishes the runs as their lone twins."""
     scheduler, scheduler_file = start_scheduler(tmp_path / "elsewhere")
     processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
     folder = tmp_path / "exp"
     try:
         experiment = experiment_under_way(folder, scheduler_file, processes, LONG_RUNS)
-        with slowed(experiment, share=HELD), \
-                Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
-            processes.append(start_worker(scheduler_file, tmp_path / "w1"))  # joins late
-            short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",
-                                       "--lifetime-stagger", "0s")  # joins, then retires on its own
-            processes.append(short_lived)
-            processes.append(start_worker(scheduler_file, tmp_path / "w3", "--lifetime", "2s",
-                                          "--lifetime-stagger", "1s", "--lifetime-restart"))  # comes back
-            def late_worker():
-                return next((address for address, info in client.scheduler_info()["workers"].items()
-                             if str(tmp_path / "w1") in info["local_directory"]), None)
-            wait_for(lambda: late_worker() is not None, experiment, "the late worker joined")
-            late = late_worker()
-            wait_for(lambda: executed(client, late) > 0, experiment, "the late worker at work")
-            late_pid = client.run(os.getpid, workers=[late])[late]
-            os.killpg(processes[1].pid, signal.SIGTERM)  # the first worker retires
-            os.kill(late_pid, signal.SIGKILL)  # the late one dies mid-task; its nanny restarts it
-            wait_for(lambda: short_lived.poll() is not None, experiment, "the short-lived worker gone")
+        with slowed(experiment, share=HELD):
+            with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
+                processes.append(start_worker(scheduler_file, tmp_path / "w1"))  # joins late
+                short_lived = start_worker(scheduler_file, tmp_path / "w2", "--lifetime", "4s",
+                                           "--lifetime-stagger", "0s")  # joins, then retires on its own
+                processes.append(short_lived)
+                processes.append(start_worker(scheduler_file, tmp_path / "w3", "--lifetime", "2s",
+                                              "--lifetime-stagger", "1s", "--lifetime-restart"))  # comes back
+                def late_worker():
+                    return next((address for address, info in client.scheduler_info()["workers"].items()
+                                 if str(tmp_path / "w1") in info["local_directory"]), None)
+                wait_for(lambda: late_worker() is not None, experiment, "the late worker joined")
+                late = late_worker()
+                wait_for(lambda: executed(client, late) > 0, experiment, "the late worker at work")
+                late_pid = client.run(os.getpid, workers=[late])[late]
+                os.killpg(processes[1].pid, signal.SIGTERM)  # the first worker retires
+                os.kill(late_pid, signal.SIGKILL)  # the late one dies mid-task; its nanny restarts it
+                wait_for(lambda: short_lived.poll() is not None, experiment, "the short-lived worker gone")
             assert experiment.poll() is None  # all of it happened while the runs flew
-        out, err = experiment.communicate(timeout=300)
-        assert experiment.returncode == 0, err
-        assert_runs_equal_their_twins(folder, long_twins)
-    finally:
-        stop_all(processes)
-
-
-def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_it(
-        tmp_path, short_twins):
-    scheduler, scheduler_file = start_scheduler(tmp_path / "first")
-    processes = [scheduler, start_worker(scheduler_file, tmp_path / "w0")]
-    folder = tmp_path / "exp"
-    try:
-        experiment = experiment_under_way(folder, scheduler_file, processes, SHORT_RUNS)
-        os.killpg(scheduler.pid, signal.SIGKILL)  # its job preempted
+            os.killpg(scheduler.pid, signal.SIGKILL)  # then its job is preempted
         out, err = experiment.communicate(timeout=180)
         assert_one_line_error(Result(experiment.returncode, out, err), "lost the Dask scheduler",
                               f"resume {folder} --scheduler_file", code=1)
@@ -147,11 +136,11 @@ def test_a_lost_scheduler_stops_the_experiment_and_resume_on_a_new_one_finishes_
         said = resumed.stderr.readline()  # its first line (the end of its output if it has ended)
         assert said.startswith(f"waiting for the scheduler file {second} to appear"), said
         new_scheduler, _ = start_scheduler(second.parent)
-        processes += [new_scheduler, start_worker(second, tmp_path / "w1")]
+        processes += [new_scheduler, start_worker(second, tmp_path / "w4")]
         out, err = resumed.communicate(timeout=300)
         assert resumed.returncode == 0, err
-        assert_runs_equal_their_twins(folder, short_twins)
-        told = sum(SHORT_RUNS["iterations"] - iteration for iteration in held.values())
+        assert_runs_equal_their_twins(folder, long_twins)
+        told = sum(LONG_RUNS["iterations"] - iteration for iteration in held.values())
         assert plan_of(folder)["timing"]["iterations"] == told
     finally:
         stop_all(processes)

@@ -13,7 +13,7 @@ import pytest
 from qdsearch import fast_lander, tasks
 from util import HOVER_W, LANDER, LANDER_W, SEEDS
 
-pytestmark = pytest.mark.slow  # ~1,000 episodes of gym.make's lander: half a minute of CPU
+pytestmark = pytest.mark.slow  # ~450 episodes of gym.make's lander, each flown again by the fast env
 
 
 def plain_rollout(solution, env_seed, env):
@@ -40,7 +40,7 @@ def fast_rollout(solution, env_seed, env):
     return (*tasks.rollout(solution, env_seed, env, trajectory=path, env_name=LANDER), len(path), path)
 
 
-RANDOM_PER_SCALE = 32
+RANDOM_PER_SCALE = 16
 
 
 def make_policies() -> list[np.ndarray]:
@@ -72,7 +72,7 @@ def test_the_cases_cover_crashes_landings_and_hovers(expected):
     assert hover[3] == fast_lander.MAX_STEPS and not any(r[3] > fast_lander.MAX_STEPS for r in results)
     assert sum(r[3] == fast_lander.MAX_STEPS for r in results) >= 3
     assert sum(r[0] >= 100 for r in results) >= 5
-    assert sum(r[3] <= 70 for r in results) >= 250
+    assert sum(r[3] <= 70 for r in results) >= 150
     assert sum(abs(r[1]) >= 1.0 for r in results) >= 50
 
 

@@ -19,8 +19,10 @@ from util import assert_one_line_error, load_pickle, run_archive, run_metrics, t
 
 HOPPER = "Hopper-v5"
 # A tiny DQD run: 2 emitters, each flying its point, 10 gradient samples and 6 branches: 34 an iteration.
+# Episodes of 12 steps: the best's video renders 13 frames (MuJoCo draws in software here: the
+# suite's costliest frames).
 DQD = dict(env=HOPPER, policy="mlp", hidden=[8, 8], algorithm="cma_mega_es", n_emitters=2,
-           batch_size=6, es_samples=10, es_sigma=0.02, episode_length=30)
+           batch_size=6, es_samples=10, es_sigma=0.02, episode_length=12)
 
 
 def hand_network(solution, shape, hidden, obs):
@@ -217,7 +219,7 @@ def test_a_dqd_run_of_an_experiment_is_its_lone_twin(dqd_runs, tmp_path, dask_cl
 @pytest.mark.slow  # real MuJoCo searches
 def test_elites_of_a_dqd_run_are_their_networks_flown_by_hand(dqd_runs):
     """Every elite's stored objective and foot contact is its network flown in gym.make's env
-    (the run's 30-step episodes), computed here without the tool's policy or family code."""
+    (the run's 12-step episodes), computed here without the tool's policy or family code."""
     import mujoco
 
     elites = load_pickle(dqd_runs / "two" / "archive.pkl").data()
