@@ -402,8 +402,8 @@ def ship_code(client) -> None:
     theirs = [client.run_on_scheduler(digest_of_importable_package, PACKAGE.name),
               *client.run(digest_of_importable_package, PACKAGE.name).values()]
     if any(digest != ours for digest in theirs):
-        # Dask reads the file's bytes as it uploads (and keeps them for workers that join later):
-        # the zip's folder goes once it is sent, where it was left behind by every command.
+        # Dask reads the file's bytes as it uploads, and keeps them for workers that join later:
+        # the zip and its folder go once it is sent (no command leaves one in the temp folder).
         with tempfile.TemporaryDirectory(prefix="qdsearch-") as folder:
             client.upload_file(str(package_zip(Path(folder))))
 
