@@ -168,7 +168,6 @@ def test_a_scheduler_file_that_never_appears_fails_after_the_timeout_asked(run_c
     assert not (tmp_path / "out").exists() and folder_state(run_dir) == before
 
 
-
 def test_a_scheduler_file_being_written_is_read_once_finished_and_a_garbled_one_within_the_timeout(
         tmp_path, monkeypatch):
     """A scheduler file found half-written is read again for a moment (as a scheduler may be
