@@ -115,7 +115,8 @@ def typed_flags(args: list[str]) -> list[tuple[str, str | None]]:
 
 def reject_unknown_flags(function: Callable, args: list[str]) -> None:
     """Fire would print a page of usage for a mistyped flag; one line naming it, and the flag it
-    likely meant, is clearer. A flag given twice is refused too."""
+    likely meant, is clearer. A flag given twice is refused too, and a word no argument of the
+    command takes (Fire would run the command, then look the word up in what it returned)."""
     known, given = known_flags(function), set()
     for name, _ in typed_flags(args):
         if name not in known:
@@ -123,6 +124,27 @@ def reject_unknown_flags(function: Callable, args: list[str]) -> None:
         if name in given:  # Fire would silently keep the last
             raise UsageError(f"--{name} is given twice; give each flag once")
         given.add(name)
+    parameters = inspect.signature(function).parameters.values()
+    room = sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in parameters)
+    words = positional_words(args)
+    if len(words) > room and not any(p.kind is p.VAR_POSITIONAL for p in parameters):
+        raise UsageError(f"unexpected argument {shown(words[room])}; give flags as --name value")
+
+
+def positional_words(args: list[str]) -> list[str]:
+    """The words typed that are neither a flag nor a flag's value (as typed_flags reads them):
+    a command's positional arguments (RUN_DIR); nothing after `--`."""
+    words, value_next = [], False
+    for arg in args:
+        if arg == "--":
+            break
+        if arg.startswith("--"):
+            value_next = "=" not in arg
+        elif value_next:
+            value_next = False
+        else:
+            words.append(arg)
+    return words
 
 
 def help_text(name: str, function: Callable) -> str:
@@ -150,10 +172,12 @@ def main(argv: list[str]) -> int:
             print(help_text(name, function), end="")  # -h is a flag's short name: --hidden)
             return 0
         reject_unknown_flags(function, args)
-        if name == "search":  # a row's own flag typed for a row that ignores it (experiment: its own check)
+        if name == "search":  # a row's own flag typed where the run's row ignores it: the row typed,
+            from qdsearch.run import typed_setting  # else --config's run's (experiment: its own check)
+
             typed = dict(typed_flags(args))
-            algorithm = typed.get("algorithm") or SEARCH_FLAGS["algorithm"].default
-            refuse_unused_row_flags([str(algorithm).strip("'\"")], list(typed))
+            refuse_unused_row_flags([typed_setting(typed, "algorithm")], list(typed),
+                                    [typed_setting(typed, "policy")])
         args = as_typed(args, text_flags(function))
         fire.Fire(function, command=args, name="lunar_lander.py" if name == "search" else name)
     except UsageError as error:

@@ -272,6 +272,11 @@ def k_means(cells: int, ranges: tuple, seed: int) -> np.ndarray:
     return centroids
 
 
+def cvt_making(config: Any) -> str:
+    """What a run says before its CVT's k-means, which takes seconds at QD-RL's 1,024 cells."""
+    return f"Making the CVT archive's {config.cells:,} centroids (k-means over {CVT_SAMPLES:,} points)..."
+
+
 def grid_positions(archive: Any, indices: np.ndarray) -> np.ndarray:
     return archive.int_to_grid_index(indices).astype(float)
 
@@ -297,15 +302,15 @@ def empty_cvt(archive: Any) -> Any:
                       qd_score_offset=archive.qd_score_offset)
 
 
-# The kinds of archive (--archive): the flag that sizes it, how a run makes its archives, where a
-# cell lies (to find the nearest occupied one), and an empty archive of the same cells and QD offset
-# (evaluate's means, the corrected archive). A grid grows
-# as cells^measures, so it takes at most MAX_GRID_MEASURES; a CVT archive has --cells cells
-# whatever the number of measures (QDax's default for QD-RL: 1,024).
+# The kinds of archive (--archive): the flag that sizes it, how a run makes its archives (and the
+# line it says first, if making them takes a while), where a cell lies (to find the nearest occupied
+# one), and an empty archive of the same cells and QD offset (evaluate's means, the corrected
+# archive). A grid grows as cells^measures, so it takes at most MAX_GRID_MEASURES; a CVT archive
+# has --cells cells whatever the number of measures (QDax's default for QD-RL: 1,024).
 ARCHIVES: dict[str, dict[str, Any]] = {
-    "grid": {"class": "GridArchive", "size": "grid", "make": grid_archives,
+    "grid": {"class": "GridArchive", "size": "grid", "make": grid_archives, "making": None,
              "positions": grid_positions, "empty_like": empty_grid},
-    "cvt": {"class": "CVTArchive", "size": "cells", "make": cvt_archives,
+    "cvt": {"class": "CVTArchive", "size": "cells", "make": cvt_archives, "making": cvt_making,
             "positions": cvt_positions, "empty_like": empty_cvt},
 }
 

@@ -24,6 +24,7 @@ Map:
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import types
@@ -36,7 +37,7 @@ import numpy as np
 from qdsearch.algorithms import ARCHIVES, archive_shape, kind_of
 from qdsearch.flags import UsageError
 from qdsearch.options import MAX_CELLS
-from qdsearch.run_files import atomic_write, fault_text
+from qdsearch.run_files import FILE_BOUNDS, atomic_write, fault_text, read_regular
 
 ARCHIVE_FORMAT = 1  # an archive.npz of another format is refused, not misread
 ELITE_FIELDS = ("solution", "objective", "measures", "threshold", "index")  # pyribs' archive.data()
@@ -62,13 +63,15 @@ def write_archive_data(path: Path, archive: Any, config: dict) -> None:
 def archive_fields(path: Path, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The arrays of an archive.npz (`names` only, if given), read without unpickling, of
     ARCHIVE_FORMAT; or a one-line refusal."""
-    if path.is_file() and not zipfile.is_zipfile(path):  # numpy's own message would offer to unpickle it
+    file = io.BytesIO(read_regular(path, "archive.npz"))
+    if not zipfile.is_zipfile(file):  # numpy's own message would offer to unpickle it
         raise UsageError(f"{path}: not a readable archive data file (not an .npz, a zip of numpy arrays)")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with np.load(file, allow_pickle=False) as data:
+            # its arrays unpacked are bounded as the file is (a few zipped bytes may unpack to any size)
+            if sum(member.file_size for member in data.zip.infolist()) > FILE_BOUNDS["archive.npz"][0]:
+                raise ValueError("its arrays unpacked are larger than any run's archive")
             fields = {name: data[name] for name in (data.files if names is None else ("format", *names))}
-    except FileNotFoundError:
-        raise UsageError(f"{path}: no such file") from None
     except Exception as error:  # not a zip of .npy files; a field missing; an object array
         why = ("it holds pickled Python objects, which are never loaded" if "pickle" in str(error)
                else fault_text(error))  # (numpy's own words would offer to unpickle them)
@@ -113,7 +116,7 @@ def empty_archive(config: Any, centroids: Path) -> Any:
     if config.archive == "grid":
         return ARCHIVES["grid"]["make"](config)()
     try:
-        found = np.load(centroids, allow_pickle=False)
+        found = np.load(io.BytesIO(read_regular(centroids, "centroids.npy")), allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
         raise UsageError(f"{centroids}: no readable centroids of the run's CVT archive "
                          f"({fault_text(error)})") from None
@@ -139,7 +142,7 @@ def archive_from_csv(path: Path, empty: Any) -> Any:
     import pandas as pd
 
     try:
-        table = pd.read_csv(path)
+        table = pd.read_csv(io.BytesIO(read_regular(path, "archive.csv")))
         elites = {"solution": table[numbered_columns(table, "solution")].to_numpy(np.float64),
                   "objective": table["objective"].to_numpy(np.float64),
                   "measures": table[numbered_columns(table, "measures")].to_numpy(np.float64),

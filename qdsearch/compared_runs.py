@@ -7,6 +7,7 @@ Map: `expand_folders`, `load_run_metrics`, CORRECTED and `read_corrected`, `chec
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -14,16 +15,24 @@ from qdsearch.experiment_folder import read_experiment, unfinished_note
 from qdsearch.flags import UsageError, shown, whole_number_up_to
 from qdsearch.metrics import METRIC_FIELDS, holds, load_metrics
 from qdsearch.run_config import RunConfig, load_checked_config
-from qdsearch.run_files import read_run_json
+from qdsearch.run_files import check_present, read_run_json
 
 CORRECTED = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective")  # --corrected's
+# What compare reads of a run besides its config and metrics, where there is one (name: kind of
+# run_files.FILE_BOUNDS); corrected_*: evaluate --corrected's, read with compare --corrected.
+COMPARED_FILES = {"archive.npz": "archive.npz", "archive.csv": "archive.csv", "corrected.json": "JSON",
+                  "corrected_archive.npz": "archive.npz", "corrected_archive.csv": "archive.csv"}
 
 
 def load_run_metrics(run_dir: Path) -> tuple[RunConfig, list[dict]]:
     """A run's config and its metrics rows (at least one, each field of its type), both checked
-    as every command checks them."""
+    as every command checks them, and the files compare reads of it (COMPARED_FILES) regular
+    files within their bounds."""
     metrics = load_metrics(run_dir)
-    return load_checked_config(run_dir), metrics
+    config = load_checked_config(run_dir)
+    # a file that is there but no readable one (a link to a device) is refused, not left out
+    check_present(run_dir, COMPARED_FILES)
+    return config, metrics
 
 
 def read_corrected(run_dir: Path) -> dict:
@@ -50,10 +59,11 @@ def expand_folders(paths: list[Path]) -> list[Path]:
     twice (a folder named twice, or a run and its experiment) is counted once, and a note says so."""
     expanded: dict[Path, Path] = {}
     for path in paths:
-        if (path / "experiment.json").is_file():
+        # lexists: a file that is there but no readable one is refused as such, not passed over
+        if os.path.lexists(path / "experiment.json"):
             plan = read_experiment(path)
             runs = [path / entry["name"] for entry in plan["runs"]]
-            runs = [run for run in runs if (run / "metrics.json").is_file()]
+            runs = [run for run in runs if os.path.lexists(run / "metrics.json")]
             if note := unfinished_note(path, plan):
                 print(note)
         else:

@@ -27,6 +27,7 @@ Map:
 from __future__ import annotations
 
 import datetime
+import io
 import itertools
 import math
 from pathlib import Path
@@ -48,7 +49,7 @@ from qdsearch.family import Environment
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.plots import save_metric_panels
 from qdsearch.run_config import RunConfig, saved_archive
-from qdsearch.run_files import atomic_write, check_parent_folder, write_csv
+from qdsearch.run_files import atomic_write, check_parent_folder, read_regular, write_csv
 from qdsearch.stats import (
     RESAMPLES,
     bootstrap_interval,
@@ -74,10 +75,10 @@ def solved_cells(path: Path, task: Environment) -> int | None:
     coverage count crashes too; this counts only the solutions."""
     import pandas as pd
 
-    try:
-        objectives = pd.read_csv(path, usecols=["objective"])["objective"]
-        return int((objectives >= task.solved).sum())
-    except (OSError, ValueError):
+    try:  # (within its bound: compared_runs refused one that is no regular file)
+        objectives = pd.read_csv(io.BytesIO(read_regular(path, "archive.csv")), usecols=["objective"])
+        return int((objectives["objective"] >= task.solved).sum())
+    except (UsageError, ValueError):
         return None
 
 

@@ -186,7 +186,8 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
 
     Args:
         run_dir: A run folder written by this script, or an experiment folder (each of its runs).
-        env_seeds: Terrains to fly on: a range 0-19, a list 3,5,8, or both 0-4,10 (default: 0-19;
+        env_seeds: Env seeds (a lander's or walker's terrains, a robot's reset seeds) to fly on:
+            a range 0-19, a list 3,5,8, or both 0-4,10 (default: 0-19;
             with --corrected, the first --repeats seeds the run did not search on).
         top: Robustness only: the K elites with the highest objectives (default: all).
         corrected: Build the corrected archive instead of the robustness table.

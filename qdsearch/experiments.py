@@ -5,7 +5,8 @@ A run's results depend on its own asks and tells only, so each run ends bit for 
 alone would end it, whatever the interleaving, the worker count or a stop and resume between.
 
 Map:
-- `experiment`: the command (its flags on the command line or in a plan file: `read_plan`);
+- `experiment`: the command (its flags on the command line or in a plan file: `read_plan`, and
+  `with_plan`: a flag given beside the file wins);
   `experiment_grid` checks the grid's axes and the flags every run shares; `experiment_runs`
   names each run by its setting (`run_setting`, shared with compare);
 - `run_experiment` and `Experiment`: the cluster, the log, and the runs driven through the one
@@ -21,11 +22,12 @@ import contextlib
 import datetime
 import itertools
 import logging
+import os
 import re
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Collection
 
 import numpy as np
 
@@ -46,12 +48,15 @@ from qdsearch.flags import (
 )
 from qdsearch.loop import Driver, Run
 from qdsearch.options import (
+    BUDGETS,
     CLUSTER_FLAGS,
+    POLICY_FLAGS,
     RESUME_FLAGS,
     SEARCH_FLAGS,
     check_memory,
     check_sizes,
     checked,
+    for_policy,
     ignores,
     refuse_unused_row_flags,
     search_defaults,
@@ -78,6 +83,7 @@ from qdsearch.run_files import (
     library_versions,
     make_logger,
     new_folder,
+    read_regular,
     write_json,
 )
 from qdsearch.signing import adopt
@@ -94,8 +100,8 @@ def passed_on() -> list[str]:
 
 
 def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | None = None,
-               max_in_flight: int | None = None, part: str | None = None, plan: str | None = None,
-               **search_flags: Any) -> None:
+               max_in_flight: int | None = None, part: str | None = None, plan: str | None = None, *,
+               given: frozenset[str] = frozenset(), **search_flags: Any) -> None:
     """Run every combination of the listed settings with every seed, interleaved on one cluster.
 
     Each run is an ordinary run folder inside the experiment folder (every command works on it),
@@ -119,8 +125,8 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
             continues where it stopped.
         plan: A TOML file of the experiment (see the README's Experiments): its algorithms, seeds,
             max_in_flight and any flag it passes on, a list of values for an axis of the grid. A
-            flag given beside it (algorithms or seeds other than their defaults) replaces the
-            file's value. The file is copied into the experiment folder as plan.toml.
+            flag given beside it replaces the file's value, whatever its value (--seeds 1-5
+            too). The file is copied into the experiment folder as plan.toml.
         search_flags: Any flag of search that it passes to every run (see: lunar_lander.py --help):
             {passed_on}. A list of values of {sweeps}, e.g. --learning_rate "[0.01, 0.1]", is one
             more axis of the grid.
@@ -129,10 +135,9 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
     plan_text = None
     if plan is not None:
         plan_text, planned = read_plan(Path(str(plan)))
-        algorithms = planned.pop("algorithms", algorithms) if algorithms == ("cma_me",) else algorithms
-        seeds = planned.pop("seeds", seeds) if seeds == "1-5" else seeds
-        max_in_flight = planned.pop("max_in_flight", None) if max_in_flight is None else max_in_flight
-        search_flags = {**{k: v for k, v in planned.items() if k not in EXPERIMENT_OWN}, **search_flags}
+        search_flags = with_plan(planned, {"algorithms": algorithms, "seeds": seeds,
+                                           "max_in_flight": max_in_flight, **search_flags}, given)
+        algorithms, seeds, max_in_flight = (search_flags.pop(name) for name in EXPERIMENT_OWN)
     axes, common, seeds = experiment_grid(algorithms, seeds, search_flags)
     workers = checked("workers", cluster["workers"])
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
@@ -169,16 +174,26 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
 EXPERIMENT_OWN = ("algorithms", "seeds", "max_in_flight")
 
 
+def with_plan(planned: dict[str, Any], flags: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
+    """An experiment's flags (its own of EXPERIMENT_OWN and those it passes on) from its plan
+    file: the file's, each flag `given` beside it in the file's place, whatever its value (a
+    budget given, --iterations or --evaluations, in place of the file's budget)."""
+    dropped = {*given, *(BUDGETS if set(BUDGETS) & set(given) else ())}
+    return {**flags, **{name: value for name, value in planned.items() if name not in dropped}}
+
+
 def read_plan(path: Path) -> tuple[str, dict[str, Any]]:
     """A plan file (TOML: Python reads it without a library, and its lists and numbers are typed
     as the flags are): its text, and its flags, each name known (the values are checked as
     flags typed on the command line are)."""
     import tomllib
 
-    try:
-        text = path.read_text()
+    try:  # only a regular file within its bound: a link to a device is refused, unread
+        text = read_regular(path, "plan").decode()
         planned = tomllib.loads(text)
-    except (OSError, UnicodeDecodeError) as error:
+    except UsageError as error:
+        raise UsageError(f"--plan {error}") from None
+    except UnicodeDecodeError as error:
         raise UsageError(f"--plan {path}: cannot read it ({fault_text(error)})") from None
     except tomllib.TOMLDecodeError as error:
         raise UsageError(f"--plan {path}: not TOML ({error})") from None
@@ -219,13 +234,18 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
             axes[name] = [check_flags(SEARCH_FLAGS, {name: v})[name] for v in value]
         else:
             common[name] = value
-    common = with_task(check_flags(SEARCH_FLAGS, common))
+    checked_flags = check_flags(SEARCH_FLAGS, common)
+    # With --policy an axis, a policy's own flags (--hidden) are each setting's to take or leave
+    # (for_policy), as an algorithm's own are each run's (ignores).
+    swept = {flag: checked_flags[flag] for flag in POLICY_FLAGS} if "policy" in axes else {}
+    common = {**with_task({**checked_flags, **dict.fromkeys(swept)}), **swept}
     check_spaces(common["env"])
     for setting in itertools.product(*axes.values()):  # each run's archive and memory too (swept --cells)
-        config = with_task({**common, **dict(zip(axes, setting))})
+        config = with_task(for_policy({**common, **dict(zip(axes, setting))}))
         check_sizes(config)
         check_memory(config)
-    refuse_unused_row_flags(axes["algorithm"], list(search_flags))  # given here: flags the user set
+    refuse_unused_row_flags(axes["algorithm"], list(search_flags),  # given here: flags the user set
+                            axes.get("policy", [common["policy"]]))
     return axes, common, seed_list("seeds", seeds)
 
 
@@ -239,7 +259,8 @@ def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
             settings.append(setting)
     for setting in settings:
         for seed in seeds:
-            config = with_budget({**common, **setting, "seed": seed})  # its iterations, of --evaluations
+            # its iterations, of --evaluations; none of the flags its policy ignores
+            config = with_budget(for_policy({**common, **setting, "seed": seed}))
             label = run_setting(config)
             name = re.sub(r"[^A-Za-z0-9.]+", "_", label) + f"_seed{seed}"
             runs.append({"name": name, "setting": label, "seed": seed, "config": config,
@@ -270,12 +291,23 @@ class RunsFailed(RunError):
     """Some runs of an experiment failed (each recorded with its cause); the others finished."""
 
 
+# How often at most the runs' states are written while they go on (experiment.json holds every
+# run's entry: megabytes for thousands of runs, too much to write at each run's change).
+STATES_EVERY_S = 5.0
+
+
 class Experiment(Driver):
     """The runs of an experiment folder, driven on one client through the one run loop (loop.py):
-    each opened from its checkpoint or its config, its state recorded in experiment.json at each
-    change, a run's fault its own (recorded; the others go on), a line per setting every
-    log_every iterations of every run. With `part`, only the runs of that part, their states in
-    its own state file (parts.py)."""
+    each opened from its checkpoint or its config, its state recorded in experiment.json (once
+    per batch of runs opened, at most every STATES_EVERY_S while they go on, and at the end), a
+    run's fault its own (recorded; the others go on), a line per setting every log_every
+    iterations of every run. With `part`, only the runs of that part, their states in its own
+    state file (parts.py).
+
+    A state written late loses nothing after kill -9: a run's folder holds what it did (resume
+    opens an unfinished run from its checkpoint, or from its config, in a folder made but not
+    recorded, and closes a finished run not yet recorded done); only `done` makes resume skip a run,
+    and it is noted once the run's last save is written."""
 
     desc, isolated = "experiment", True
 
@@ -289,6 +321,8 @@ class Experiment(Driver):
             done=sum(entry["config"]["iterations"] for entry in runs if entry["state"] == "done"),
             limit=plan.get("max_in_flight"), every=plan["common"]["log_every"] * len(runs))
         self.folder, self.plan, self.part, self.runs = folder, plan, part, runs
+        self.unsaved: set[int | None] = set()  # the parts whose noted states are not written yet
+        self.saved_at = time.monotonic()
 
     def save_states(self, parts: set[int | None]) -> None:
         """The states of these parts' runs where they are kept: experiment.json, or (a split
@@ -334,7 +368,7 @@ class Experiment(Driver):
         leaving = contextlib.ExitStack()
         leaving.enter_context(folder_lock(run_dir))
         try:
-            if not (run_dir / "config.json").is_file():
+            if not os.path.lexists(run_dir / "config.json"):  # one that is there but unreadable: refused
                 write_config(run_dir, check_run_config({
                     **entry["config"], "outdir": str(run_dir), "created": datetime.datetime.now().isoformat(),
                     "command": self.plan["command"], "experiment": str(self.folder),
@@ -354,14 +388,21 @@ class Experiment(Driver):
         return run
 
     def record(self, entry: dict, state: str, error: BaseException | None = None) -> None:
-        """A run's new state, in experiment.json at once."""
+        """A run's new state, noted; `flush` writes it."""
         entry["state"] = state
         if error is not None:
             entry["error"] = fault_text(error) if isinstance(error, (OSError, RunError)) else (
                 f"{type(error).__name__}: {fault_text(error)}")
         else:
             entry.pop("error", None)
-        self.save_states({self.parts[entry["name"]]})
+        self.unsaved.add(self.parts[entry["name"]])
+
+    def flush(self, due_only: bool = False) -> None:
+        """The noted states, in experiment.json (or the parts' state files): with `due_only`, only
+        once STATES_EVERY_S have passed since the last write."""
+        if self.unsaved and not (due_only and time.monotonic() - self.saved_at < STATES_EVERY_S):
+            self.save_states(self.unsaved)  # a write that fails leaves them noted
+            self.unsaved, self.saved_at = set(), time.monotonic()
 
     def figures(self, row: dict) -> dict[str, str]:
         """The experiment's own figures on its bar: runs finished of its runs, and the best

@@ -97,7 +97,8 @@ def page_cells(archive, indices: np.ndarray) -> tuple[list[int], np.ndarray]:
 
 def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarray], env_seed: int,
                   run_dir: Path, metrics: list[dict]) -> dict:
-    """What the page shows, as JSON: cells with their elites, packed flights, terrain, curves."""
+    """What the page shows, as JSON: cells with their elites, packed flights, the seed they were
+    flown on (named as the task's family names it), curves."""
     import base64
 
     import matplotlib
@@ -121,6 +122,7 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
     magma, task = matplotlib.colormaps["magma"], task_of(config)
     return {
         "run": str(run_dir), "algorithm": config.algorithm, "env_seed": env_seed,
+        "seed_noun": task.family.seed_noun,  # the page's words for env_seed ("terrain 52")
         "env": config.env,
         "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
                       "range": [float(lo), float(hi)]}
@@ -139,10 +141,10 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
 @takes(CLUSTER_FLAGS, TERRAIN_FLAGS)
 def explore(run_dir: str, **flags: Any) -> None:
     """Write RUN_DIR/explorer.html: one self-contained page to browse the archive and watch any
-    landing. It opens offline in any current browser (no server, nothing fetched): the heatmap
-    (hover a cell for its numbers, click it to watch its elite land), a sortable table of the best
-    elites, and the run's progress curves. Every elite is flown again on the cluster to record its
-    poses, so the page plays exactly the flight that `video` renders.
+    elite's episode. It opens offline in any current browser (no server, nothing fetched): the
+    heatmap (hover a cell for its numbers, click it to watch its elite), a sortable table of the
+    best elites, and the run's progress curves. Every elite is flown again on the cluster to record
+    its poses, so the page plays exactly the episode that `video` renders.
 
     Args:
         run_dir: A run folder written by this script.

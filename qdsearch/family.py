@@ -9,8 +9,9 @@ shape and kind come from the env's spaces. A family flies whatever policy it is 
 (policies.py), as an `act` from observation to action.
 
 Map:
-- `Family`: a family's episode function and, optionally, how the results commands draw it (path
-  points, the step a path marks, poses for the explorer page, the page's scene, the
+- `Family`: a family's episode function, the words the commands name its things with (what an
+  env seed is, what a solved score is called) and, optionally, how the results commands draw it
+  (path points, the step a path marks, poses for the explorer page, the page's scene, the
   trajectories picture); DRAWN_BY and `require_drawing` (a command that draws what the family
   leaves undrawn is one line);
 - `Environment`: a task a search can fly (a row of ENVIRONMENTS): `make` (gym.make's env, a
@@ -52,6 +53,10 @@ class Family:
     title: str  # how --help introduces its measures
     fly: Callable[..., Any]  # (act, env_seed, env, task, on_step) -> the episode's summary; act:
     # obs -> action, the policy flown
+    # The words the commands name its things with (a task's own words never show for another's):
+    seed_noun: str = "seed"  # what one --env_seed value is (the lander's "terrain"): "terrain 52"
+    solved_words: str = "solved episodes"  # what scoring the task's `solved` return or more is
+    # (the lander's "good landings"): "3 score 200 or more: good landings"
     prepare: Callable[[], None] = lambda: None  # called before one of its envs is made
     # what `trajectories` draws:
     position: Callable[[gym.Env, np.ndarray], tuple[float, float]] | None = None  # a path's point

@@ -110,13 +110,18 @@ def one_of(choices: dict) -> Check:
 
 
 def nearest(name: str, choices: Iterable[str]) -> str | None:
-    """The choice a mistyped name most likely meant, or None if none is near: difflib's closest
-    match, case and - against _ aside (sep-cma-mae: sep_cma_mae), to a choice or to the tail of
-    one after an underscore (y_vel: impact_y_velocity, whose head a user may not know)."""
+    """The choice a mistyped name most likely meant, or None if none is near: case and - against _
+    aside (sep-cma-mae: sep_cma_mae), the one choice the name is the head of, its words before an
+    underscore (cma_mega: cma_mega_es, which difflib would take for the shorter cma_me); else
+    difflib's closest match to a choice or to the tail of one after an underscore (y_vel:
+    impact_y_velocity, whose head a user may not know)."""
     def fold(text: str) -> str:
         return text.lower().replace("-", "_")
 
     choices = list(choices)
+    headed = [choice for choice in choices if fold(choice).startswith(fold(name) + "_")]
+    if len(headed) == 1:  # a head names its choice; two choices of one head (cma: ...) are left to difflib
+        return headed[0]
     names = {fold(choice): choice for choice in choices}
     if match := difflib.get_close_matches(fold(name), list(names), n=1):  # whole names first: a
         return names[match[0]]  # tail never hides a name (--seed: --seeds, not --env_seed)
@@ -239,30 +244,48 @@ def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
     Fire parses the command line by the signature, and help_page renders --help from the tables
     (flag_table). A call binds its arguments to that signature (a misspelt keyword is a
     TypeError, as for any function) and passes every flag, defaulted.
+
+    A command that declares a keyword-only `given` is told which flags the call gave, whatever
+    their values (a flag typed beside a file wins over the file's value even at its default):
+    `given` is hidden from the signature, and every flag of such a command is keyword-only, since
+    Fire passes a positional parameter's default itself but a keyword-only one's only when typed.
+    So the command line and a direct call give alike.
     """
     flags = {name: flag for table in tables for name, flag in table.items()}
 
     def decorate(function: Callable) -> Callable:
         own = inspect.signature(function)
-        keep = [p for p in own.parameters.values() if not (p.kind is p.VAR_KEYWORD and p.name == "flags")]
+        tells = GIVEN in own.parameters and own.parameters[GIVEN].kind is inspect.Parameter.KEYWORD_ONLY
+        keep = [p for p in own.parameters.values()
+                if not (p.kind is p.VAR_KEYWORD and p.name == "flags") and not (tells and p.name == GIVEN)]
         at = next((i for i, p in enumerate(keep) if p.kind in (p.KEYWORD_ONLY, p.VAR_KEYWORD)), len(keep))
-        added = [inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=flag.default)
+        kind = inspect.Parameter.KEYWORD_ONLY if tells else inspect.Parameter.POSITIONAL_OR_KEYWORD
+        added = [inspect.Parameter(name, kind, default=flag.default)
                  for name, flag in flags.items() if name not in own.parameters]
+        if tells:
+            keep = [p.replace(kind=p.KEYWORD_ONLY) if p.kind is p.POSITIONAL_OR_KEYWORD
+                    and p.default is not p.empty else p for p in keep]
         signature = own.replace(parameters=keep[:at] + added + keep[at:])
+        rest = next((p.name for p in keep if p.kind is p.VAR_KEYWORD), None)  # experiment's **search_flags
 
         @functools.wraps(function)
         def command(*args: Any, **kwargs: Any) -> Any:
             bound = signature.bind(*args, **kwargs)
+            given = frozenset({*(name for name in bound.arguments if name != rest),
+                               *bound.arguments.get(rest, {})})
             bound.apply_defaults()
             arguments = dict(bound.arguments)
-            extra = next((arguments.pop(p.name) for p in keep if p.kind is p.VAR_KEYWORD), {})
-            return function(**arguments, **extra)
+            extra = arguments.pop(rest) if rest else {}
+            return function(**arguments, **extra, **({GIVEN: given} if tells else {}))
 
         command.__signature__ = signature
         FLAG_TABLES[command] = {name: flags[name] for name in flags if name not in own.parameters}
         command.__doc__ = with_flag_help(function.__doc__ or "", FLAG_TABLES[command])
         return command
     return decorate
+
+
+GIVEN = "given"  # the keyword-only parameter through which `takes` tells a command the flags given
 
 
 # The flags each command took from the tables, kept here and not as an attribute of the command:

@@ -13,6 +13,7 @@ Map:
 from __future__ import annotations
 
 import html
+import io
 import os
 from pathlib import Path
 
@@ -20,10 +21,13 @@ from qdsearch.algorithms import task_of
 from qdsearch.flags import UsageError, positive_int
 from qdsearch.metrics import load_metrics
 from qdsearch.run_config import RunConfig, load_checked_config
+from qdsearch.run_files import check_present, read_regular
 from qdsearch.stopping import STOP
 from qdsearch.tasks import MEASURES
 
 REFRESH_MS = 2000  # how often the page looks at the folder's files
+# The files the page shows (name: kind of run_files.FILE_BOUNDS)
+WATCHED = {"archive.csv": "archive.csv", "metrics.json": "metrics.json"}
 
 
 def elite_columns(run_dir: Path, config: RunConfig) -> dict[str, list]:
@@ -31,9 +35,9 @@ def elite_columns(run_dir: Path, config: RunConfig) -> dict[str, list]:
     and the objective. An archive being replaced reads as the one before."""
     import pandas as pd
 
-    try:
-        table = pd.read_csv(run_dir / "archive.csv")
-    except (OSError, ValueError):
+    try:  # read within its bound: a link to a device or a huge file is never read whole
+        table = pd.read_csv(io.BytesIO(read_regular(run_dir / "archive.csv", "archive.csv")))
+    except (UsageError, ValueError):  # none yet (or none any more), or not one: no elites
         return {"x": [], "y": [], "objective": []}
     y = table["measures_1"] if len(config.measures) > 1 else 0.0 * table["measures_0"]
     return {"x": table["measures_0"].tolist(), "y": list(y), "objective": table["objective"].tolist()}
@@ -101,7 +105,7 @@ def live_document(run_dir: Path, config: RunConfig):
             # A file is replaced whole (a new inode) at each save: two saves within one tick of
             # the file system's clock share an mtime, never an inode.
             changed = {name: (stat.st_ino, stat.st_mtime_ns, stat.st_size)
-                       for name in ("archive.csv", "metrics.json")
+                       for name in WATCHED
                        if (stat := file_stat(run_dir / name)) is not None}
             if changed == stamps:
                 return
@@ -132,6 +136,7 @@ def watch(run_dir: str, port: int = 5006, host: str = "127.0.0.1") -> None:
 
     path = Path(str(run_dir))
     config = load_checked_config(path)
+    check_present(path, WATCHED)  # one that is there but no readable file: refused, not shown empty
     port = positive_int("port", port)
     if port > 65535:
         raise UsageError(f"--port must be at most 65535, got {port}")

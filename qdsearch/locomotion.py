@@ -229,7 +229,8 @@ def robot_family(robot: Robot, pose_size: int) -> Family:
     """A robot's family: the shared functions, each told the robot."""
     return Family(
         name=robot.name, title=robot.title, fly=functools.partial(fly_robot, robot=robot),
-        prepare=quiet_mujoco, position=functools.partial(position, robot=robot), marked_step=marked_step,
+        seed_noun="reset seed", solved_words="gaits at the reward threshold", prepare=quiet_mujoco,
+        position=functools.partial(position, robot=robot), marked_step=marked_step,
         draw_paths=functools.partial(draw_paths, robot=robot), pose=functools.partial(pose, robot=robot),
         pose_scale=(POSE_SCALE_CM,) * pose_size, scene=functools.partial(scene, robot=robot))
 

@@ -32,7 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from qdsearch.algorithms import ALGORITHMS, build_scheduler
+from qdsearch.algorithms import ALGORITHMS, ARCHIVES, build_scheduler
 from qdsearch.cluster import SchedulerLost, shares_this_machine
 from qdsearch.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
 from qdsearch.flags import UsageError, clipped
@@ -86,6 +86,8 @@ class Run:
         With `seed_archive` (a warm start), its elites are first flown again in this run's setting
         (another terrain, say) and inserted, and the emitters start from the best of them.
         """
+        if making := ARCHIVES[config.archive]["making"]:  # a CVT's k-means: seconds, said first
+            log.info(making(config))
         if seed_archive is None:
             run = cls(run_dir, config, build_scheduler(config), [], log)
         else:
@@ -219,7 +221,9 @@ class Run:
 
 def count_as_done_before(bar, iterations: int) -> None:
     """Put a resumed run's earlier iterations on the tqdm bar as its starting point, not as work
-    done now, so its rate and time left reflect only this drive."""
+    done now, so its rate and time left reflect only this drive (a bar not drawn: nothing)."""
+    if bar.disable:
+        return
     bar.n, bar.last_print_n, bar.initial = (
         count + iterations for count in (bar.n, bar.last_print_n, bar.initial))
     bar.refresh()
@@ -232,7 +236,9 @@ class Driver:
     `entries` are the runs to drive, each a dict with at least its "name"; `open` (a subclass's)
     makes an entry's Run, `record` notes each change of its state ("running", "done", "stopped",
     "failed"). With `isolated` runs a run's fault stops it alone; otherwise it ends the drive.
-    Every `every` iterations told, `lines()` are logged.
+    Every `every` iterations told, `lines()` are logged. The runs' states noted by `record` are
+    kept by `flush`: once the runs of a batch are opened, at most every so often while they go
+    on, and at the drive's end, however many runs change at once.
     """
 
     desc = "runs"  # the progress bar's label
@@ -271,6 +277,9 @@ class Driver:
     def record(self, entry: dict, state: str, error: BaseException | None = None) -> None:
         """A run's new state (an experiment writes it to experiment.json)."""
 
+    def flush(self, due_only: bool = False) -> None:
+        """Keep the states `record` noted (with `due_only`, only if they are due)."""
+
     def lines(self) -> list[str]:
         """Lines logged every `every` iterations told."""
         return []
@@ -285,11 +294,15 @@ class Driver:
         completed iteration in its checkpoint."""
         from tqdm import tqdm
 
+        # disable=None: no bar where stderr is not a terminal (a pipe, a batch job's log), whose
+        # frames would be written there one after another; the log's lines say the progress.
         self.bar = tqdm(total=self.total, initial=self.done, unit="it", desc=self.desc,
-                        dynamic_ncols=True)
-        logged = self.done
+                        dynamic_ncols=True, disable=None)
+        logged = 0
         try:
             self.start_more()
+            self.flush()  # the states of the runs just opened, written once
+            self.bar.unpause()  # its rate counts from here: opening runs (a CVT's k-means) is no iteration's
             while self.live:
                 with STOP.interruptible():
                     future, result = self.next_chunk()
@@ -299,10 +312,12 @@ class Driver:
                 if not self.live:  # the closing lines go under the finished bar, not redrawn after them
                     self.bar.close()
                 self.reap(wait=False)
-                if self.every and self.live and self.bar.n - logged >= self.every:
-                    logged = self.bar.n
+                self.flush(due_only=True)
+                if self.every and self.live and self.told - logged >= self.every:
+                    logged = self.told
                     self.log_lines()
             self.reap(wait=True)
+            self.flush()
             if self.every:
                 self.log_lines()
         except BaseException:
@@ -313,6 +328,8 @@ class Driver:
                 self.close(run, "stopped")
             with contextlib.suppress(Exception):
                 self.reap(wait=True)
+            with contextlib.suppress(Exception):  # the fault or the stop under way is the one said
+                self.flush()
             raise
         finally:
             self.savers.close()
@@ -331,8 +348,10 @@ class Driver:
         return next(self.finished)
 
     def start_more(self) -> None:
-        """Open waiting runs until `limit` are in flight."""
+        """Open waiting runs until `limit` are in flight. A stop is acted on between two runs:
+        opening thousands takes minutes."""
         while self.todo and len(self.live) < self.limit:
+            STOP.check()
             entry = self.todo.popleft()
             try:
                 run = self.open(entry)

@@ -8,6 +8,8 @@ Map: `RunData` (a run's config, archive and metrics), `read_run`, `read_experime
 from __future__ import annotations
 
 import dataclasses
+import io
+import os
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +18,7 @@ from qdsearch.experiment_folder import run_setting
 from qdsearch.flags import UsageError
 from qdsearch.metrics import load_metrics
 from qdsearch.run_config import load_run_config
+from qdsearch.run_files import read_regular
 
 
 @dataclasses.dataclass
@@ -40,10 +43,12 @@ def read_run(folder: Any) -> RunData:
 
     path = Path(str(folder))
     config = load_run_config(path).to_json()  # a missing folder or config is a UsageError saying so
-    try:
-        archive = ArchiveDataFrame(pd.read_csv(path / "archive.csv"))
-    except (OSError, ValueError) as error:
-        raise UsageError(f"{path / 'archive.csv'}: unreadable ({error}); has the run saved yet?") from None
+    if not os.path.lexists(table := path / "archive.csv"):
+        raise UsageError(f"{table}: no such file; has the run saved yet?")
+    try:  # a link to a device, a folder or a file beyond any run's is refused as such, unread
+        archive = ArchiveDataFrame(pd.read_csv(io.BytesIO(read_regular(table, "archive.csv"))))
+    except ValueError as error:
+        raise UsageError(f"{table}: unreadable ({error}); has the run saved yet?") from None
     return RunData(path, config, archive, pd.DataFrame(load_metrics(path)))
 
 
@@ -52,9 +57,12 @@ def read_experiment(folder: Any) -> list[RunData]:
     setting: `pd.concat([r.metrics.assign(setting=r.setting, seed=r.config["seed"]) for r in
     runs])` is every curve of the experiment in one table."""
     path = Path(str(folder))
+    if (path / "config.json").is_file() and not (path / "experiment.json").is_file():
+        raise UsageError(f"{path}: a run folder, not an experiment folder (it has config.json, no "
+                         f"experiment.json); read it with qdsearch.read_run({str(path)!r})")
     runs = []
     for entry in read_plan(path)["runs"]:
-        if (path / entry["name"] / "archive.csv").is_file():
+        if os.path.lexists(path / entry["name"] / "archive.csv"):  # there: read, or refused as what it is
             run = read_run(path / entry["name"])
             runs.append(dataclasses.replace(run, setting=run_setting(entry["config"])))
     return runs

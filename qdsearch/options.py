@@ -3,11 +3,13 @@ check, and its part in experiments; see flags.Flag), and the bounds on the sizes
 
 Map:
 - sizes: MAX_CELLS, MAX_ITERATIONS, MAX_EMITTERS, MAX_SOLUTIONS, MAX_ROLLOUTS, MAX_WORKERS;
-  `check_sizes` and `check_rollouts` (what flags make together);
+  `check_sizes` (`solutions_per_iteration`) and `check_rollouts` (what flags make together);
 - the tables: CLUSTER_FLAGS, SEARCH_FLAGS, RESUME_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS;
-- `own_flags` and `ignores` (the flags an algorithm alone uses), `checked` (a value through its
-  flag's check), `with_task` (a config's measures, checked against its task), `search_defaults`
-  and `before_the_flags` (what runs recorded before a flag existed ran with).
+- `seed_nouns` (what an env seed is to each family, for --help); `own_flags` and `ignores` (the
+  flags an algorithm alone uses), `refuse_unused_row_flags` (an algorithm's or a policy's own
+  flag given where no row uses it), `checked` (a value through its flag's check), `with_task` (a
+  config's measures, checked against its task; `for_policy`: less what its policy ignores),
+  `search_defaults` and `before_the_flags` (what runs recorded before a flag existed ran with).
 """
 
 from __future__ import annotations
@@ -60,6 +62,8 @@ MAX_GRID_MEASURES = 4  # a grid's cells are --grid ** measures
 MAX_MEASURES = 10  # a CVT archive's: k-means and the nearest centroid work in any dimension
 # The flags only some algorithms use (each row of ALGORITHMS names its own).
 ROW_FLAGS = frozenset(flag for row in ALGORITHMS.values() for flag in row.flags)
+POLICY_FLAGS = frozenset(flag for row in POLICIES.values() for flag in row.flags)  # so of the policies
+BUDGETS = ("iterations", "evaluations")  # a run's two budgets: one is given, or neither
 DEFAULT_GRID, DEFAULT_CVT_CELLS = 50, 1024  # the tutorial's 50 x 50; QDax's 1,024 centroids
 MAX_ITERATIONS = 1_000_000  # the checkpoint keeps a row of metrics (~1 KB in memory) per iteration
 MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights covariance)
@@ -103,6 +107,15 @@ def default_measures(family: Family) -> tuple[str, ...]:
     return next(task.measures for task in ENVIRONMENTS.values() if task.family is family)
 
 
+def seed_nouns() -> str:
+    """What one --env_seed value is, in each family's words: "the terrain for Lunar Lander,
+    BipedalWalker; the reset seed for Hopper, ..." (the search's --help is every task's)."""
+    titles: dict[str, list[str]] = {}
+    for family in FAMILIES:
+        titles.setdefault(family.seed_noun, []).append(family.title)
+    return "; ".join(f"the {noun} for {', '.join(named)}" for noun, named in titles.items())
+
+
 def own_flags(algorithm: str) -> tuple[str, ...]:
     """The flags only some algorithms use that this one does (cma_mae: learning_rate), as its
     row of ALGORITHMS declares."""
@@ -114,41 +127,53 @@ def ignores(algorithm: str, flag: str) -> bool:
     return flag in ROW_FLAGS and flag not in own_flags(algorithm)
 
 
-def refuse_unused_row_flags(algorithms: list[str], given: list[str]) -> None:
-    """A row's own flag (cma_mae's --learning_rate) given to algorithms none of which use it is
-    refused, as an unknown flag is: it would be recorded and silently change nothing. So are two
-    budgets: --evaluations sets the iterations."""
-    if "iterations" in given and "evaluations" in given:
+def refuse_unused_row_flags(algorithms: list[str], given: list[str], policies: list[str]) -> None:
+    """A row's own flag (cma_mae's --learning_rate, the mlp policy's --hidden) given to rows none
+    of which use it (of `algorithms`, of `policies`) is refused, as an unknown flag is: it would
+    be recorded and silently change nothing. So are two budgets: --evaluations sets the
+    iterations."""
+    if set(BUDGETS) <= set(given):
         raise UsageError("--iterations and --evaluations are two budgets; give one")
-    algorithms = [algorithm for algorithm in algorithms if algorithm in ALGORITHMS]  # others: refused later
-    for flag in given:
-        if algorithms and flag in ROW_FLAGS and all(ignores(algorithm, flag) for algorithm in algorithms):
-            users = [name for name, row in ALGORITHMS.items() if flag in row.flags]
-            named = list(dict.fromkeys(algorithms))
-            who = (f"--algorithm {named[0]} does not" if len(named) == 1
-                   else f"none of --algorithms {', '.join(named)}")
-            raise UsageError(f"--{flag} is a flag of {', '.join(users)} only; {who} use it")
+    for table, rows, one, several in ((ALGORITHMS, algorithms, "--algorithm", "--algorithms"),
+                                      (POLICIES, policies, "--policy", "--policy")):
+        named = list(dict.fromkeys(row for row in rows if row in table))  # others: refused later
+        for flag in given:
+            users = [name for name, row in table.items() if flag in row.flags]
+            if named and users and not set(named) & set(users):
+                who = (f"{one} {named[0]} does not" if len(named) == 1
+                       else f"none of {several} {', '.join(named)}")
+                raise UsageError(f"--{flag} is a flag of {', '.join(users)} only; {who} use it")
 
 
 def check_sizes(config: dict) -> None:
     """The sizes that flags make together are bounded too: the archive's cells, the solutions
     asked per iteration (a DQD row's gradient batch too) and the rollouts they are flown in."""
-    solutions = config["n_emitters"] * config["batch_size"]
-    if ALGORITHMS[config["algorithm"]].dqd:
-        solutions = max(solutions, config["n_emitters"] * (1 + config["es_samples"]))
+    solutions, made_by = solutions_per_iteration(config)
     if config["archive"] == "grid" and (cells := config["grid"] ** len(config["measures"])) > MAX_CELLS:
         raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
                          f"{cells:,} cells; at most {MAX_CELLS:,}")
     if solutions > MAX_SOLUTIONS:
-        raise UsageError(f"--n_emitters {config['n_emitters']} x --batch_size {config['batch_size']} "
-                         f"asks {solutions:,} solutions per iteration; at most {MAX_SOLUTIONS:,}")
+        raise UsageError(f"{made_by} asks {solutions:,} solutions per iteration; at most {MAX_SOLUTIONS:,}")
     check_rollouts(solutions, len(config["env_seed"]), "per iteration")
+
+
+def solutions_per_iteration(config: dict) -> tuple[int, str]:
+    """The solutions an iteration asks, and the flags that make the number: n_emitters x
+    batch_size, or a DQD row's emitters each with its point and gradient samples if more, so
+    that a refusal names the flag to lower."""
+    n_emitters, batch = config["n_emitters"], config["batch_size"]
+    made = {f"--n_emitters {n_emitters} x --batch_size {batch}": n_emitters * batch}
+    if ALGORITHMS[config["algorithm"]].dqd:
+        samples = config["es_samples"]
+        made[f"--n_emitters {n_emitters} x (1 + --es_samples {samples})"] = n_emitters * (1 + samples)
+    made_by = max(made, key=made.get)  # the first of equals: the batch
+    return made[made_by], made_by
 
 
 def check_rollouts(solutions: int, terrains: int, when: str) -> None:
     """At most MAX_ROLLOUTS rollouts in one batch: their results are held at once."""
     if solutions * terrains > MAX_ROLLOUTS:
-        raise UsageError(f"{solutions:,} solutions on {terrains:,} terrain(s) make "
+        raise UsageError(f"{solutions:,} solutions on {terrains:,} env seed(s) make "
                          f"{solutions * terrains:,} rollouts {when}; at most {MAX_ROLLOUTS:,}")
 
 
@@ -190,10 +215,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
                        "workers.", seed_number, per_run=True),
     "env": Flag(DEFAULT_ENV, "The Gymnasium task, a row of ENVIRONMENTS: " + ", ".join(ENVIRONMENTS)
                 + " (docs/environments.md).", one_of(ENVIRONMENTS), before=DEFAULT_ENV),
-    "env_seed": Flag(52, "The terrain(s) every policy is flown on: one seed (52), a range (0-4), a "
-                         "list (3,5,8) or both (0-4,10). With several terrains the objective is "
-                         "the mean return over them, and each measure is its per-terrain values "
-                         "averaged.", seed_list, label=1, text=True),
+    "env_seed": Flag(52, f"The env seed(s) every policy is flown on ({seed_nouns()}): one seed "
+                         "(52), a range (0-4), a list (3,5,8) or both (0-4,10). With several seeds "
+                         "the objective is the mean return over them, and each measure is its "
+                         "per-seed values averaged.", seed_list, label=1, text=True),
     "policy": Flag("linear", "The policy a solution's numbers make, a row of POLICIES: " + "; ".join(
         f"{name} ({row.summary})" for name, row in POLICIES.items()) + ".", one_of(POLICIES),
         sweep=True, label=14, before="linear"),
@@ -252,7 +277,8 @@ SEARCH_FLAGS: dict[str, Flag] = {
                             "(pyribs' dds: 25.6 of 512, 0.05).", positive_float, sweep=True, label=12),
     "es_samples": Flag(100, "The DQD rows (cma_mega_es, cma_maega_es): mirrored samples flown around "
                             "each emitter's point per iteration to estimate its gradients, an even "
-                            "number (dqd-rl's 100).", even_samples, sweep=True, label=18),
+                            f"number (dqd-rl's 100; n_emitters * (1 + es_samples): at most "
+                            f"{MAX_SOLUTIONS:,}).", even_samples, sweep=True, label=18),
     "es_sigma": Flag(0.02, "The DQD rows: the samples' standard deviation around the point (dqd-rl's "
                            f"0.02; at most {MAX_STEP:g}).", number_up_to(MAX_STEP), sweep=True, label=19),
     "log_every": Flag(25, "Log a line and refresh the run folder every this many iterations.",
@@ -305,8 +331,8 @@ SELECTION_FLAGS: dict[str, Flag] = {
                            "stopping.", boolean),
 }
 TERRAIN_FLAGS: dict[str, Flag] = {
-    "env_seed": Flag(None, "The terrain to fly on, one of the run's; default: the run's first.",
-                     seed_number),
+    "env_seed": Flag(None, f"The env seed to fly on ({seed_nouns()}), one of the run's; default: "
+                           "the run's first.", seed_number),
 }
 
 
@@ -357,6 +383,13 @@ def with_policy(config: dict[str, Any]) -> dict[str, Any]:
             raise UsageError(f"--hidden is a flag of --policy mlp; --policy {kind} has no hidden layers")
         return config
     return {**config, "hidden": list(DEFAULT_HIDDEN if hidden is None else hidden)}
+
+
+def for_policy(config: dict[str, Any]) -> dict[str, Any]:
+    """The config less the flags its policy has no use for (each unset): an experiment's --hidden
+    in its settings of a policy without hidden layers, which record what search alone does."""
+    kind = config.get("policy") or "linear"
+    return {**config, **{flag: None for flag in POLICY_FLAGS if flag not in POLICIES[kind].flags}}
 
 
 def with_budget(config: dict[str, Any]) -> dict[str, Any]:

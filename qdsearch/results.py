@@ -5,7 +5,7 @@ Map:
 - choosing elites (SELECTION_FLAGS of options.py): `parse_cells`, `parse_indices`,
   `select_elites`, `load_chosen_elites` (the run read by run_folder.py's readers);
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
-  its stored objective), `elites` (`elite_table`), `trajectories` (`fly_paths`,
+  its stored objective), `elites` (`elite_table`, `solved_count`), `trajectories` (`fly_paths`,
   `path_figure`, `save_trajectory_plot`: the ground and axes drawn by the task's family);
   `add_to_index`: video and trajectories add to their index tables, never drop a row.
 (`evaluate`, the elites flown on other terrains or seeds, is evaluation.py's.)
@@ -261,7 +261,7 @@ def record_video(solution: np.ndarray, env_seed: int, path: Path, env_name: str,
 
 @takes(SELECTION_FLAGS, TERRAIN_FLAGS)
 def video(run_dir: str, **flags: Any) -> None:
-    """Render an mp4 per chosen elite, flown on one of the run's terrains, into RUN_DIR/videos/.
+    """Render an mp4 per chosen elite, flown on one of the run's env seeds, into RUN_DIR/videos/.
 
     Each elite is also flown again in its run's setting and must score exactly its stored
     objective and measures (a warning says if not). videos/index.csv lists the videos with the
@@ -328,7 +328,8 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
 
     Args:
         run_dir: A run folder written by this script.
-        min_objective: Only elites scoring at least this (200: good landings).
+        min_objective: Only elites scoring at least this; the last line counts those at the
+            task's solved return (LunarLander-v3's 200: good landings; BipedalWalker-v3's 300).
         top: Only the K best of those.
     """
     archive, config = load_run(run_dir)
@@ -340,7 +341,15 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
     write_csv(path, table)
     print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")
           if len(table) else "no elites match")
-    print(f"{len(table)} of {len(archive)} elites; written to {path}")
+    print(f"{len(table)} of {len(archive)} elites{solved_count(archive, config)}; written to {path}")
+
+
+def solved_count(archive, config: RunConfig) -> str:
+    """How many elites score the task's solved return or more, in its family's words: " (3 score
+    200 or more: good landings)"."""
+    task = ENVIRONMENTS[config.env]
+    solved = int((archive.data("objective") >= task.solved).sum())
+    return f" ({solved} score {task.solved:g} or more: {task.family.solved_words})"
 
 
 def fly_paths(chosen: list[dict], env_seed: int, env_name: str, policy: Policy = LINEAR,
@@ -390,7 +399,8 @@ def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]]
 
 @takes(SELECTION_FLAGS, TERRAIN_FLAGS)
 def trajectories(run_dir: str, **flags: Any) -> None:
-    """Draw the flight paths of the chosen elites over the run's terrain: RUN_DIR/trajectories.png.
+    """Draw the paths of the chosen elites, as their task's family draws them (the lander's flights
+    over its terrain, a walker's or a robot's torso): RUN_DIR/trajectories.png.
 
     The elites are chosen as for the video command. Each drawing is also kept in
     RUN_DIR/trajectories/, and trajectories/index.csv lists the elites of every drawing.

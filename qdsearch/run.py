@@ -2,7 +2,9 @@
 folder), both driving it through the one run loop (loop.py's OneRun).
 
 Map:
-- `search`, `resume_run`;
+- `search`, `resume_run`; `search_config`, the config a search runs with, and with --config
+  `settings_of` (the run's settings, a flag given beside its file in their place: NOT_FROM_CONFIG,
+  FOLLOWS) and `typed_setting` (the command line's check of a row's own flags typed beside it);
 - what they share with experiments: `session` (the Dask client and the log, and the one line a
   stop or a fault ends with), `run_session` (a run folder's: `checkpoint_state`), `where_to_look`
   (the end of a finished search).
@@ -12,17 +14,26 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import os
 import secrets
 import shlex
 import sys
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Collection, Iterator
 
 from qdsearch.cluster import SchedulerLost, dask_client, scheduler_of
 from qdsearch.flags import UsageError, boolean, check_flags, takes
 from qdsearch.loop import OneRun, Run
-from qdsearch.options import CLUSTER_FLAGS, RESUME_FLAGS, SEARCH_FLAGS, check_memory, checked, with_task
-from qdsearch.run_config import check_run_config, load_archive, load_run_state, write_config
+from qdsearch.options import (
+    BUDGETS,
+    CLUSTER_FLAGS,
+    RESUME_FLAGS,
+    SEARCH_FLAGS,
+    check_memory,
+    checked,
+    with_task,
+)
+from qdsearch.run_config import RunConfig, check_run_config, load_archive, load_run_state, write_config
 from qdsearch.run_files import (
     RunError,
     fault_text,
@@ -38,7 +49,7 @@ from qdsearch.tasks import check_spaces
 
 
 @takes(SEARCH_FLAGS)
-def search(config: str | None = None, **flags: Any) -> None:
+def search(config: str | None = None, *, given: frozenset[str] = frozenset(), **flags: Any) -> None:
     """Search a task (--env; Lunar Lander's landings by default) with a QD algorithm and write a
     run folder.
 
@@ -50,19 +61,14 @@ def search(config: str | None = None, **flags: Any) -> None:
 
     Args:
         config: A run's config.json (or its run folder): a new run with exactly that run's
-            settings, its seed too, so its archive is the same bit for bit; a flag given beside
-            it (other than its default) replaces the file's value.
+            settings, its seed too, so its archive is the same bit for bit. A flag given beside
+            it replaces the file's value, whatever its value, and takes along what the file's
+            value made: another --env its own measures and archive, another --archive its own
+            cells, another --policy its own --hidden, a budget (--iterations or --evaluations)
+            the file's budget. Where the new run goes and the cluster it flies on are never the
+            file's.
     """
-    if config is not None:
-        flags = settings_of(Path(str(config)), flags)
-    flags = with_task(check_flags(SEARCH_FLAGS, flags))
-    check_spaces(flags["env"])
-    if flags["seed"] is None:
-        flags["seed"] = secrets.randbelow(2**31)
-    # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
-    config = check_run_config({name: value if value is None or SEARCH_FLAGS[name].check else str(value)
-                               for name, value in flags.items()})
-    check_memory(config.to_json())  # after the sizes' own bounds (check_run_config's)
+    config = search_config(flags, given, None if config is None else Path(str(config)))
     seed_archive = load_archive(Path(config.from_archive), config) if config.from_archive else None
     address = scheduler_of(flags)
     with new_folder(config.outdir, f"seed{config.seed}") as run_dir:
@@ -77,20 +83,77 @@ def search(config: str | None = None, **flags: Any) -> None:
     print(where_to_look(run_dir, config.pictures))
 
 
+def search_config(flags: dict[str, Any], given: Collection[str] = (), path: Path | None = None) -> RunConfig:
+    """The checked config a search runs with (nothing is written): its flags, or with --config
+    (`path`) the file's settings with the flags `given` beside it in their place (settings_of);
+    a seed drawn if none is set."""
+    if path is not None:
+        flags = settings_of(path, flags, given)
+    flags = with_task(check_flags(SEARCH_FLAGS, flags))
+    check_spaces(flags["env"])
+    if flags["seed"] is None:
+        flags["seed"] = secrets.randbelow(2**31)
+    # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
+    config = check_run_config({name: value if value is None or SEARCH_FLAGS[name].check else str(value)
+                               for name, value in flags.items()})
+    check_memory(config.to_json())  # after the sizes' own bounds (check_run_config's)
+    return config
+
+
 # What --config does not take from its file: where the new run goes and the cluster it flies on.
 NOT_FROM_CONFIG = ("outdir", *CLUSTER_FLAGS)
+# What a flag given beside --config takes along when its value is not the file's: the values the
+# file's value made or alone used, each back to the flag's (its default, unless given too), so
+# another task gets its own measures and archive, not the file's task's.
+FOLLOWS: dict[str, tuple[str, ...]] = {
+    "env": ("measures", "archive", "grid", "cells", "terminate_when_unhealthy"),
+    "archive": ("grid", "cells"),
+    "policy": ("hidden",),
+}
 
 
-def settings_of(path: Path, given: dict[str, Any]) -> dict[str, Any]:
-    """search's flags from a run's config.json (--config), with the flags given beside it that
-    differ from their defaults in place of the file's."""
+def settings_of(path: Path, flags: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
+    """search's flags from a run's config.json (--config): the file's, with each flag `given`
+    beside it (whatever its value) in place of the file's and what it takes along (FOLLOWS,
+    BUDGETS); where the run goes and its cluster (NOT_FROM_CONFIG) are never the file's."""
+    recorded = recorded_settings(path)
+    merged = {flag: flags[flag] if flag in given or flag in NOT_FROM_CONFIG else recorded[flag]
+              for flag in SEARCH_FLAGS}
+    for flag, along in FOLLOWS.items():
+        if flag in given and check_flags(SEARCH_FLAGS, {flag: flags[flag]})[flag] != recorded[flag]:
+            merged.update({name: flags[name] for name in along})
+    if set(BUDGETS) & set(given):  # a budget given replaces the file's, whatever its value
+        merged.update({name: flags[name] for name in BUDGETS})
+    return merged
+
+
+def recorded_settings(path: Path) -> dict[str, Any]:
+    """The settings of the run whose config.json (or run folder) --config names, checked; an
+    experiment's experiment.json (or folder) is refused naming how to give one of its runs."""
     folder, name = (path, "config.json") if path.is_dir() else (path.parent, path.name)
+    if name in ("config.json", "experiment.json") and (folder / "experiment.json").is_file() and not (
+            os.path.lexists(folder / "config.json")):
+        runs: list[str] = []
+        with contextlib.suppress(OSError):  # (a run to name is a help, not a need)
+            runs = sorted(run.name for run in folder.iterdir() if (run / "config.json").is_file())
+        example = f" (such as --config {folder / runs[0]})" if runs else ""
+        raise UsageError(f"--config {path}: an experiment's file, not a run's: give one of its runs, "
+                         f"--config {folder}/RUN_NAME{example}")
     try:
-        recorded = check_run_config(read_run_json(folder, name)).to_json()
+        return check_run_config(read_run_json(folder, name)).to_json()
     except UsageError as error:
         raise UsageError(f"--config {path}: {error}") from None
-    return {flag: given[flag] if flag in NOT_FROM_CONFIG or given[flag] != SEARCH_FLAGS[flag].default
-            else recorded[flag] for flag in SEARCH_FLAGS}
+
+
+def typed_setting(typed: dict[str, str | None], flag: str) -> str:
+    """What a search typed so runs with for `flag` (its algorithm, its policy): the value typed,
+    else that of the run --config names, else the default (the command line's check of a row's
+    own flags typed)."""
+    if typed.get(flag) is not None:
+        return str(typed[flag]).strip("'\"")
+    if typed.get("config") is None:
+        return SEARCH_FLAGS[flag].default
+    return recorded_settings(Path(str(typed["config"])))[flag]
 
 
 @takes(RESUME_FLAGS)

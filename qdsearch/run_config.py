@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import io
+import os
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +38,7 @@ from qdsearch.options import (
     search_defaults,
     with_task,
 )
-from qdsearch.run_files import read_run_json, write_json
+from qdsearch.run_files import read_regular, read_run_json, write_json
 from qdsearch.signing import read_signed_pickle
 
 # What a run's config.json notes about the run besides its flags: each field's type, and what a
@@ -85,7 +87,8 @@ def upgrade(recorded: dict) -> dict:
     """A recorded config of any age in today's form: a run from before a flag existed ran with
     what its entry's `before` says (--learning_rate 0.01, before it was a flag) or its default
     (--env LunarLander-v3 and --grid 50, the tutorial's); one from before --measures, with its
-    task's own measures (with_task: the tutorial's)."""
+    task's own measures (with_task: the tutorial's). No flag has ever been removed or renamed:
+    every field a folder of any age holds is a flag of SEARCH_FLAGS or one of RECORDS."""
     return {**search_defaults(), **before_the_flags(), **recorded}
 
 
@@ -111,7 +114,7 @@ def load_checked_config(run_dir: Path) -> RunConfig:
     shape would go unseen by the archive's own checks). No pickle is read: the folder may be
     anyone's."""
     config = load_run_config(run_dir)
-    if (data := run_dir / "archive.npz").is_file():
+    if os.path.lexists(data := run_dir / "archive.npz"):
         recorded = recorded_config(data)  # an unreadable file says so itself
         try:
             saved = check_run_config(recorded)
@@ -133,10 +136,12 @@ def load_run_state(run_dir: Path, trust: bool = False) -> tuple[RunConfig, dict 
     started) has only config.json: its checkpoint is None, and resume starts it afresh from that
     config, which records the seed, so it ends as the uninterrupted run would. The checkpoint is
     unpickled only if signed with the user's key, or `trust`ed (resume --trust)."""
-    path = run_dir / "checkpoint.pkl"
-    if path.is_file() or not (run_dir / "config.json").is_file():
+    path, has_config = run_dir / "checkpoint.pkl", os.path.lexists(run_dir / "config.json")
+    # lexists: a checkpoint (or config) that is there but no readable file, a link to nowhere or
+    # to a device, is refused as such, never taken for none
+    if os.path.lexists(path) or not has_config:
         checkpoint = load_checkpoint(path, trust)
-        if (run_dir / "config.json").is_file():
+        if has_config:
             check_same_config(load_run_config(run_dir), checkpoint["config"], run_dir)
         check_centroids(run_dir, checkpoint["scheduler"].result_archive)
         return checkpoint["config"], checkpoint
@@ -147,10 +152,10 @@ def check_centroids(run_dir: Path, archive: Any) -> None:
     """A CVT run's centroids.npy must hold its archive's centroids: readers place its cells by
     that file, so a run whose file was edited or cut short is not continued."""
     path = run_dir / "centroids.npy"
-    if not hasattr(archive, "centroids") or not path.exists():
+    if not hasattr(archive, "centroids") or not os.path.lexists(path):
         return
     try:
-        found = np.load(path, allow_pickle=False)
+        found = np.load(io.BytesIO(read_regular(path, "centroids.npy")), allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
         raise UsageError(f"{path}: unreadable ({error}); it must hold the run's centroids") from None
     if found.shape != archive.centroids.shape or not np.array_equal(found, archive.centroids):
@@ -208,10 +213,10 @@ def archive_source(folder: Path, stem: str = "archive") -> Path:
     """The file a run folder's archive is read from (stem: "archive", or evaluate's
     "corrected_archive"): stem.npz, or in a folder from before it, stem.csv; never stem.pkl."""
     for source in (folder / f"{stem}.npz", folder / f"{stem}.csv"):
-        if source.is_file():
+        if os.path.lexists(source):  # one that is there but no readable file is refused as such
             return source
     why = (f"its {stem}.pkl is not opened (loading a pickle may run any code it holds); "
-           if (folder / f"{stem}.pkl").is_file() else f"is {folder} a run folder of lunar_lander.py? ")
+           if os.path.lexists(folder / f"{stem}.pkl") else f"is {folder} a run folder of lunar_lander.py? ")
     raise UsageError(f"{folder / stem}.npz: no such file, nor {stem}.csv; {why}"
                      + rewrite_hint(folder, stem))
 
@@ -223,7 +228,7 @@ def saved_archive(folder: Path, stem: str = "archive") -> Any:
     if source.suffix == ".npz":
         return read_archive_data(source)[0]
     config = load_run_config(folder)
-    if config.archive == "cvt" and not (folder / "centroids.npy").is_file():
+    if config.archive == "cvt" and not os.path.lexists(folder / "centroids.npy"):
         raise UsageError(f"{folder / 'centroids.npy'}: no such file (the cells of the run's CVT "
                          f"archive); " + rewrite_hint(folder, stem))
     return archive_from_csv(source, empty_archive(config, folder / "centroids.npy"))
@@ -246,6 +251,12 @@ def check_run_config(recorded: Any) -> RunConfig:
     flags), upgraded and with every value checked (a UsageError says which is not)."""
     if not isinstance(recorded, dict):
         raise UsageError(f"holds a {type(recorded).__name__}, not the flags of a run")
+    # A field this version does not know (a later version's flag) may change what the run flies:
+    # refused, not dropped, so no command runs or reads a run other than the one recorded.
+    if unknown := [name for name in recorded if name not in SEARCH_FLAGS and name not in RECORDS]:
+        more = f" and {len(unknown) - 3} more" if len(unknown) > 3 else ""
+        raise UsageError(f"holds {', '.join(map(shown, unknown[:3]))}{more}, not a field of this "
+                         f"version's runs (written by a later version?)")
     config = upgrade(recorded)
     for name, flag in SEARCH_FLAGS.items():
         if config[name] is None and flag.default is not None:  # a check passes None: refuse it here
@@ -268,7 +279,7 @@ def check_run_config(recorded: Any) -> RunConfig:
 def load_checkpoint(path: Path, trust: bool = False) -> dict:
     """A checkpoint written by this script and consistent with this script's problem, unpickled
     only once its signature is found to be the user's (or they `trust` it: resume --trust)."""
-    if not path.is_file():
+    if not os.path.lexists(path):  # one that is there but no readable file is refused as such
         raise UsageError(f"{path}: no checkpoint there (is {path.parent} a run folder of lunar_lander.py?)")
     checkpoint = read_signed_pickle(path, "checkpoint", trust)
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:

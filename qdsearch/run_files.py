@@ -8,8 +8,10 @@ Map:
   `make_folders`, `remove_unworked`), `check_writable`;
 - writing: `atomic_write` (a temporary file, then os.replace), `write_json`, `write_pickle`,
   `write_csv`;
-- reading: `read_run_json`, `unpickle` (a UsageError that names the file and the fault; only
-  for a file whose signature was checked: signing.py);
+- reading: FILE_BOUNDS, `check_regular`, `check_present`, `read_regular` (only a regular file,
+  within its kind's bound: every reader of a run's files, a plan or a key reads through it),
+  `read_run_json`, `unpickle` (a UsageError that names the file and the fault; only for a file
+  whose signature was checked: signing.py);
 - `fault_text`: any fault as one line; logs: `make_logger` (console and run.log), `console_log`;
 - `library_versions`: what config.json records of the libraries a run ran with (`cpu_kernels`).
 """
@@ -23,6 +25,7 @@ import logging
 import os
 import pickle
 import platform
+import stat
 import sys
 import tempfile
 from pathlib import Path
@@ -199,16 +202,117 @@ def write_pickle(path: Path, obj: Any) -> None:
     atomic_write(path, lambda f: pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL))
 
 
+KIB, MIB, GIB = 1 << 10, 1 << 20, 1 << 30
+# The most bytes a file of each kind that is read back may hold, and what it is called: far above
+# any real run's (options.py's MAX_* bound what a run makes), yet a bound on what is read into
+# memory. Readers name the kind; a run folder's files are named after their file.
+FILE_BOUNDS: dict[str, tuple[int, str]] = {
+    # its scheduler: the archive (below) and each emitter's state (a CMA-ES covariance each)
+    "checkpoint.pkl": (32 * GIB, "a checkpoint"),
+    # 1,000,000 cells (MAX_CELLS) of 2,000 float64 weights; runs of larger policies have fewer cells
+    "archive.npz": (16 * GIB, "an archive data file"),
+    "archive.csv": (48 * GIB, "an archive table"),  # the same as text: up to 24 characters a float
+    # a row per iteration (~250 bytes of indented JSON) of 1,000,000 iterations (MAX_ITERATIONS)
+    "metrics.json": (GIB, "a metrics file"),
+    # the flags (10,000 terrains at most: ~70 KB), the command line and a record per resume
+    "config.json": (64 * MIB, "a run config"),
+    # 1,000,000 cells (MAX_CELLS) in 10 measures (MAX_MEASURES) of float64: 80 MB
+    "centroids.npy": (128 * MIB, "a centroids file"),
+    # experiment.json (each run's flags and state), a part's state.json, corrected.json
+    "JSON": (GIB, "a JSON record"),
+    "plan": (64 * MIB, "a plan file"),  # an experiment's flags, lists of values
+    "key": (4 * KIB, "a signing key"),  # 64 hex digits and a newline
+}
+FILE_TYPES = {stat.S_IFDIR: "a folder", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device",
+              stat.S_IFIFO: "a named pipe", stat.S_IFSOCK: "a socket"}
+READ_CHUNK = 64 * MIB  # what a read asks for past a file's size (os.read allocates what it asks)
+
+
+def byte_size(size: int) -> str:
+    """A number of bytes as people read it: 512 bytes, 4.0 KiB, 1.5 GiB."""
+    for unit, name in ((GIB, "GiB"), (MIB, "MiB"), (KIB, "KiB")):
+        if size >= unit:
+            return f"{size / unit:.1f} {name}"
+    return f"{size} bytes"
+
+
+def check_regular(path: Path, kind: str, found: os.stat_result | None = None) -> os.stat_result:
+    """The stat of `path` (`found`: of the file opened there), through links, if it is a regular
+    file within its kind's bound (FILE_BOUNDS); else a one-line UsageError that says what it is.
+    A link to a regular file is followed: run folders and their files may be links (to another
+    disk, to a data store's cache); what is refused is what a link may lead to (a device that
+    never ends, a pipe that blocks, a folder)."""
+    label = FILE_BOUNDS[kind][1]
+    via = f" (a link to {os.readlink(path)})" if os.path.islink(path) else ""
+    try:
+        found = os.stat(path) if found is None else found
+    except FileNotFoundError:
+        if via:
+            raise UsageError(f"{path} is a link to {os.readlink(path)}, which does not exist; "
+                             f"{label} must be a regular file") from None
+        raise UsageError(f"{path}: no such file") from None
+    except OSError as error:
+        raise UsageError(f"{path}: not readable ({error.strerror or error})") from None
+    if not stat.S_ISREG(found.st_mode):
+        what = FILE_TYPES.get(stat.S_IFMT(found.st_mode), "not a file")
+        raise UsageError(f"{path} is {what}{via}; {label} must be a regular file")
+    if found.st_size > FILE_BOUNDS[kind][0]:
+        raise UsageError(f"{path} is {byte_size(found.st_size)}, more than the "
+                         f"{byte_size(FILE_BOUNDS[kind][0])} {label} may hold")
+    return found
+
+
+def check_present(folder: Path, files: dict[str, str]) -> None:
+    """Each of `files` (name: kind) in `folder`, where there is one (a link to nowhere included),
+    is a regular file within its bound (check_regular): for readers that pass over a missing file."""
+    for name, kind in files.items():
+        if os.path.lexists(folder / name):
+            check_regular(folder / name, kind)
+
+
+def read_regular(path: Path, kind: str) -> bytes:
+    """The bytes of `path`, a regular file (check_regular) of at most its kind's bound: no more
+    than the bound and a byte are ever read, so a file that grows while it is read is refused
+    too. A one-line UsageError names the file and the fault."""
+    check_regular(path, kind)  # before it is opened: opening a device or a pipe may block or act
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as error:
+        raise UsageError(f"{path}: not readable ({error.strerror or error})") from None
+    try:
+        size = check_regular(path, kind, os.fstat(fd)).st_size  # the file opened: replaced since?
+        return read_bounded(fd, path, kind, size)
+    except OSError as error:
+        raise UsageError(f"{path}: not readable ({error.strerror or error})") from None
+    finally:
+        os.close(fd)
+
+
+def read_bounded(fd: int, path: Path, kind: str, size: int) -> bytes:
+    """What the open file `fd` holds, of `size` bytes when it was opened: read until its end, or
+    refused once it has given more than its kind's bound."""
+    (limit, label), chunks, total = FILE_BOUNDS[kind], [], 0
+    while total <= limit:
+        # the rest of its size and a byte, to see its end; past its size, a chunk at a time (one
+        # read gives less than 2 GiB)
+        want = min(limit + 1 - total, size - total + 1 if total <= size else READ_CHUNK, GIB)
+        if not (chunk := os.read(fd, want)):
+            return b"".join(chunks)  # (one chunk, as a file mostly is, is not copied)
+        chunks.append(chunk)
+        total += len(chunk)
+    raise UsageError(f"{path} grew past the {byte_size(limit)} {label} may hold while it was read")
+
+
 def read_run_json(run_dir: Path, name: str) -> Any:
     """A JSON file of a run folder, or a UsageError naming what is missing or wrong."""
     path = run_dir / name
     if not run_dir.is_dir():
         raise UsageError(f"{run_dir}: no such run folder")
-    if not path.is_file():
+    if not os.path.lexists(path):  # a link to nowhere is there: check_regular says what it is
         raise UsageError(f"{path}: no such file (is {run_dir} a run folder of lunar_lander.py?)")
     try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as error:
+        return json.loads(read_regular(path, name if name in FILE_BOUNDS else "JSON"))
+    except (UnicodeDecodeError, ValueError) as error:
         raise UsageError(f"{path}: not readable JSON ({error})") from None
 
 

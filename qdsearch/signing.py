@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from qdsearch.flags import UsageError
-from qdsearch.run_files import atomic_write, unpickle
+from qdsearch.run_files import atomic_write, check_regular, read_regular, unpickle
 
 KEY_VARIABLE = "QDSEARCH_KEY"  # a key file's path, in place of the user's config folder's
 MAGIC = b"qdsearch-signed-pickle/1 hmac-sha256\n"  # a pickle never starts so (protocol 2+: 0x80)
@@ -76,13 +76,14 @@ def make_key(path: Path) -> None:
 
 
 def read_key(path: Path) -> bytes:
-    """The key in `path`, which only its owner may read or write (anyone else could sign)."""
+    """The key in `path`, a regular file which only its owner may read or write: its group and
+    others may not (anyone but its owner could sign)."""
+    if stat.S_IMODE(check_regular(path, "key").st_mode) & 0o077:  # a folder is named as one first
+        raise UsageError(f"{path}: other users may read or write this signing key; make it "
+                         f"yours alone with chmod 600 {path}")
     try:
-        if stat.S_IMODE(path.stat().st_mode) & 0o077:
-            raise UsageError(f"{path}: other users may read or write this signing key; make it "
-                             f"yours alone with chmod 600 {path}")
-        key = bytes.fromhex(path.read_text().strip())
-    except (OSError, ValueError, UnicodeDecodeError) as error:
+        key = bytes.fromhex(read_regular(path, "key").decode("ascii").strip())
+    except (ValueError, UnicodeDecodeError) as error:
         raise UsageError(f"{path}: not a readable signing key ({error})") from None
     if len(key) * 2 != DIGITS:
         raise UsageError(f"{path}: not a signing key ({DIGITS} hex digits); delete it to have a new "
@@ -115,17 +116,10 @@ def write_signed_pickle(path: Path, obj: Any) -> None:
     write_signed(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
 
 
-def read_bytes(path: Path, what: str) -> bytes:
-    try:
-        return path.read_bytes()
-    except OSError as error:
-        raise UsageError(f"{path}: no readable {what} ({error.strerror or error})") from None
-
-
 def read_signed_pickle(path: Path, what: str, trust: bool = False) -> Any:
     """A signed pickle, unpickled only once its signature is found to be this user's (or the
     user trusts it: `trust`); else a one-line refusal that says why and how to accept it."""
-    payload, problem = check_signature(read_bytes(path, what))
+    payload, problem = check_signature(read_regular(path, "checkpoint.pkl"))
     if problem and not trust:
         raise UsageError(f"{path}: {problem}; not loaded, as a pickle may run any code it holds; "
                          f"{TRUST} ({key_path()})")
@@ -137,7 +131,7 @@ def adopt(path: Path) -> None:
     and say so. The caller holds the folder's lock: no other process writes the file meanwhile."""
     if not path.is_file():
         return
-    payload, problem = check_signature(read_bytes(path, "checkpoint"))
+    payload, problem = check_signature(read_regular(path, "checkpoint.pkl"))
     if problem:
         write_signed(path, payload)
         print(f"{path}: trusted (--trust), and signed with your key")

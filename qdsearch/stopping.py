@@ -1,5 +1,6 @@
 """Ctrl-C and SIGTERM, acted on only where stopping is safe: the one `STOP` of a process, which
-the script installs and every wait (for a cluster, for results, between videos) consults.
+the script installs and every wait (for a cluster, for results, between videos) consults, as
+does an experiment between two runs it opens.
 
 Map: `StopRequests` (record a request; `check` it; `interruptible` blocks), `STOP`; `Stopped`
 (a stop whose line has been said).

@@ -23,24 +23,27 @@ folders) and named by their folders, which name their setting and seed.
 Map:
 - `TRACKERS` (the table --track picks from), `check_tracks` (the flag's check);
 - `TensorBoard`, `Wandb`, `Mlflow`: open (resuming), log rows and pictures, close;
+  `check_sqlite_store`: an MLflow store that cannot be opened, failed at once;
 - `TrackerThread` (the one thread every tracker works in), `Tracking` (a run's trackers, their
   notes in tracking.json, faults reported once), `wait_for_trackers` (a drive's end).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
 import os
 import queue
 import secrets
+import sqlite3
 import threading
 from pathlib import Path
 from typing import Any
 
 from qdsearch.flags import UsageError, clipped, did_you_mean, shown
-from qdsearch.run_files import fault_text, write_json
+from qdsearch.run_files import RunError, fault_text, write_json
 
 SCALARS = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective", "evaluations")
 # Each scalar is also logged against the evaluations spent (TensorBoard's by_evaluations folder,
@@ -177,6 +180,7 @@ class Mlflow:
 
         home = Path(config.experiment) if group_of(config) else run_dir
         uri = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{home.resolve() / 'mlflow.db'}"
+        check_sqlite_store(uri)
         self.client = MlflowClient(tracking_uri=uri)
         name = group_of(config) or "lunar_lander"
         found = self.client.get_experiment_by_name(name)
@@ -214,6 +218,22 @@ class Mlflow:
 
     def close(self) -> None:
         self.client.set_terminated(self.run_id)
+
+
+def check_sqlite_store(uri: str) -> None:
+    """A SQLite store (sqlite:///PATH) that cannot be opened (its folder read-only, PATH a folder),
+    said at once: MLflow tries one ten times, backing off, for 100 s."""
+    if not uri.startswith("sqlite:///"):
+        return
+    path = Path(uri.removeprefix("sqlite:///").partition("?")[0])
+    if str(path) in ("", ":memory:"):
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)  # as MLflow makes it
+        with contextlib.closing(sqlite3.connect(path)) as store:
+            store.execute("pragma schema_version")  # opens the file (sqlite opens it when first read)
+    except (OSError, sqlite3.Error) as error:
+        raise RunError(f"cannot open its store {path}: {fault_text(error)}") from None
 
 
 TRACKERS: dict[str, type] = {"tensorboard": TensorBoard, "wandb": Wandb, "mlflow": Mlflow}
@@ -287,6 +307,7 @@ class Tracking:
     def __init__(self, run_dir: Path, config: Any, log: logging.Logger) -> None:
         self.dir, self.config, self.log = run_dir, config, log
         self.open: dict[str, Any] | None = None
+        self.closed = False  # set in the tracker thread: a save handed over since is tracked, then closed
 
     def notes(self) -> dict:
         try:
@@ -335,14 +356,22 @@ class Tracking:
                 tracker.note["through"] = rows[-1]["iteration"]
         self.attempt("notes", write_json, self.dir / NOTES,
                      {**self.notes(), **{name: t.note for name, t in self.open.items()}})
+        if self.closed:  # a stop closes a run while its last save may still be on its way here
+            self.close_all()
 
     def close(self) -> None:
         if self.config.track:
-            TRACKER_THREAD.submit(self.close_all)
+            TRACKER_THREAD.submit(self.close_all, True)
 
-    def close_all(self) -> None:
+    def close_all(self, for_good: bool = False) -> None:
+        """In the tracker thread: close every open tracker, so that what they were handed is
+        written as the notes of how far they got say (TensorBoard's writers flush their files when
+        closed, else every 30 s). `for_good`: the run's close, after the saves handed over before
+        it (a save handed over later, as a stop's may be, is tracked and closed in its turn)."""
+        self.closed = self.closed or for_good
         for name, tracker in list((self.open or {}).items()):
             self.attempt(name, tracker.close)
+        self.open = None  # a save handed over later opens them again, from their notes
 
 
 def wait_for_trackers(log: logging.Logger) -> None:

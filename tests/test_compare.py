@@ -6,7 +6,9 @@ through compare: test_experiment.py.)"""
 
 import csv
 import json
+import re
 import shutil
+import warnings
 
 import matplotlib.image
 import numpy as np
@@ -177,6 +179,35 @@ def test_holm_and_auc_by_hand():
     assert comparison.qd_auc(metrics) == pytest.approx((0.5 * 10 * 100 + 10 * 200) / 20)
     five_each = pd.DataFrame([{"metric": "qd_score", "runs_a": 5, "runs_b": 5}] * 10)
     assert stats.holm_floor(five_each) == pytest.approx(10 * 2 / 252)  # 5 seeds, 5 settings: 0.079
+
+
+def test_the_holm_floor_is_at_most_one():
+    """Five settings of one run each: a complete separation's p of 1 (2 / C(2, 1)), ten pairs."""
+    one_each = pd.DataFrame([{"metric": "qd_score", "runs_a": 1, "runs_b": 1}] * 10)
+    assert stats.holm_floor(one_each) == 1.0
+    # the pairs of the table's first metric (a metric without values in a setting has fewer)
+    fewer = pd.DataFrame([{"metric": "qd_score", "runs_a": 3, "runs_b": 3}]
+                         + [{"metric": "coverage", "runs_a": 3, "runs_b": 3}] * 3)
+    assert stats.holm_floor(fewer) == pytest.approx(2 / 20)
+
+
+def test_two_runs_a_setting_have_an_interval():
+    """Two runs a task are resampled (one is not): every interval is there, around its point."""
+    for point, low, high in (stats.mean_interval([[1.0, 3.0]]), stats.iqm_interval([[1.0, 3.0]]),
+                             stats.improvement_interval([[1.0, 3.0]], [[2.0, 2.5]])):
+        assert low <= point <= high and low < high
+    assert stats.bootstrap_interval(np.array([4.0, 4.0])) == (4.0, 4.0)
+
+
+def test_a_task_one_setting_has_no_runs_of_is_left_out_of_its_improvement():
+    with_empty = stats.improvement_interval([[1.0, 5.0], [3.0, 4.0]], [[2.0, 3.0], []])
+    assert with_empty == stats.improvement_interval([[1.0, 5.0]], [[2.0, 3.0]])
+
+
+def test_the_iqm_of_no_runs_is_nan_without_a_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(stats.iqm([])) and np.isnan(stats.iqm([[]]))
 
 
 def assert_real_picture(path) -> None:
@@ -359,3 +390,107 @@ def test_compare_corrected_refuses_a_run_without_corrected_metrics(run_cli, tmp_
     assert_one_line_error(run_cli("compare", fixed, "--corrected", "--out", tmp_path / "c"),
                           "corrected.json is of iteration 2, the run is at 3", "--corrected` again")
     assert not list(tmp_path.glob("c*"))
+
+
+def test_at_evaluations_keeps_the_row_at_exactly_that_budget(run_cli, tmp_path, tiny_run):
+    """A budget that a row reached exactly is met by that row, not the one before it."""
+    rows = run_metrics(tiny_run)
+    at = rows[1]["evaluations"]
+    result = run_cli("compare", tiny_run, "--at_evaluations", str(at), "--out", tmp_path / "cut")
+    assert result.returncode == 0, result.stderr
+    [row] = pd.read_csv(tmp_path / "cut.csv").to_dict("records")
+    assert (row["evaluations"], row["iterations"]) == (at, 2)
+    assert row["qd_score"] == pytest.approx(rows[1]["qd_score"], rel=1e-12)
+
+
+def written_run(folder, evaluations=(12, 24, 36)):
+    """A run folder of the lander's config and metrics rows of a real (empty) grid archive, one per
+    budget in `evaluations`, written as the search writes them: what compare reads of a run."""
+    from qdsearch import algorithms, metrics, run_config
+    from qdsearch.run_files import write_json
+
+    config = run_config.check_run_config(options.with_task({**options.search_defaults(), "seed": 7}))
+    folder.mkdir(parents=True)
+    run_config.write_config(folder, config)
+    archive = algorithms.ARCHIVES["grid"]["make"](config)(seed=1)
+    rows = [metrics.iteration_metrics(archive, i + 1, spent, 0.5 * i) for i, spent in enumerate(evaluations)]
+    write_json(folder / "metrics.json", rows)
+    return folder, rows
+
+
+def test_a_budget_cuts_each_runs_metrics_at_its_last_row_within_it(tmp_path):
+    from qdsearch import compared_runs
+
+    (one, rows), (two, _) = written_run(tmp_path / "one"), written_run(tmp_path / "two", (10, 20))
+    config, read = compared_runs.load_run_metrics(one)
+    assert read == rows and config.seed == 7
+    runs = [rows, run_metrics(two)]
+    assert compared_runs.cut_at(runs, [one, two], None, False) == (runs, [False, False])
+    kept, short = compared_runs.cut_at(runs, [one, two], 24, False)
+    assert kept == [rows[:2], runs[1]] and short == [True, False]
+    with pytest.raises(UsageError, match=re.escape(f"{one}: its first iteration flew 12 evaluations, "
+                                                   f"more than --at_evaluations 11")):
+        compared_runs.cut_at(runs, [one, two], 11, False)
+    assert compared_runs.cut_at([rows], [one], 12, False) == ([rows[:1]], [True])  # the first, exactly
+    assert compared_runs.cut_at([rows], [one], 10**12, False) == ([rows], [False])
+    for budget, said in ((0, "--at_evaluations must be a positive whole number, got 0"),
+                         (10**12 + 1, "--at_evaluations must be at most 1,000,000,000,000, got 10000")):
+        with pytest.raises(UsageError, match=re.escape(said)):
+            compared_runs.cut_at([rows], [one], budget, False)
+    with pytest.raises(UsageError, match="^--at_evaluations and --corrected: corrected figures are of a "
+                                         "run's end$"):
+        compared_runs.cut_at(runs, [one, two], 24, True)
+    # A warm start's row 0 (its elites flown again) is not its first iteration; a run of it alone is
+    warm = [{**rows[0], "iteration": 0, "evaluations": 30}, {**rows[1], "evaluations": 42}]
+    for metrics, flew, budget in ((warm, 42, 35), (warm[:1], 30, 25)):
+        with pytest.raises(UsageError, match=f"its first iteration flew {flew} evaluations"):
+            compared_runs.cut_at([metrics], [one], budget, False)
+
+
+def test_an_experiment_is_its_runs_with_metrics_each_counted_once(tmp_path, capsys):
+    from qdsearch import compared_runs
+    from qdsearch.experiment_folder import EXPERIMENT_FORMAT
+    from qdsearch.run_files import write_json
+
+    folder = tmp_path / "exp"
+    done, _ = written_run(folder / "done")
+    (folder / "pending").mkdir()
+    runs = [{"name": name, "config": {"iterations": 3, "seed": 7}, "state": state, "setting": "cma_me"}
+            for name, state in (("done", "done"), ("pending", "pending"))]
+    write_json(folder / "experiment.json", {"format": EXPERIMENT_FORMAT, "runs": runs, "workers": 1})
+    alone, _ = written_run(tmp_path / "alone")
+    again = tmp_path / "exp" / ".." / "alone"
+    assert compared_runs.expand_folders([folder, alone, done, again]) == [done, alone]
+    said = capsys.readouterr().out.splitlines()
+    assert said[0].startswith(f"note: {folder}: 1 of 2 runs of its plan are not done: pending (pending)")
+    assert said[1:] == [f"note: {done} is given twice (the same run as {done}); counted once",
+                        f"note: {again} is given twice (the same run as {alone}); counted once"]
+
+
+def test_corrected_metrics_are_read_checked_and_of_the_runs_last_iteration(tmp_path):
+    from qdsearch import compared_runs
+    from qdsearch.run_files import write_json
+
+    run_dir, rows = written_run(tmp_path / "run")
+    with pytest.raises(UsageError, match=re.escape(f"{run_dir} has no corrected.json: run `python "
+                                                   f"lunar_lander.py evaluate {run_dir} --corrected` first")):
+        compared_runs.read_corrected(run_dir)
+    path = run_dir / "corrected.json"
+    again = f"run `python lunar_lander.py evaluate {run_dir} --corrected` again"
+    for recorded, said in ((["a"], f"{path}: holds a list, not corrected metrics"),
+                           ({**CORRECTED, "repeats": 1.5}, f"{path}: repeats is 1.5, not int; {again}"),
+                           ({**CORRECTED, "repeats": None}, f"{path}: repeats is None, not int;"),
+                           ({"coverage": 0.5}, f"{path}: qd_score is "),
+                           ({**CORRECTED, "coverage": "high"}, f"{path}: coverage is 'high', not float;"),
+                           ({**CORRECTED, "best_objective": "x"},
+                            f"{path}: best_objective is 'x', not float or NoneType;")):
+        write_json(path, recorded)
+        with pytest.raises(UsageError, match="^" + re.escape(said)):
+            compared_runs.read_corrected(run_dir)
+    fix = {**CORRECTED, "repeats": 3, "iteration": 3, "best_objective": None}
+    write_json(path, fix)
+    assert compared_runs.read_corrected(run_dir) == fix
+    compared_runs.check_fresh([fix], [rows], [run_dir])
+    with pytest.raises(UsageError, match=re.escape(f"{path} is of iteration 2, the run is at 3: run `python "
+                                                   f"lunar_lander.py evaluate {run_dir} --corrected` again")):
+        compared_runs.check_fresh([{**fix, "iteration": 2}], [rows], [run_dir])

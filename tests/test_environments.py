@@ -33,6 +33,14 @@ WALKER = "BipedalWalker-v3"
 # one renderer, which draws in software, on every core, where there is no GPU: the suite's costliest
 # frames).
 VIDEO_ROWS = ["LunarLanderContinuous-v3", WALKER, "BipedalWalkerHardcore-v3", "HalfCheetah-v5"]
+# What a user reads of a task's seed and of its solved score: its own family's words (MuJoCo has no
+# terrain, and a robot does not land).
+FAMILY_WORDS = {"lander": ("terrain", "good landings"), "walker": ("terrain", "walks to the far end")}
+ROBOT_WORDS = ("reset seed", "gaits at the reward threshold")
+
+
+def words_of(env_name: str) -> tuple[str, str]:
+    return FAMILY_WORDS.get(tasks.ENVIRONMENTS[env_name].family.name, ROBOT_WORDS)
 
 
 def policies(env_name: str, count: int = 4) -> np.ndarray:
@@ -183,15 +191,21 @@ def test_a_video_has_a_frame_per_step_and_its_elite_reflies_exactly(env_name, ta
 
 @pytest.mark.slow
 @pytest.mark.parametrize("env_name", OTHER_ROWS)
-def test_elites_of_every_row_are_listed_and_reflown_exactly(env_name, task_runs, tmp_path):
+def test_elites_of_every_row_are_listed_and_reflown_exactly(env_name, task_runs, tmp_path, capsys):
     """What video checks of the elite it shows (flown again, it scores its stored objective and
-    measures), without the rendering, for the rows VIDEO_ROWS leave out too."""
+    measures), without the rendering, for the rows VIDEO_ROWS leave out too; the last line counts
+    the elites at the task's solved return in its own words."""
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
     results.elites(str(run_dir), top=2)
     table = pd.read_csv(run_dir / "elites.csv")
     assert list(table.columns) == ["objective", *tasks.ENVIRONMENTS[env_name].measures, "cell_index"]
     archive, config = results.load_run(run_dir)
+    solved = tasks.ENVIRONMENTS[env_name].solved
+    good = int((archive.data("objective") >= solved).sum())
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        f"{len(table)} of {len(archive)} elites ({good} score {solved:g} or more: {words_of(env_name)[1]}); "
+        f"written to {run_dir / 'elites.csv'}")
     for elite in results.select_elites(archive, top=2, measures=config.measures):
         assert results.reflown(elite, config) == (elite["objective"], list(elite["measures"]))
 
@@ -249,7 +263,25 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     page.wait_for_function("() => step >= Math.min(3, current.steps)")  # its bodies drawn as it plays
     assert errors == [] and page.title() == f"{env_name} archive explorer"
     assert page.locator("#episode").text_content() == task.family.scene(52, task)["episode"]
+    seed = f"{words_of(env_name)[0]} 52"  # HalfCheetah's page: "reset seed 52", not "terrain 52"
+    assert page.locator("#subtitle").text_content() == (f"{run_dir}: cma_me, {len(data['elites'])} "
+                                                        f"elites, flown on {seed}")
+    assert page.locator("#info").text_content().endswith(f" steps on {seed}")
     page.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_name", OTHER_ROWS)
+def test_a_seed_that_is_not_the_runs_is_named_as_its_task_names_it(env_name, task_runs, run_cli):
+    run_dir = task_runs[env_name]
+    before = folder_state(run_dir)
+    result = run_cli("video", run_dir, "--best", "--env_seed", "7")
+    assert_one_line_error(result)
+    noun = words_of(env_name)[0]
+    assert result.stderr.strip() == (f"error: --env_seed 7 is not a {noun} of this run (it was flown on 52); "
+                                     f"to fly its elites on other {noun}s, use: python lunar_lander.py "
+                                     f"evaluate RUN --env_seeds 7")
+    assert folder_state(run_dir) == before
 
 
 @pytest.mark.slow

@@ -12,8 +12,9 @@ import pytest
 from scipy.stats import mannwhitneyu
 
 import lunar_lander as ll
-from qdsearch import algorithms, comparison, experiments, loop, options, run
+from qdsearch import algorithms, comparison, experiments, loop, options, run, run_folder
 from util import (
+    Replacements,
     Result,
     assert_one_line_error,
     checkpoint_iteration,
@@ -228,6 +229,22 @@ def test_parts_refuse_what_would_mix_two_experiments(run_cli, tmp_path, tiny_run
     assert result.returncode == 0 and "nothing to do: all 1 runs of part 1 of 2" in result.stdout
 
 
+@pytest.mark.parametrize("command", [["video", "--best"], ["elites"], ["trajectories", "--best"],
+                                     ["explore"]])
+def test_a_results_command_given_an_experiment_names_its_runs(run_cli, experiment_dir, command):
+    """Not "archive.npz: no such file ... resume --trust writes it again": the folder is an
+    experiment's, and the line names run folders to pass instead, which are runs."""
+    before = folder_state(experiment_dir)
+    result = run_cli(command[0], experiment_dir, *command[1:])
+    assert_one_line_error(result)
+    names = sorted(entry["name"] for entry in plan_of(experiment_dir)["runs"])
+    first = [experiment_dir / name for name in names[:3]]
+    assert result.stderr.strip() == (f"error: {experiment_dir}: an experiment folder, not a run folder; give "
+                                     f"one of its 8 run folders: {', '.join(map(str, first))}, ...")
+    assert folder_state(experiment_dir) == before
+    assert len(run_folder.load_run(first[0])[0]) > 0  # what it names is a run folder
+
+
 def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
     comparison.compare(str(experiment_dir), out=str(tmp_path / "cmp"))
 
@@ -288,3 +305,63 @@ def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
         assert run_metrics(folder / entry["name"])[-1]["iteration"] == 8
         drawn = {p.name for p in (folder / entry["name"]).iterdir()}
         assert {"heatmap.png", "progress.png", "heatmaps"} <= drawn
+
+
+# Runs that each take a moment to open and one iteration to fly: thousands of them take minutes
+# to open, most of it before the first is told.
+MANY_TINY_RUNS = dict(algorithms="cma_me", iterations=1, n_emitters=1, batch_size=2, pictures="false")
+
+
+def run_folders(folder) -> set[str]:
+    return {p.name for p in folder.iterdir() if p.is_dir()}
+
+
+def test_ctrl_c_while_runs_are_opened_stops_at_once_and_their_states_are_written_once(
+        tmp_path, dask_cluster):
+    """2,000 runs: Ctrl-C while they are opened is acted on before the next one is, and the
+    states of the runs opened are written once, not once a run (experiment.json holds every
+    run's entry: each write of it grows with the plan)."""
+    folder = tmp_path / "exp"
+    folder.mkdir()  # empty, as the experiment takes it: watched from its first write
+    writes = Replacements(folder, "experiment.json")
+    process = launch("experiment", seeds="1-2000", outdir=folder, **MANY_TINY_RUNS,
+                     scheduler_address=dask_cluster.scheduler_address)
+    try:
+        wait_for(lambda: len(run_folders(folder)) >= 20, process, "runs being opened")
+        process.send_signal(signal.SIGINT)
+        opened = run_folders(folder)
+        out, err = process.communicate(timeout=60)  # before: it went on opening all 2,000
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+    assert process.returncode == 130, err
+    said = [line for line in out.splitlines() if "Stopped" in line]
+    assert said == [f"Stopped; every run keeps its last checkpoint; continue with: "
+                    f"python lunar_lander.py resume {folder}"] and "Traceback" not in err
+    made = run_folders(folder)
+    assert opened <= made and len(made - opened) <= 1, (  # at most the run being opened as it stopped
+        f"{len(made)} runs opened, {len(opened)} when it was stopped")
+    states = {entry["name"]: entry["state"] for entry in experiments.read_experiment(folder)["runs"]}
+    assert {name for name, state in states.items() if state == "stopped"} == made
+    assert set(states.values()) == {"stopped", "pending"}
+    assert writes.count() == 2  # the plan, then the states of the runs it opened
+    writes.close()
+
+
+def test_kill_9_while_runs_are_opened_then_resume(tmp_path, dask_cluster):
+    """Killed while its runs are opened, before their states are written: resume takes each run
+    folder as it finds it (made, with or without its config and checkpoint) and finishes them all."""
+    folder = tmp_path / "exp"
+    process = launch("experiment", seeds="1-120", outdir=folder, **MANY_TINY_RUNS,
+                     scheduler_address=dask_cluster.scheduler_address)
+    wait_for(lambda: folder.exists() and len(run_folders(folder)) >= 5, process, "runs being opened")
+    os.killpg(process.pid, signal.SIGKILL)
+    process.communicate(timeout=60)
+    runs = plan_of(folder)["runs"]
+    assert {entry["state"] for entry in runs} == {"pending"} and 5 <= len(run_folders(folder)) < 120
+
+    experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+
+    assert all(entry["state"] == "done" for entry in plan_of(folder)["runs"])
+    assert all(run_metrics(folder / entry["name"])[-1]["iteration"] == 1 for entry in runs)

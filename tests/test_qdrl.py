@@ -13,7 +13,7 @@ from scipy import stats
 
 from qdsearch import experiments, gradients, run, tasks
 from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration
-from qdsearch.policies import LINEAR, POLICIES, Policy
+from qdsearch.policies import LINEAR, POLICIES, Policy, policy_of
 from qdsearch.run_config import load_run_config
 from util import assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
 
@@ -79,6 +79,43 @@ def test_the_network_starts_from_a_seeded_glorot_draw():
     assert at == len(start) == policy.size(shape)
 
 
+def test_the_start_is_one_stream_of_draws_from_the_runs_seed():
+    """Every layer's weights drawn in turn from one generator of (seed, 0x6107), as a run of an
+    earlier version drew them: a fixed --seed keeps its start."""
+    shape, hidden, seed = (3, 5), (4,), 12
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6107]))
+    expected = np.concatenate([rng.uniform(-math.sqrt(6 / 9), math.sqrt(6 / 9), 20), np.zeros(4),
+                               rng.uniform(-math.sqrt(6 / 7), math.sqrt(6 / 7), 12), np.zeros(3)])
+    assert np.array_equal(Policy("mlp", hidden).start(shape, seed), expected)
+
+
+def test_a_policy_is_read_from_its_runs_config():
+    """Runs from before --policy are linear; --hidden belongs to a network only."""
+    assert policy_of({}) == LINEAR and policy_of({"policy": "linear", "hidden": [8]}) == LINEAR
+    assert policy_of({"policy": "mlp", "hidden": [8, 4]}) == Policy("mlp", (8, 4))
+
+
+def test_a_strided_solution_acts_as_w_at_obs():
+    """A solution that is a strided view (a column of a bigger array) acts with W @ obs's bits,
+    as the contiguous one does."""
+    rng = np.random.default_rng(0)
+    solution, obs = rng.normal(size=64)[::2], rng.normal(size=8)
+    weights = solution.reshape(4, 8)
+    assert np.array_equal(LINEAR.act(solution, (4, 8), True)(obs), np.tanh(weights @ obs))
+    assert np.array_equal(LINEAR.act(solution.copy(), (4, 8), True)(obs), np.tanh(weights.copy() @ obs))
+
+
+def test_each_layers_start_is_its_own_draw():
+    """One generator draws the layers in turn: a generator made anew per layer would start every
+    layer with a rescaled copy of the first layer's weights."""
+    shape, hidden = (4, 8), (8, 8)
+    start, at, scaled = Policy("mlp", hidden).start(shape, 5), 0, []
+    for inputs, outputs in zip([8, 8, 8], [8, 8, 4]):
+        scaled.append(start[at:at + 24] / math.sqrt(6 / (inputs + outputs)))  # uniform(-1, 1) draws
+        at += (inputs + 1) * outputs
+    assert not np.allclose(scaled[0], scaled[1]) and not np.allclose(scaled[0], scaled[2])
+
+
 def test_the_gradient_batch_is_each_point_then_its_mirrored_samples():
     points, eps = np.array([[0.0, 0.0], [10.0, 20.0]]), np.arange(8.0).reshape(2, 2, 2)
     batch = gradients.sample_points(points, eps, 0.5)
@@ -88,6 +125,33 @@ def test_the_gradient_batch_is_each_point_then_its_mirrored_samples():
     again = gradients.noise(seed=4, iteration=9, points=2, samples=10, dim=3)
     assert again.shape == (2, 5, 3) and np.array_equal(again, gradients.noise(4, 9, 2, 10, 3))
     assert not np.array_equal(again, gradients.noise(4, 10, 2, 10, 3))  # each iteration its own draws
+    assert not np.array_equal(again, gradients.noise(5, 9, 2, 10, 3))  # each seed: a repeat of its own
+
+
+def test_centred_ranks_break_ties_by_position():
+    """Ranks over n - 1 less one half; equal values (a measure that many samples share) ranked in
+    the order they were flown, however many there are."""
+    assert np.array_equal(gradients.centred_ranks(np.array([3.0, 1.0, 2.0])), [0.5, -0.5, 0.0])
+    tied = gradients.centred_ranks(np.tile([1.0, 0.0], 50))  # ranks: 50, 0, 51, 1, ...
+    np.testing.assert_allclose(tied, np.column_stack([np.arange(50, 100), np.arange(50)]).ravel() / 99 - 0.5,
+                               atol=1e-12)
+
+
+def test_a_dqd_run_flies_its_samples_at_es_sigma(tmp_path):
+    """The first batch of a DQD run's iteration: its emitters' points, then each point's mirrored
+    samples at --es_sigma (not the emitters' --sigma0), drawn from the run's seed."""
+    import logging
+
+    from qdsearch import algorithms, loop, options, run_config
+
+    config = run_config.check_run_config(options.with_task(
+        {**options.search_defaults(), "algorithm": "cma_mega_es", "n_emitters": 2, "batch_size": 2,
+         "es_samples": 6, "es_sigma": 0.03, "sigma0": 0.5, "seed": 9}))
+    one = loop.Run(tmp_path, config, algorithms.build_scheduler(config), [], logging.getLogger("dqd"))
+    batch = one.ask()
+    points, eps = batch[:2], gradients.noise(9, 0, 2, 6, batch.shape[1])
+    offsets = (batch[2:].reshape(2, 6, -1) - points[:, None, :]) / 0.03
+    np.testing.assert_allclose(offsets, np.concatenate([eps, -eps], axis=1), rtol=1e-9, atol=1e-9)
 
 
 def test_the_gradient_estimate_is_dqd_rls_formula():
@@ -125,6 +189,22 @@ def test_an_iteration_costs_its_rows_evaluations():
     for name, row in ALGORITHMS.items():
         config.algorithm = name
         assert evaluations_per_iteration(config) == 21 + (3 * 21 if row.dqd else 0), name
+
+
+def test_a_budget_in_evaluations_sets_the_most_iterations_within_it():
+    """cma_mega_es, 2 emitters of 6 and 10 samples: 34 evaluations an iteration; a budget of
+    exactly one iteration is one; one short of it is refused; a huge one stops at MAX_ITERATIONS."""
+    from qdsearch import options
+    from qdsearch.flags import UsageError
+
+    config = {**options.search_defaults(), **DQD, "iterations": 7}
+    for budget, iterations in [(34, 1), (135, 3), (136, 4), (10**12, options.MAX_ITERATIONS)]:
+        made = options.with_budget({**config, "evaluations": budget})
+        assert made == {**config, "evaluations": budget, "iterations": iterations}
+        assert type(made["iterations"]) is int
+    with pytest.raises(UsageError, match="--evaluations 33 is less than one iteration of --algorithm "
+                                         "cma_mega_es, which flies 34"):
+        options.with_budget({**config, "evaluations": 33})
 
 
 def rules_env(env_name, length, unhealthy):

@@ -1,13 +1,15 @@
 """What a user sees in a terminal: the script run on a real pseudo-terminal (120 columns), its
 bytes read as the terminal gets them. One line while the local cluster starts and one when it is
 ready, one finished progress bar with nothing drawn after the closing lines, an experiment's bar
-with the experiment's own figures, and no stray line after Ctrl-C."""
+with the experiment's own figures, and no stray line after Ctrl-C. And where its output goes to a
+pipe (a file, a batch job's log): no bar, a line per saved iteration; a CVT's k-means said first."""
 
 import fcntl
 import os
 import pty
 import re
 import struct
+import subprocess
 import sys
 import termios
 import time
@@ -89,3 +91,30 @@ def test_ctrl_c_says_one_stop_line_and_nothing_after_it(tmp_path):
     lines = [line for line in re.split(r"[\r\n]+", said) if line.strip()]
     assert len(lines) == 1 and f"resume {run_dir}" in lines[0], lines
     assert (run_dir / "checkpoint.pkl").exists()  # kept for resume
+
+
+@pytest.fixture(scope="module")
+def piped(tmp_path_factory, dask_cluster):
+    """A tiny CVT search whose output goes to pipes, as to a file or a batch job's log: its
+    stdout and stderr as bytes (text mode would turn a \\r into a \\n)."""
+    run_dir = tmp_path_factory.mktemp("piped") / "run"
+    result = subprocess.run([sys.executable, str(SCRIPT), "--iterations", "6", "--log_every", "2",
+                             "--archive", "cvt", "--cells", "32", *TINY[:4], "--pictures", "false",
+                             "--scheduler_address", dask_cluster.scheduler_address, "--outdir", str(run_dir)],
+                            capture_output=True, timeout=240, cwd=run_dir.parent)
+    assert result.returncode == 0, result.stderr
+    return result.stdout.decode(), result.stderr.decode()
+
+
+def test_piped_output_has_no_bar_and_a_line_per_saved_iteration(piped):
+    out, err = piped
+    assert "\r" not in out + err and "search:" not in out + err  # no bar's frames
+    progress = [line for line in out.splitlines() if re.match(r"(Done\. )?iteration \d+/6:", line)]
+    assert [line.split(":")[0] for line in progress] == [
+        "iteration 2/6", "iteration 4/6", "Done. iteration 6/6"]
+
+
+def test_a_cvt_run_says_it_makes_its_centroids_before_its_first_iteration(piped):
+    out, _ = piped
+    making = out.index("Making the CVT archive's 32 centroids (k-means over 100,000 points)...")
+    assert making < out.index("iteration 2/6:")

@@ -187,6 +187,53 @@ def test_a_failing_tracker_is_one_line_and_the_search_goes_on(tmp_path, dask_clu
     assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == list(range(1, 7))
 
 
+@pytest.mark.slow  # a real tracked search
+def test_a_store_that_cannot_be_opened_fails_the_tracker_at_once(tmp_path, dask_cluster, monkeypatch, capsys):
+    """MLflow tries a SQLite store it cannot open ten times, backing off, for 100 s (a store in a
+    read-only folder, as a user's may be; here its file is a folder, which root cannot open
+    either): the run said nothing of it and waited out the trackers' 60 s. Its failure is said
+    at once, with its reason, in run.log and on the console, and the run ends complete."""
+    store = tmp_path / "store" / "mlflow.db"
+    store.mkdir(parents=True)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")
+    run_dir = tmp_path / "run"
+    run.search(**tiny_flags(dask_cluster, iterations=2, log_every=1, track="mlflow"), outdir=str(run_dir))
+    log = (run_dir / "run.log").read_text()
+    failed = [line for line in log.splitlines() if "tracker mlflow failed" in line]
+    assert len(failed) == 1 and f"cannot open its store {store}" in failed[0], log
+    assert "had not caught up" not in log
+    assert capsys.readouterr().out.count("tracker mlflow failed") == 1
+    assert [row["iteration"] for row in metrics_of(run_dir)] == [1, 2]
+    written = {p.name for p in run_dir.iterdir()}
+    assert {"checkpoint.pkl", "archive.npz", "archive.csv", "config.json"} <= written
+
+
+@pytest.mark.slow  # the tracked run's metrics
+def test_a_save_handed_over_after_its_run_is_closed_is_tracked_whole(tracked, tmp_path):
+    """A stop closes a run while its last save is still in the saver thread: that save reaches the
+    tracker thread after the close. Its rows are tracked and written all the same (TensorBoard's
+    writers flush their files when closed, else every 30 s), as far as the notes say."""
+    import logging
+
+    from qdsearch import run_config
+
+    run_dir, _ = tracked
+    config = run_config.load_run_config(run_dir).replace(track=["tensorboard", "mlflow"])
+    tracking = trackers.Tracking(tmp_path, config, logging.getLogger("test_trackers"))
+    tracking.close()
+    tracking.save(metrics_of(run_dir))
+    trackers.wait_for_trackers(tracking.log)
+    rows = metrics_of(run_dir)
+    notes = json.loads((tmp_path / trackers.NOTES).read_text())
+    assert notes["tensorboard"]["through"] == rows[-1]["iteration"]
+    assert [e.step for e in tensorboard_of(tmp_path).Scalars("qd/qd_score")] == [r["iteration"] for r in rows]
+    assert [e.step for e in tensorboard_of(tmp_path / "tensorboard", "by_evaluations").Scalars(
+        "qd/qd_score")] == [r["evaluations"] for r in rows]
+    client, run_id = mlflow_of(tmp_path)  # closed, as a run is at its end: nothing left unwritten
+    assert client.get_run(run_id).info.status == "FINISHED"
+    assert [m.step for m in client.get_metric_history(run_id, "qd_score")] == [r["iteration"] for r in rows]
+
+
 def test_an_unreachable_tracking_server_fails_the_tracker_within_seconds(tmp_path, monkeypatch):
     """MLflow's own retries (7, backing off from 2 s) held a 2-iteration run 64 s for a server that
     does not answer; the tracker tries a few times, quickly, then fails (one line, in the run)."""

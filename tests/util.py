@@ -353,3 +353,41 @@ def wandb_history(run_dir: Path) -> list[dict]:
 
     return [{(item.key or "/".join(item.nested_key)): json_module.loads(item.value_json)
              for item in history.item} for history in wandb_records(run_dir)]
+
+
+class Replacements:
+    """How many times a file of `folder` named `name` was replaced (an atomic write's rename onto
+    it), counted by Linux's inotify: the kernel queues every rename, so none is missed however
+    fast they come (polling the file's inode would miss some). The renames from its temporary
+    files are watched too: inotify merges an event with the one queued before it if they are the
+    same, as two renames onto the file in a row are."""
+
+    MOVED, MOVED_TO, OVERFLOW = 0xC0, 0x80, 0x4000  # <sys/inotify.h>: IN_MOVE, IN_MOVED_TO, IN_Q_OVERFLOW
+
+    def __init__(self, folder: Path, name: str) -> None:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        self.fd = libc.inotify_init1(os.O_NONBLOCK) if hasattr(libc, "inotify_init1") else -1
+        if self.fd < 0 or libc.inotify_add_watch(self.fd, str(folder).encode(), self.MOVED) < 0:
+            pytest.skip("no inotify here")
+        self.name, self.seen = name.encode(), 0
+
+    def count(self) -> int:
+        import struct
+
+        while True:
+            try:
+                data = os.read(self.fd, 1 << 16)
+            except BlockingIOError:
+                return self.seen
+            position = 0
+            while position < len(data):  # struct inotify_event: wd, mask, cookie, len, name
+                _, mask, _, length = struct.unpack_from("iIII", data, position)
+                assert not mask & self.OVERFLOW, "inotify's queue overflowed"
+                name = data[position + 16:position + 16 + length].rstrip(b"\0")
+                self.seen += bool(mask & self.MOVED_TO) and name == self.name
+                position += 16 + length
+
+    def close(self) -> None:
+        os.close(self.fd)

@@ -1,0 +1,113 @@
+"""The words a user reads (issue 60): a refusal names the flags that made its number, a name that
+heads one choice means it, a folder of the wrong kind is named with what to pass instead, and a
+task's things are called by its own family's words, never the lander's. (Each task's words on the
+explorer page and in `elites` are checked with its run in test_environments.py; an experiment
+folder given to a results command in test_experiment.py.)"""
+
+import shutil
+
+import pytest
+
+import qdsearch
+from qdsearch import algorithms, flags, options, tasks
+from qdsearch.flags import UsageError
+from util import LANDER, assert_one_line_error
+
+
+def help_entry(page: str, flag: str) -> str:
+    """A flag's entry of a --help page, its lines joined: what a user reads of that flag."""
+    lines = page.splitlines()
+    start = lines.index(f"    --{flag}={flag.upper()}") + 1
+    entry = []
+    for line in lines[start:]:
+        if not line.startswith("        "):
+            break
+        entry.append(line.strip())
+    return " ".join(part for part in entry if not part.startswith("Default: "))
+
+
+@pytest.mark.parametrize("args, line", [
+    (["--algorithm", "cma_mega_es", "--n_emitters", 20, "--es_samples", 10000],
+     "error: --n_emitters 20 x (1 + --es_samples 10000) asks 200,020 solutions per iteration; at most "
+     "100,000"),
+    (["--algorithm", "cma_mega_es", "--n_emitters", 20, "--batch_size", 6000],
+     "error: --n_emitters 20 x --batch_size 6000 asks 120,000 solutions per iteration; at most 100,000"),
+    (["experiment", "--algorithms", "cma_me,cma_maega_es", "--n_emitters", 20, "--es_samples", 10000],
+     "error: --n_emitters 20 x (1 + --es_samples 10000) asks 200,020 solutions per iteration; at most "
+     "100,000"),
+])
+def test_a_refused_size_names_the_flags_that_made_it(run_cli, tmp_path, args, line):
+    """A DQD row's gradient samples make its iteration large: the refusal names --es_samples, not
+    the --batch_size (30) the user left alone; a large batch is still named as the batch."""
+    result = run_cli(*args)
+    assert_one_line_error(result)
+    assert result.stderr.strip() == line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args, line", [
+    (["--algorithm", "cma_mega"], "error: --algorithm 'cma_mega' is unknown; did you mean cma_mega_es?"),
+    (["experiment", "--algorithms", "[cma_me, CMA-MAEGA]"],
+     "error: --algorithms 'CMA-MAEGA' is unknown; did you mean cma_maega_es?"),
+    (["--env", "Hopper"], "error: --env 'Hopper' is unknown; did you mean Hopper-v5?"),
+])
+def test_a_name_that_heads_one_choice_is_taken_for_it(run_cli, tmp_path, args, line):
+    """difflib alone takes cma_mega for the shorter cma_me; its words are cma_mega_es's head."""
+    result = run_cli(*args)
+    assert_one_line_error(result)
+    assert result.stderr.strip() == line
+
+
+@pytest.mark.parametrize("typed, choices, meant", [
+    ("cma_mega", algorithms.ALGORITHMS, "cma_mega_es"), ("from", options.SEARCH_FLAGS, "from_archive"),
+    ("max", tasks.MEASURES, "max_tilt"),
+    # a head of several choices names none of them: difflib's nearest whole name, as before
+    ("impact", tasks.MEASURES, "impact_x"), ("seeds", options.SEARCH_FLAGS, "seed"),
+])
+def test_a_head_wins_only_when_it_heads_one_choice(typed, choices, meant):
+    assert flags.nearest(typed, choices) == meant
+
+
+def test_read_experiment_of_a_run_folder_says_it_is_a_run(tiny_run):
+    """Not "RUN/experiment.json: no such file (is RUN a run folder of lunar_lander.py?)": it is one."""
+    with pytest.raises(UsageError) as refused:
+        qdsearch.read_experiment(tiny_run)
+    assert str(refused.value) == (f"{tiny_run}: a run folder, not an experiment folder (it has config.json, "
+                                  f"no experiment.json); read it with qdsearch.read_run('{tiny_run}')")
+    assert qdsearch.read_run(tiny_run).config["seed"] == 7  # the function it names reads it
+
+
+def test_search_help_says_what_a_seed_is_to_each_family(run_cli):
+    """--help is every task's: a seed is the terrain of the landers and walkers, a robot's reset
+    seed (MuJoCo has no terrain)."""
+    search = run_cli("--help").stdout
+    assert help_entry(search, "env_seed") == (
+        "The env seed(s) every policy is flown on (the terrain for Lunar Lander, BipedalWalker; the reset "
+        "seed for Hopper, Walker2d, HalfCheetah, Ant): one seed (52), a range (0-4), a list (3,5,8) or "
+        "both (0-4,10). With several seeds the objective is the mean return over them, and each measure "
+        "is its per-seed values averaged.")
+    for command in ("video", "trajectories", "explore"):
+        assert help_entry(run_cli(command, "--help").stdout, "env_seed") == (
+            "The env seed to fly on (the terrain for Lunar Lander, BipedalWalker; the reset seed for Hopper, "
+            "Walker2d, HalfCheetah, Ant), one of the run's; default: the run's first.")
+
+
+def test_help_pages_name_no_lander_thing_as_every_tasks(run_cli):
+    """200 is the lander's good landing, not every task's; explore plays any task's episode."""
+    assert help_entry(run_cli("elites", "--help").stdout, "min_objective") == (
+        "Only elites scoring at least this; the last line counts those at the task's solved return "
+        "(LunarLander-v3's 200: good landings; BipedalWalker-v3's 300).")
+    explore = run_cli("explore", "--help").stdout
+    assert "landing" not in explore and "watch any elite's episode" in " ".join(explore.split())
+
+
+def test_elites_counts_the_landers_good_landings(run_cli, tiny_run, tmp_path):
+    """The last line of `elites` counts the elites at the task's solved return, in its words."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny_run, run_dir)
+    result = run_cli("elites", run_dir, "--top", 3)
+    assert result.returncode == 0, result.stderr
+    archive = qdsearch.read_run(run_dir).archive
+    good = int((archive["objective"] >= tasks.ENVIRONMENTS[LANDER].solved).sum())
+    assert result.stdout.splitlines()[-1] == (f"3 of {len(archive)} elites ({good} score 200 or more: "
+                                              f"good landings); written to {run_dir / 'elites.csv'}")
