@@ -229,6 +229,9 @@ def count_as_done_before(bar, iterations: int) -> None:
     bar.refresh()
 
 
+STOP_CHECKPOINTS_S = 2.0  # how long a stop writes the live runs' checkpoints (Driver.checkpoint_on_stop)
+
+
 class Driver:
     """Drives runs on one client until each reaches its target: the one loop of search, resume
     and experiment.
@@ -298,7 +301,7 @@ class Driver:
         # frames would be written there one after another; the log's lines say the progress.
         self.bar = tqdm(total=self.total, initial=self.done, unit="it", desc=self.desc,
                         dynamic_ncols=True, disable=None)
-        logged = 0
+        logged, stopping = 0, False
         try:
             self.start_more()
             self.flush()  # the states of the runs just opened, written once
@@ -322,9 +325,9 @@ class Driver:
                 self.log_lines()
         except BaseException:
             self.todo.clear()  # nothing more is opened
+            stopping = True
+            self.checkpoint_on_stop()
             for run in list(self.live.values()):
-                with contextlib.suppress(Exception):
-                    run.save_checkpoint()
                 self.close(run, "stopped")
             with contextlib.suppress(Exception):
                 self.reap(wait=True)
@@ -332,9 +335,22 @@ class Driver:
                 self.flush()
             raise
         finally:
-            self.savers.close()
+            self.savers.close(stopping)
             self.bar.close()
             wait_for_trackers(self.log)
+
+    def checkpoint_on_stop(self) -> None:
+        """At a stop or a fault, the live runs' checkpoints, those with the most iterations since
+        their last one first, for STOP_CHECKPOINTS_S at most once the first is written: a stop
+        comes within seconds however many runs are live (each checkpoint takes milliseconds), and
+        a run not reached keeps its last checkpoint, which resume goes on from as exactly."""
+        deadline = None
+        for run in sorted(self.live.values(), key=lambda run: run.saved - run.iteration):
+            if deadline is not None and time.monotonic() > deadline:
+                return
+            with contextlib.suppress(Exception):
+                run.save_checkpoint()
+            deadline = deadline or time.monotonic() + STOP_CHECKPOINTS_S
 
     def next_chunk(self) -> tuple[Any, Any]:
         """The next chunk back, as as_completed hands it. A client that has lost its scheduler

@@ -91,11 +91,12 @@ class Savers:
         with self.one_at_a_time:
             save_outputs(*outputs)
 
-    def close(self) -> None:
-        """Once every save is written."""
-        self.threads.shutdown()
+    def close(self, stopping: bool = False) -> None:
+        """Once every save is written; `stopping`, once those under way are (a stop: the saves
+        still waiting are dropped, and their runs keep their last checkpoint and files)."""
+        self.threads.shutdown(cancel_futures=stopping)
         if self.processes is not None:
-            self.processes.shutdown()
+            self.processes.shutdown(cancel_futures=stopping)
 
 
 def saver_processes(most: int) -> ProcessPoolExecutor:

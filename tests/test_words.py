@@ -68,6 +68,25 @@ def test_a_head_wins_only_when_it_heads_one_choice(typed, choices, meant):
     assert flags.nearest(typed, choices) == meant
 
 
+@pytest.mark.parametrize("typed, choices, meant", [
+    # - for _ and any case: the head, the whole name or the tail as if typed with _
+    ("CMA-MEGA", algorithms.ALGORITHMS, "cma_mega_es"), ("Sep-CMA-MAE", algorithms.ALGORITHMS, "sep_cma_mae"),
+    ("hopper-V5", tasks.ENVIRONMENTS, "Hopper-v5"),
+    # a tail after any underscore, for a head the user may not know; whole names come first
+    ("y_vel", tasks.MEASURES, "impact_y_velocity"), ("Y-VELOCITY", tasks.MEASURES, "impact_y_velocity"),
+    ("x_velocty", tasks.MEASURES, "impact_x_velocity"), ("seed", options.SEARCH_FLAGS, "seed"),
+    ("sed", options.SEARCH_FLAGS, "seed"), ("nothing_near", algorithms.ALGORITHMS, None),
+])
+def test_the_nearest_name_is_found_whatever_the_case_dashes_or_head(typed, choices, meant):
+    assert flags.nearest(typed, choices) == meant
+
+
+@pytest.mark.parametrize("typed", ["cma_mu", "cma_mega", "sep_cma", "impact_y_vel", "max_tit", "env_sed"])
+def test_a_name_typed_with_dashes_or_capitals_is_taken_as_with_underscores(typed):
+    for choices in (algorithms.ALGORITHMS, options.SEARCH_FLAGS, tasks.MEASURES):
+        assert flags.nearest(typed.replace("_", "-").upper(), choices) == flags.nearest(typed, choices)
+
+
 def test_read_experiment_of_a_run_folder_says_it_is_a_run(tiny_run):
     """Not "RUN/experiment.json: no such file (is RUN a run folder of lunar_lander.py?)": it is one."""
     with pytest.raises(UsageError) as refused:
