@@ -39,6 +39,7 @@ import queue
 import secrets
 import sqlite3
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +78,14 @@ def picture(path: Path):
     return (image[..., :3] * 255).astype("uint8") if image.dtype != "uint8" else image[..., :3]
 
 
+def event_file_suffix() -> str:
+    """The end of a new event file's name, after tensorboardX's `events.out.tfevents.SECONDS.HOST`:
+    the time in nanoseconds. A run resumed in the second its stop closed its files (a script's
+    resume) would otherwise open the same name and empty the file, and TensorBoard reads a
+    folder's files in the order of their names, the order their purges assume."""
+    return f".{time.time_ns()}"
+
+
 class TensorBoard:
     """Event files in RUN/tensorboard, written with tensorboardX."""
 
@@ -87,7 +96,7 @@ class TensorBoard:
 
         through = note.get("through", 0)
         # purge_step: events of later steps (written before a stop that the note missed) go
-        self.writer = SummaryWriter(logdir=str(run_dir / "tensorboard"),
+        self.writer = SummaryWriter(logdir=str(run_dir / "tensorboard"), filename_suffix=event_file_suffix(),
                                     purge_step=through + 1 if through else None, flush_secs=30)
         if not through:
             self.writer.add_text("config", "\n".join(f"    {k}: {v}" for k, v in config.to_json().items()), 0)
@@ -102,7 +111,7 @@ class TensorBoard:
 
         if self.by_evaluations is None:
             self.by_evaluations = SummaryWriter(
-                logdir=str(self.logdir), flush_secs=30,
+                logdir=str(self.logdir), flush_secs=30, filename_suffix=event_file_suffix(),
                 purge_step=first["evaluations"] if self.note["through"] else None)
         return self.by_evaluations
 

@@ -234,6 +234,28 @@ def test_a_save_handed_over_after_its_run_is_closed_is_tracked_whole(tracked, tm
     assert [m.step for m in client.get_metric_history(run_id, "qd_score")] == [r["iteration"] for r in rows]
 
 
+def test_a_run_resumed_in_the_second_it_stopped_keeps_the_events_before(tmp_path):
+    """tensorboardX names an event file by the second and the host: the resumed run's files were the
+    stopped run's, emptied, when both opened in one second (the first rows lost from by_evaluations
+    in a loaded suite). Each writer's file is its own, and read in the order written."""
+    import time
+
+    from qdsearch import run_config
+
+    config = run_config.check_run_config(tiny_flags(track="tensorboard"))
+    rows = [{"iteration": i, "evaluations": 12 * i, **{name: float(i) for name in trackers.SCALARS
+                                                       if name != "evaluations"}} for i in range(1, 7)]
+    time.sleep(1 - time.time() % 1)  # at the start of a second: both runs open their files in it
+    for first, last in ((0, 3), (3, 6)):
+        tracker = trackers.TensorBoard(tmp_path, config, {"through": first})
+        tracker.log(rows[first:last], [0.1] * 3, {})
+        tracker.close()
+    assert [e.step for e in tensorboard_of(tmp_path).Scalars("qd/qd_score")] == [1, 2, 3, 4, 5, 6]
+    assert [e.step for e in tensorboard_of(tmp_path / "tensorboard", "by_evaluations").Scalars(
+        "qd/qd_score")] == [12, 24, 36, 48, 60, 72]
+    assert len(list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))) == 2
+
+
 def test_an_unreachable_tracking_server_fails_the_tracker_within_seconds(tmp_path, monkeypatch):
     """MLflow's own retries (7, backing off from 2 s) held a 2-iteration run 64 s for a server that
     does not answer; the tracker tries a few times, quickly, then fails (one line, in the run)."""
