@@ -88,17 +88,18 @@ def write_robustness(run: Path, archive: Any, config: RunConfig, rows: dict[str,
     """robustness.csv and robustness_heatmap.png (the elites where they were, coloured by their
     mean objective on the new terrains), and a summary line."""
     task = task_of(config)
+    noun = task.family.seed_noun  # the lander's terrains, a robot's reset seeds
     table = robustness_table(rows, config.measures, seeds, objectives, task.solved)
     write_csv(run / "robustness.csv", table)
     means = ARCHIVES[config.archive]["empty_like"](archive)
     means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
     save_heatmap(means, [MEASURES[m] for m in config.measures], run / "robustness_heatmap.png",
-                 f"Mean objective of {len(table)} elites on {len(seeds)} terrain(s) ({seeds_text})",
+                 f"Mean objective of {len(table)} elites on {len(seeds)} {noun}(s) ({seeds_text})",
                  task.heat)
     solves = table["solved_share"]
-    print(f"{len(table)} elites on {len(seeds)} terrains: "
+    print(f"{len(table)} elites on {len(seeds)} {noun}s: "
           f"mean objective {table['mean_objective'].mean():.1f}; "
-          f"{(solves == 1).sum()} solve it (>= {task.solved:g}) on every terrain, {(solves >= 0.5).sum()} "
+          f"{(solves == 1).sum()} solve it (>= {task.solved:g}) on every {noun}, {(solves >= 0.5).sum()} "
           f"on at least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
     print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")
 
@@ -225,7 +226,8 @@ def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: 
     check_rollouts(len(rows["solution"]), len(seeds), "to fly")
     check_writable(run)  # before any elite is flown
     if seen := sorted(set(seeds) & set(config.env_seed)):
-        print(f"note: the run searched on terrain(s) {seen} too; they are not new to its elites")
+        print(f"note: the run searched on {task_of(config).family.seed_noun}(s) {seen} too; they are not "
+              f"new to its elites")
     if not corrected:
         objectives = fly_elites(rows["solution"], seeds, (), config, flags, client)[:, :, 0]
         write_robustness(run, archive, config, rows, seeds, objectives, str(env_seeds or ROBUSTNESS_SEEDS))

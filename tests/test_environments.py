@@ -301,6 +301,19 @@ def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_c
         assert row["solved_share"] == np.mean(np.array(direct) >= 300)
 
 
+@pytest.mark.slow
+def test_evaluate_says_a_robots_seeds_are_reset_seeds(task_runs, tmp_path, dask_cluster, capsys):
+    """evaluate's lines in the task's words: a robot has reset seeds, not a lander's terrains."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(task_runs["HalfCheetah-v5"], run_dir)
+    evaluation.evaluate(str(run_dir), env_seeds="52,3", top=1,
+                        scheduler_address=dask_cluster.scheduler_address)
+    out = capsys.readouterr().out
+    assert "note: the run searched on reset seed(s) [52] too; they are not new to its elites" in out
+    assert "1 elites on 2 reset seeds: mean objective " in out and " on every reset seed, " in out
+    assert "terrain" not in out
+
+
 @pytest.mark.parametrize("args, fragments", [
     (["--env", "CartPole-v1"], ["--env", "CartPole-v1", "BipedalWalker-v3"]),
     (["--env", WALKER, "--measures", "impact_x"], ["impact_x", WALKER, "foot1_contact"]),
