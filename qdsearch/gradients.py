@@ -5,9 +5,12 @@ after OpenAI-ES: Salimans et al. 2017).
 
 Each emitter's point theta is flown with n mirrored samples theta +- sigma * eps (eps ~ N(0, I),
 n / 2 draws). For each of the objective and the measures, the samples' values are replaced by
-their centred ranks (in [-0.5, 0.5]: a sample's rank among the n, over n - 1, less one half),
-and the gradient estimate is sum_j eps_j * (rank(+j) - rank(-j)) / (n / 2 * sigma), dqd-rl's
-formula. Ranks make the estimate blind to the values' scale, and pyribs' emitter normalises each
+their centred ranks (in [-0.5, 0.5]: a sample's rank among the n, over n - 1, less one half;
+equal values share their mean rank), and the gradient estimate is sum_j eps_j * (rank(+j) -
+rank(-j)) / (n / 2 * sigma), dqd-rl's formula. dqd-rl's ranks break ties by position, which
+gives a measure equal on every sample (a foot's contact share moves in steps of 1 / T, so a flat
+one is common) the direction -sum(eps) as long as a real gradient; shared ranks give it none.
+Ranks make the estimate blind to the values' scale, and pyribs' emitter normalises each
 gradient anyway (normalize_grad), so returns of thousands and measures in [0, 1] step alike. The
 points are flown apart from their samples: their own objective and measures go to tell_dqd, and
 only they, not the samples, may enter the archive (dqd-rl's setting).
@@ -23,6 +26,7 @@ Map:
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
 
 ES_SEED_KEY = 0xE5  # keeps the samples' draws apart from the run's other seeds
 
@@ -42,10 +46,9 @@ def sample_points(points: np.ndarray, eps: np.ndarray, sigma: float) -> np.ndarr
 
 
 def centred_ranks(values: np.ndarray) -> np.ndarray:
-    """Each value's rank along the last axis, scaled to [-0.5, 0.5] (ties broken by position)."""
-    ranks = np.empty(values.shape, dtype=np.float64)
-    np.put_along_axis(ranks, np.argsort(values, axis=-1, kind="stable"),
-                      np.arange(values.shape[-1], dtype=np.float64), axis=-1)
+    """Each value's rank along the last axis, from 0, scaled to [-0.5, 0.5]; equal values share
+    their mean rank, so values all equal are all 0."""
+    ranks = stats.rankdata(values, method="average", axis=-1) - 1.0
     return ranks / (values.shape[-1] - 1) - 0.5
 
 

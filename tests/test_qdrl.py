@@ -128,13 +128,30 @@ def test_the_gradient_batch_is_each_point_then_its_mirrored_samples():
     assert not np.array_equal(again, gradients.noise(5, 9, 2, 10, 3))  # each seed: a repeat of its own
 
 
-def test_centred_ranks_break_ties_by_position():
-    """Ranks over n - 1 less one half; equal values (a measure that many samples share) ranked in
-    the order they were flown, however many there are."""
+def test_centred_ranks_share_ties():
+    """Ranks over n - 1 less one half; equal values (a measure that many samples share) each take
+    their mean rank."""
     assert np.array_equal(gradients.centred_ranks(np.array([3.0, 1.0, 2.0])), [0.5, -0.5, 0.0])
-    tied = gradients.centred_ranks(np.tile([1.0, 0.0], 50))  # ranks: 50, 0, 51, 1, ...
-    np.testing.assert_allclose(tied, np.column_stack([np.arange(50, 100), np.arange(50)]).ravel() / 99 - 0.5,
-                               atol=1e-12)
+    tied = gradients.centred_ranks(np.tile([1.0, 0.0], 50))  # ranks 74.5 and 24.5 of 0-99
+    assert np.array_equal(tied, np.tile([74.5 / 99 - 0.5, 24.5 / 99 - 0.5], 50))
+    shared = 1 / 3 - 0.5  # three 2.0s: ranks 0, 1, 2, each 1 of 0-3
+    assert np.array_equal(gradients.centred_ranks(np.array([[2.0, 2.0, 5.0, 2.0], [7.0] * 4])),
+                          [[shared, shared, 0.5, shared], [0.0] * 4])
+
+
+def test_a_flat_measure_has_no_gradient_and_one_differing_sample_gives_one():
+    """A measure every sample shares (a foot on the ground all along, or never) is estimated flat:
+    a zero gradient, not -sum(eps). One sample apart is a direction: its own eps, signed."""
+    point, sigma = np.zeros((1, 6)), 0.02
+    eps = gradients.noise(seed=3, iteration=0, points=1, samples=100, dim=6)
+    batch = gradients.sample_points(point, eps, sigma)
+    flat = np.column_stack([batch[:, 0], np.full(len(batch), 0.25)])  # an objective, a flat measure
+    _, _, jacobian = gradients.estimate(flat, eps, sigma)
+    assert np.array_equal(jacobian[0, 1], np.zeros(6)) and np.abs(jacobian[0, 0]).sum() > 0
+    flat[1 + 7, 1] = 0.5  # the sample +eps_7 alone is apart, above the rest
+    _, _, jacobian = gradients.estimate(flat, eps, sigma)
+    # its rank 99 against the others' mean rank 49 (of 0-98): every other pair's ranks cancel
+    np.testing.assert_allclose(jacobian[0, 1], eps[0, 7] * (0.5 - (49 / 99 - 0.5)) / (50 * sigma), rtol=1e-12)
 
 
 def test_a_dqd_run_flies_its_samples_at_es_sigma(tmp_path):
@@ -156,7 +173,8 @@ def test_a_dqd_run_flies_its_samples_at_es_sigma(tmp_path):
 
 def test_the_gradient_estimate_is_dqd_rls_formula():
     """dqd-rl: grad = sum_i eps_i (r_i - r_{i+n/2}) / (n/2 sigma), r the centred ranks of the n
-    samples' values (scipy's ordinal ranks here), the objective first, then each measure."""
+    samples' values (scipy's ranks, ties sharing their mean), the objective first, then each
+    measure."""
     rng = np.random.default_rng(0)
     points, half, dim, sigma, measures = 3, 6, 4, 0.05, 2
     eps = rng.normal(size=(points, half, dim))
@@ -166,7 +184,7 @@ def test_the_gradient_estimate_is_dqd_rls_formula():
     for p in range(points):
         samples = flown[points + p * 2 * half:points + (p + 1) * 2 * half]
         for k in range(1 + measures):
-            ranks = (stats.rankdata(samples[:, k], method="ordinal") - 1) / (2 * half - 1) - 0.5
+            ranks = (stats.rankdata(samples[:, k], method="average") - 1) / (2 * half - 1) - 0.5
             expected = sum(eps[p, i] * (ranks[i] - ranks[i + half]) for i in range(half)) / (half * sigma)
             np.testing.assert_allclose(jacobian[p, k], expected, rtol=1e-12)
 
