@@ -8,6 +8,7 @@ cluster process resume to the bits of their straight twins."""
 import contextlib
 import json
 import os
+import select
 import shutil
 import signal
 import socket
@@ -121,6 +122,18 @@ def catches_sigterm(pid: int) -> bool:
     return bool(int(caught, 16) >> (signal.SIGTERM - 1) & 1)
 
 
+def said_so_far(process, words: str, timeout: float = 60) -> str:
+    """The process's stderr up to the first chunk that holds `words` (read from its pipe as it
+    comes, so that communicate() later reads the rest)."""
+    pipe, read, deadline = process.stderr.fileno(), b"", time.time() + timeout
+    while words.encode() not in read:
+        if time.time() > deadline or process.poll() is not None:
+            raise AssertionError(f"never saw {words!r}: {read.decode()!r}")
+        if select.select([pipe], [], [], 0.1)[0]:
+            read += os.read(pipe, 4096)
+    return read.decode()
+
+
 @pytest.mark.slow
 def test_ctrl_c_and_sigterm_stop_every_wait(tmp_path):
     """Waiting on a silent port's handshake, on workers that never come, or on a scheduler file
@@ -138,12 +151,16 @@ def test_ctrl_c_and_sigterm_stop_every_wait(tmp_path):
             processes += waiting
             for process in waiting:
                 wait_for(lambda pid=process.pid: catches_sigterm(pid), process, "the stop handlers installed")
-            time.sleep(2)  # into the waits, which follow at once
+            # into the waits: each that says so once it has waited a second, the silent port's at once
+            before = {process: said_so_far(process, said) if said else ""
+                      for process, (_, said) in waiting.items()}
+            time.sleep(1)
             for process, (signum, _) in waiting.items():
                 assert process.poll() is None
                 process.send_signal(signum)
             for process, (_, said) in waiting.items():
                 out, err = process.communicate(timeout=15)
+                err = before[process] + err
                 assert process.returncode == 130, err
                 assert "Traceback" not in err and err.strip().splitlines()[-1] == "stopped", err
                 assert said in err
