@@ -245,9 +245,10 @@ ROBOT_FAMILIES = (HOPPER, WALKER2D, HALFCHEETAH, ANT)
 
 ANT_KWARGS = {"include_cfrc_ext_in_observation": False}  # 27 observations, as in the QD-RL tasks
 
-# Every policy is tanh(W @ obs): each task's action box is [-1, 1]. The QD offsets are below the
-# lowest returns of real runs (docs/locomotion.md); "solved" and CQD's top are Gymnasium's reward
-# thresholds (Walker2d has none: 5,000, as the others' scale). The heatmaps' colours top out at
+# Every policy's action is a tanh of its last layer (the linear one's: tanh(W @ obs)): each task's
+# action box is [-1, 1]. The QD offsets are below the lowest returns of real runs
+# (docs/locomotion.md); "solved" and CQD's top are Gymnasium's reward thresholds (Walker2d has
+# none: 5,000, as the others' scale). The heatmaps' colours top out at
 # 1,500, above the best returns of 300-iteration runs (docs/locomotion.md): a fixed range keeps a
 # run's snapshots comparable.
 NOISE = "the reset's noise"  # what --env_seed seeds in a MuJoCo task
