@@ -37,7 +37,7 @@ import numpy as np
 from qdsearch.algorithms import ARCHIVES, archive_shape, kind_of
 from qdsearch.flags import UsageError
 from qdsearch.options import MAX_CELLS
-from qdsearch.run_files import FILE_BOUNDS, atomic_write, fault_text, read_regular
+from qdsearch.run_files import FILE_BOUNDS, atomic_write, fault_text, open_regular, read_regular
 
 ARCHIVE_FORMAT = 1  # an archive.npz of another format is refused, not misread
 ELITE_FIELDS = ("solution", "objective", "measures", "threshold", "index")  # pyribs' archive.data()
@@ -63,19 +63,22 @@ def write_archive_data(path: Path, archive: Any, config: dict) -> None:
 def archive_fields(path: Path, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The arrays of an archive.npz (`names` only, if given), read without unpickling, of
     ARCHIVE_FORMAT; or a one-line refusal."""
-    file = io.BytesIO(read_regular(path, "archive.npz"))
-    if not zipfile.is_zipfile(file):  # numpy's own message would offer to unpickle it
-        raise UsageError(f"{path}: not a readable archive data file (not an .npz, a zip of numpy arrays)")
-    try:
-        with np.load(file, allow_pickle=False) as data:
-            # its arrays unpacked are bounded as the file is (a few zipped bytes may unpack to any size)
-            if sum(member.file_size for member in data.zip.infolist()) > FILE_BOUNDS["archive.npz"][0]:
-                raise ValueError("its arrays unpacked are larger than any run's archive")
-            fields = {name: data[name] for name in (data.files if names is None else ("format", *names))}
-    except Exception as error:  # not a zip of .npy files; a field missing; an object array
-        why = ("it holds pickled Python objects, which are never loaded" if "pickle" in str(error)
-               else fault_text(error))  # (numpy's own words would offer to unpickle them)
-        raise UsageError(f"{path}: not a readable archive data file ({why})") from None
+    # only the arrays asked for are read (the config alone is a few bytes of a large archive's)
+    with open_regular(path, "archive.npz") as file:
+        if not zipfile.is_zipfile(file):  # numpy's own message would offer to unpickle it
+            raise UsageError(f"{path}: not a readable archive data file (not an .npz, a zip of numpy "
+                             f"arrays)")
+        try:
+            file.seek(0)
+            with np.load(file, allow_pickle=False) as data:
+                # its arrays unpacked are bounded as the file is (a few zipped bytes may unpack to any size)
+                if sum(member.file_size for member in data.zip.infolist()) > FILE_BOUNDS["archive.npz"][0]:
+                    raise ValueError("its arrays unpacked are larger than any run's archive")
+                fields = {name: data[name] for name in (data.files if names is None else ("format", *names))}
+        except Exception as error:  # not a zip of .npy files; a field missing; an object array
+            why = ("it holds pickled Python objects, which are never loaded" if "pickle" in str(error)
+                   else fault_text(error))  # (numpy's own words would offer to unpickle them)
+            raise UsageError(f"{path}: not a readable archive data file ({why})") from None
     found = fields.get("format", np.array(None, dtype=object))
     if found.shape != () or found.item() != ARCHIVE_FORMAT:
         raise UsageError(f"{path}: archive data of format {found!s}, not {ARCHIVE_FORMAT} (not "

@@ -8,8 +8,9 @@ Map:
   `make_folders`, `remove_unworked`), `check_writable`;
 - writing: `atomic_write` (a temporary file, then os.replace), `write_json`, `write_pickle`,
   `write_csv`;
-- reading: FILE_BOUNDS, `check_regular`, `check_present`, `read_regular` (only a regular file,
-  within its kind's bound: every reader of a run's files, a plan or a key reads through it),
+- reading: FILE_BOUNDS, `check_regular`, `check_present`, `open_regular` and `read_regular`
+  (only a regular file, within its kind's bound: every reader of a run's files, a plan or a key
+  reads through them),
   `read_run_json`, `unpickle` (a UsageError that names the file and the fault; only for a file
   whose signature was checked: signing.py);
 - `fault_text`: any fault as one line; logs: `make_logger` (console and run.log), `console_log`;
@@ -29,7 +30,7 @@ import stat
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, BinaryIO, Callable, Iterator
 
 from qdsearch.flags import UsageError
 
@@ -270,22 +271,30 @@ def check_present(folder: Path, files: dict[str, str]) -> None:
             check_regular(folder / name, kind)
 
 
-def read_regular(path: Path, kind: str) -> bytes:
-    """The bytes of `path`, a regular file (check_regular) of at most its kind's bound: no more
-    than the bound and a byte are ever read, so a file that grows while it is read is refused
-    too. A one-line UsageError names the file and the fault."""
+@contextlib.contextmanager
+def open_regular(path: Path, kind: str) -> Iterator[BinaryIO]:
+    """`path` open for reading, a regular file within its kind's bound (check_regular, before it
+    is opened and again of the file opened: replaced since?), for a reader that takes only the
+    parts it needs (an .npz's arrays); `read_regular` reads one whole. Faults are one line."""
     check_regular(path, kind)  # before it is opened: opening a device or a pipe may block or act
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as error:
         raise UsageError(f"{path}: not readable ({error.strerror or error})") from None
-    try:
-        size = check_regular(path, kind, os.fstat(fd)).st_size  # the file opened: replaced since?
-        return read_bounded(fd, path, kind, size)
-    except OSError as error:
-        raise UsageError(f"{path}: not readable ({error.strerror or error})") from None
-    finally:
-        os.close(fd)
+    with os.fdopen(fd, "rb") as file:
+        check_regular(path, kind, os.fstat(fd))
+        yield file
+
+
+def read_regular(path: Path, kind: str) -> bytes:
+    """The bytes of `path`, a regular file (open_regular) of at most its kind's bound: no more
+    than the bound and a byte are ever read, so a file that grows while it is read is refused
+    too. A one-line UsageError names the file and the fault."""
+    with open_regular(path, kind) as file:
+        try:
+            return read_bounded(file.fileno(), path, kind, os.fstat(file.fileno()).st_size)
+        except OSError as error:
+            raise UsageError(f"{path}: not readable ({error.strerror or error})") from None
 
 
 def read_bounded(fd: int, path: Path, kind: str, size: int) -> bytes:
