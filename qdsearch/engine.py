@@ -146,7 +146,7 @@ def gather_with_progress(client, futures: list) -> list:
 
     with STOP.interruptible():
         for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
-                      dynamic_ncols=True):
+                      dynamic_ncols=True, disable=None):
             pass
         return client.gather(futures)
 

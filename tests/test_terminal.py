@@ -96,18 +96,18 @@ def test_ctrl_c_says_one_stop_line_and_nothing_after_it(tmp_path):
 @pytest.fixture(scope="module")
 def piped(tmp_path_factory, dask_cluster):
     """A tiny CVT search whose output goes to pipes, as to a file or a batch job's log: its
-    stdout and stderr as bytes (text mode would turn a \\r into a \\n)."""
+    stdout and stderr (read as bytes: text mode would turn a \\r into a \\n), and its folder."""
     run_dir = tmp_path_factory.mktemp("piped") / "run"
     result = subprocess.run([sys.executable, str(SCRIPT), "--iterations", "6", "--log_every", "2",
                              "--archive", "cvt", "--cells", "32", *TINY[:4], "--pictures", "false",
                              "--scheduler_address", dask_cluster.scheduler_address, "--outdir", str(run_dir)],
                             capture_output=True, timeout=240, cwd=run_dir.parent)
     assert result.returncode == 0, result.stderr
-    return result.stdout.decode(), result.stderr.decode()
+    return result.stdout.decode(), result.stderr.decode(), run_dir
 
 
 def test_piped_output_has_no_bar_and_a_line_per_saved_iteration(piped):
-    out, err = piped
+    out, err, _ = piped
     assert "\r" not in out + err and "search:" not in out + err  # no bar's frames
     progress = [line for line in out.splitlines() if re.match(r"(Done\. )?iteration \d+/6:", line)]
     assert [line.split(":")[0] for line in progress] == [
@@ -115,6 +115,16 @@ def test_piped_output_has_no_bar_and_a_line_per_saved_iteration(piped):
 
 
 def test_a_cvt_run_says_it_makes_its_centroids_before_its_first_iteration(piped):
-    out, _ = piped
+    out, _, _ = piped
     making = out.index("Making the CVT archive's 32 centroids (k-means over 100,000 points)...")
     assert making < out.index("iteration 2/6:")
+
+
+def test_a_results_commands_flights_have_no_bar_in_a_pipe(piped, dask_cluster):
+    """explore's (and evaluate's) flights: no bar's frames where the output is not a terminal."""
+    *_, run_dir = piped
+    result = subprocess.run([sys.executable, str(SCRIPT), "explore", str(run_dir), "--scheduler_address",
+                             dask_cluster.scheduler_address], capture_output=True, timeout=240)
+    assert result.returncode == 0, result.stderr
+    assert b"\r" not in result.stdout + result.stderr and b"flights:" not in result.stderr
+    assert (run_dir / "explorer.html").is_file()
