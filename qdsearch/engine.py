@@ -144,7 +144,7 @@ def gather_with_progress(client, futures: list) -> list:
     from dask.distributed import as_completed
     from tqdm import tqdm
 
-    with STOP.interruptible():
+    with STOP.interruptible():  # (disable=None: no bar where stderr is no terminal, a pipe or a log)
         for _ in tqdm(as_completed(futures), total=len(futures), desc="flights", unit="task",
                       dynamic_ncols=True, disable=None):
             pass
