@@ -21,7 +21,7 @@ import numpy as np
 
 from qdsearch.family import Environment
 from qdsearch.policies import policy_of
-from qdsearch.tasks import ENVIRONMENTS, MEASURES
+from qdsearch.tasks import ENVIRONMENTS, MEASURES, returns_of
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +74,7 @@ def iso_line(iso_scale: float = 1.0, line_scale: float = 1.0) -> Emitters:
 
 def soft_archive(config: Any) -> dict[str, Any]:
     """CMA-MAE's archive: thresholds follow improvements at --learning_rate, from the QD offset."""
-    return {"learning_rate": config.learning_rate, "threshold_min": task_of(config).qd_offset}
+    return {"learning_rate": config.learning_rate, "threshold_min": returns_of(config).offset}
 
 
 def measure_span(config: Any) -> float:
@@ -236,7 +236,8 @@ def archive_shape(config: Any) -> dict[str, Any]:
     measures' ranges, the offset."""
     task = task_of(config)
     return dict(solution_dim=policy_of(config).size(task.shape),
-                ranges=[MEASURES[name].range for name in config.measures], qd_score_offset=task.qd_offset)
+                ranges=[MEASURES[name].range for name in config.measures],
+                qd_score_offset=returns_of(config).offset)
 
 
 def grid_archives(config: Any) -> Callable[..., Any]:

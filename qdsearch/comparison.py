@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.algorithms import task_of
 from qdsearch.compared_runs import (
     CORRECTED,
     check_fresh,
@@ -45,7 +44,7 @@ from qdsearch.compared_runs import (
     read_corrected,
 )
 from qdsearch.experiment_folder import run_setting
-from qdsearch.family import Environment
+from qdsearch.family import Returns
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.plots import save_metric_panels
 from qdsearch.run_config import RunConfig, saved_archive
@@ -59,7 +58,7 @@ from qdsearch.stats import (
     iqm_interval,
     mean_interval,
 )
-from qdsearch.tasks import ENVIRONMENTS
+from qdsearch.tasks import returns_of
 
 COMPARED = ("evaluations", "coverage", "num_elites", "qd_score", "best_objective", "mean_objective")
 SOLVED_CELLS = "solved_cells"  # the table's column of cells whose elite solves the task
@@ -69,15 +68,15 @@ ARCHIVE_FILES = {False: ("archive.npz", "archive.csv"),
                  True: ("corrected_archive.npz", "corrected_archive.csv")}
 
 
-def solved_cells(path: Path, task: Environment) -> int | None:
+def solved_cells(path: Path, returns: Returns) -> int | None:
     """Cells of the final archive (its CSV at `path`) whose elite solves the task, a return of at
-    least task.solved (200 for Lunar Lander: a good landing); None without the CSV. QD score and
-    coverage count crashes too; this counts only the solutions."""
+    least the run's `returns.solved` (200 for Lunar Lander: a good landing); None without the
+    CSV. QD score and coverage count crashes too; this counts only the solutions."""
     import pandas as pd
 
     try:  # (within its bound: compared_runs refused one that is no regular file)
         objectives = pd.read_csv(io.BytesIO(read_regular(path, "archive.csv")), usecols=["objective"])
-        return int((objectives["objective"] >= task.solved).sum())
+        return int((objectives["objective"] >= returns.solved).sum())
     except (UsageError, ValueError):
         return None
 
@@ -128,10 +127,10 @@ QD_AUC, CQD_SCORE = "qd_auc", "cqd_score"
 # same in every table: target points drawn uniformly in the archive's measure box with this seed,
 # penalties spread evenly over [0, 1], objectives divided by obj_max - obj_min (pyribs 0.12 does
 # not subtract obj_min first, unlike Kent 2022's [0, 1] scale: tests/test_oracles.py pins it),
-# distances over the box's diagonal (obj_min is the task's QD offset, obj_max its
-# `objective_max`). Written next to every comparison.
+# distances over the box's diagonal (obj_min is the run's QD offset, obj_max its task's
+# `objective_max` for its episode's length: family.Returns). Written next to every comparison.
 CQD = {"iterations": 1, "targets": 1000, "penalties": 10, "target_seed": 0}
-SUMMARISED = ("qd_score", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
+SUMMARISED = ("qd_score", "mean_objective", "coverage", "best_objective", SOLVED_CELLS, QD_AUC, CQD_SCORE)
 TESTED = ("qd_score", QD_AUC, CQD_SCORE)  # pairwise between settings: final, anytime, spread
 AGGREGATED = (NORMALISED, "coverage")  # across tasks: on scales every task shares
 FEW_RUNS = 5
@@ -146,7 +145,7 @@ def final_archive(path: Path):
         return None
 
 
-def cqd(archive, task: Environment) -> float:
+def cqd(archive, returns: Returns) -> float:
     """The CQD score of a run's final archive."""
     from ribs.archives import cqd_score
 
@@ -154,7 +153,7 @@ def cqd(archive, task: Environment) -> float:
     targets = np.random.default_rng(CQD["target_seed"]).uniform(
         lower, upper, size=(CQD["iterations"], CQD["targets"], len(lower)))
     return float(cqd_score(archive, iterations=CQD["iterations"], target_points=targets,
-                           penalties=CQD["penalties"], obj_min=task.qd_offset, obj_max=task.objective_max,
+                           penalties=CQD["penalties"], obj_min=returns.offset, obj_max=returns.top,
                            dist_max=float(np.linalg.norm(upper - lower))).mean)
 
 
@@ -172,10 +171,10 @@ def archive_cells(config: RunConfig) -> int:
 
 def normalised_qd_score(qd_score: float, config: RunConfig) -> float:
     """QD score over the most it could be, every cell holding an elite of the task's
-    objective_max: in [0, 1] (objective_max is above almost every return) whatever the task and
-    the archive's size, so tasks pool."""
-    task = task_of(config)
-    return qd_score / (archive_cells(config) * (task.objective_max - task.qd_offset))
+    objective_max (for the run's episode length): in [0, 1] (objective_max is above almost every
+    return) whatever the task and the archive's size, so tasks pool."""
+    returns = returns_of(config)
+    return qd_score / (archive_cells(config) * (returns.top - returns.offset))
 
 
 def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunConfig],
@@ -193,16 +192,17 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunC
     for i, (label, run_dir, config, metrics) in enumerate(zip(labels, run_dirs, configs, runs)):
         final = metrics[-1] if corrected is None else {**metrics[-1], **{
             key: corrected[i][key] for key in CORRECTED}}
-        task = task_of(config)
+        returns = returns_of(config)
         archive = None if cut and cut[i] else final_archive(run_dir / data_name)
         objectives.append(None if archive is None else archive.data("objective"))
         rows.append({"run": label, "folder": str(run_dir), "task": config.env,
                      "setting": run_setting(config.to_json()), "seed": config.seed,
-                     "iterations": metrics[-1]["iteration"], **{key: final[key] for key in COMPARED},
+                     "iterations": metrics[-1]["iteration"], "qd_offset": returns.offset,
+                     **{key: final[key] for key in COMPARED},
                      NORMALISED: normalised_qd_score(final["qd_score"], config),
-                     SOLVED_CELLS: None if cut and cut[i] else solved_cells(run_dir / csv_name, task),
+                     SOLVED_CELLS: None if cut and cut[i] else solved_cells(run_dir / csv_name, returns),
                      QD_AUC: qd_auc(metrics),
-                     CQD_SCORE: None if archive is None else cqd(archive, task)})
+                     CQD_SCORE: None if archive is None else cqd(archive, returns)})
     table = pd.DataFrame(rows)
     for column in (SOLVED_CELLS, CQD_SCORE):
         table[column] = pd.to_numeric(table[column])  # None (no archive): NaN
@@ -341,16 +341,26 @@ def settings_table(stats, point: str, low: str, high: str) -> list[str]:
     return lines
 
 
-def task_section(stats, tests, env: str) -> list[str]:
-    """One task's statistics as Markdown tables: the mean and the IQM per setting, the tests."""
-    task = ENVIRONMENTS[env]
+def task_section(stats, tests, env: str, ranges: list[Returns]) -> list[str]:
+    """One task's statistics as Markdown tables: the mean and the IQM per setting, the tests
+    (`ranges`: its runs' ranges of objectives, one unless their episodes differ in length)."""
+    one = ranges[0]
+    if len(ranges) == 1:
+        scale = (f"QD score: the sum of each elite's objective less the offset {one.offset:g}; "
+                 f"mean_objective: the elites' mean objective. solved_cells: cells whose elite "
+                 f"returns at least {one.solved:g}.")
+        divided = (f"{one.top:g} - ({one.offset:g}) (pyribs' cqd_score with obj_min {one.offset:g}, "
+                   f"obj_max {one.top:g}")
+    else:
+        scale = ("Its runs' episodes differ in length, and with them their QD offsets, solved "
+                 "returns and CQD's ranges (the table's qd_offset column): their QD scores do not compare.")
+        divided = "each run's objective_max - QD offset (pyribs' cqd_score"
     lines = [*settings_table(stats, "mean", "ci95_low", "ci95_high"),
              "", f"{env}. Mean [95% bootstrap confidence interval of the mean, BCa] over each "
-                 f"setting's runs. solved_cells: cells whose elite returns at least {task.solved:g}.",
+                 f"setting's runs. {scale}",
              f"CQD score: {CQD['targets']:,} target points drawn uniformly in the measure box "
              f"(seed {CQD['target_seed']}), {CQD['penalties']} distance penalties, objectives "
-             f"divided by {task.objective_max:g} - ({task.qd_offset:g}) (pyribs' cqd_score with "
-             f"obj_min {task.qd_offset:g}, obj_max {task.objective_max:g}: not shifted by obj_min).", "",
+             f"divided by {divided}: not shifted by obj_min).", "",
              "IQM [95% stratified bootstrap interval]:", "",
              *settings_table(stats, "iqm", "iqm_low", "iqm_high"),
              "", f"IQM: the interquartile mean (the mean of the middle half of the runs, rliable's); "
@@ -408,13 +418,14 @@ def aggregate_section(aggregate, notes: list[str], tasks: list[str]) -> list[str
     return lines
 
 
-def markdown_report(stats, tests, aggregate, notes: list[str], used: str) -> str:
+def markdown_report(stats, tests, aggregate, notes: list[str], used: str,
+                    ranges: dict[str, list[Returns]]) -> str:
     """The statistics as Markdown, ready for a README or a paper: each task's own (a section per
-    task when there are several), then with several tasks the aggregate, and which final values
-    they are of (`used`)."""
+    task when there are several; `ranges`: its runs' ranges of objectives), then with several
+    tasks the aggregate, and which final values they are of (`used`)."""
     tasks, lines = list(dict.fromkeys(stats["task"])), []
     for env in tasks:
-        section = task_section(stats[stats["task"] == env], tests[tests["task"] == env], env)
+        section = task_section(stats[stats["task"] == env], tests[tests["task"] == env], env, ranges[env])
         lines += section if len(tasks) == 1 else [f"## {env}", "", *section, ""]
     if aggregate is not None:
         lines += aggregate_section(aggregate, notes, tasks)
@@ -441,7 +452,8 @@ def save_score_distributions(table, objectives: list, archive_name: str, path: P
                  if objs is not None and row["task"] == task]
         values = np.concatenate(found) if found else np.empty(0)
         # from the task's QD offset up: below it lie crashes that count for nothing in the QD score
-        low = max(float(values.min()), ENVIRONMENTS[task].qd_offset) if len(values) else None
+        offset = min(row["qd_offset"] for row in runs if row["task"] == task) if len(values) else None
+        low = max(float(values.min()), offset) if len(values) else None
         vmin, vmax = (low, max(float(values.max()), low + 1.0)) if len(values) else (None, None)
         settings = list(dict.fromkeys(row["setting"] for row in runs if row["task"] == task))
         # each setting its colour: tab10's distinct ones, tab20's (pairs of shades) past ten
@@ -555,7 +567,12 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     if grouped:
         stats, tests = setting_statistics(table), pairwise_tests(table, baseline)
         aggregate, notes = aggregate_statistics(table, baseline) if several else (None, [])
-        report = markdown_report(stats, tests, aggregate, notes, used)
+        ranges: dict[str, list[Returns]] = {}
+        for config in configs:
+            ranges.setdefault(config.env, [])
+            if (returns := returns_of(config)) not in ranges[config.env]:
+                ranges[config.env].append(returns)
+        report = markdown_report(stats, tests, aggregate, notes, used, ranges)
         write_csv(files["settings"], stats)
         write_csv(files["tests"], tests)
         written += [files["settings"], files["tests"]]

@@ -23,7 +23,7 @@ import numpy as np
 
 from qdsearch.policies import LINEAR, Policy, policy_of
 from qdsearch.stopping import STOP
-from qdsearch.tasks import TASKS_OWN, Episode, episode_of, make_env, rollout
+from qdsearch.tasks import TASKS_OWN, Episode, episode_of, make_env, reset_seeds, rollout
 
 _WORKER_ENVS: dict[tuple[str, bool, Episode, int], gym.Env] = {}  # per worker thread, reused across tasks
 
@@ -87,10 +87,12 @@ def chunk_count(pairs: int, workers: int, sharing: int = 1, per_worker: int | No
     return max(1, min(max(wanted, fewest), pairs // MIN_CHUNK))
 
 
-def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures: tuple[str, ...],
-                   fast_env: bool, sharing: int = 1, threads: int | None = None, *,
+def submit_flights(client, solutions: np.ndarray, env_seeds: list[int] | np.ndarray,
+                   measures: tuple[str, ...], fast_env: bool, sharing: int = 1, threads: int | None = None, *,
                    env_name: str, policy: Policy = LINEAR, episode: Episode = TASKS_OWN) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
+    `env_seeds`: the terrains every solution flies on, or a row of its own per solution (the
+    reset seeds of a --reset each run: tasks.reset_seeds).
 
     The work is the (solution, terrain) pairs, dealt out into chunks of about equal count
     whatever the number of terrains (chunk_pairs), so the workers stay evenly loaded. A batch
@@ -101,10 +103,11 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int], measures
     cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
     """
     workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
-    pairs = len(solutions) * len(env_seeds)
+    terrains = np.asarray(env_seeds, dtype=np.int64)
+    seeds = np.broadcast_to(terrains, (len(solutions), terrains.shape[-1])).reshape(-1)
+    pairs, per_solution = len(seeds), terrains.shape[-1]
     chunks = chunk_pairs(pairs, chunk_count(pairs, workers, sharing))
-    seeds = np.tile(np.asarray(env_seeds, dtype=np.int64), len(solutions))
-    return client.map(fly_chunk, [solutions[chunk // len(env_seeds)] for chunk in chunks],
+    return client.map(fly_chunk, [solutions[chunk // per_solution] for chunk in chunks],
                       [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
                       [fast_env] * len(chunks), [env_name] * len(chunks), [policy] * len(chunks),
                       [episode] * len(chunks), pure=False, retries=3,
@@ -122,14 +125,14 @@ def chunk_pairs(pairs: int, count: int) -> list[np.ndarray]:
     return [np.arange(first, pairs, count) for first in range(count)]
 
 
-def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int]) -> np.ndarray:
+def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int] | np.ndarray) -> np.ndarray:
     """The chunks' rows back in pair order (chunk_pairs dealt them out): (solutions, terrains,
-    1 + measures)."""
+    1 + measures); `env_seeds` as submit_flights took them."""
     pairs = sum(len(rows) for rows in chunk_results)
     rows = np.empty((pairs, chunk_results[0].shape[1]), dtype=np.result_type(*chunk_results))
     for chunk, chunk_rows in zip(chunk_pairs(pairs, len(chunk_results)), chunk_results):
         rows[chunk] = chunk_rows
-    return rows.reshape(-1, len(env_seeds), rows.shape[1])
+    return rows.reshape(-1, np.shape(env_seeds)[-1], rows.shape[1])
 
 
 def averaged(flights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,9 +160,10 @@ def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarr
     Results come back in the order of the solutions whatever the number of workers, so a fixed
     seed gives the same archive on 1 or 100 workers.
     """
-    futures = submit_flights(client, solutions, config.env_seed, config.measures, config.fast_env,
+    seeds = reset_seeds(solutions, config)
+    futures = submit_flights(client, solutions, seeds, config.measures, config.fast_env,
                              env_name=config.env, policy=policy_of(config), episode=episode_of(config))
-    return averaged(per_terrain(client.gather(futures), config.env_seed))
+    return averaged(per_terrain(client.gather(futures), seeds))
 
 
 class ClusterShare:

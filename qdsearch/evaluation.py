@@ -38,7 +38,7 @@ from qdsearch.policies import policy_of
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import check_writable, console_log, write_csv, write_json, write_pickle
 from qdsearch.run_folder import elite_rows, load_run
-from qdsearch.tasks import MEASURES, episode_of
+from qdsearch.tasks import MEASURES, episode_of, returns_of
 
 ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default
 DEFAULT_REPEATS = 10  # seeds of a corrected archive (QDax's examples re-evaluate 10 to 100 times)
@@ -87,19 +87,19 @@ def write_robustness(run: Path, archive: Any, config: RunConfig, rows: dict[str,
                      seeds: list[int], objectives: np.ndarray, seeds_text: str) -> None:
     """robustness.csv and robustness_heatmap.png (the elites where they were, coloured by their
     mean objective on the new terrains), and a summary line."""
-    task = task_of(config)
+    task, returns = task_of(config), returns_of(config)
     noun = task.family.seed_noun  # the lander's terrains, a robot's reset seeds
-    table = robustness_table(rows, config.measures, seeds, objectives, task.solved)
+    table = robustness_table(rows, config.measures, seeds, objectives, returns.solved)
     write_csv(run / "robustness.csv", table)
     means = ARCHIVES[config.archive]["empty_like"](archive)
     means.add(rows["solution"], objectives.mean(axis=1), rows["measures"])
     save_heatmap(means, [MEASURES[m] for m in config.measures], run / "robustness_heatmap.png",
                  f"Mean objective of {len(table)} elites on {len(seeds)} {noun}(s) ({seeds_text})",
-                 task.heat)
+                 returns.heat)
     solves = table["solved_share"]
     print(f"{len(table)} elites on {len(seeds)} {noun}s: "
           f"mean objective {table['mean_objective'].mean():.1f}; "
-          f"{(solves == 1).sum()} solve it (>= {task.solved:g}) on every {noun}, {(solves >= 0.5).sum()} "
+          f"{(solves == 1).sum()} solve it (>= {returns.solved:g}) on every {noun}, {(solves >= 0.5).sum()} "
           f"on at least half. Best: {table['mean_objective'][0]:.1f} mean, cell {table['cell_index'][0]}.")
     print(f"written to {run / 'robustness.csv'} and {run / 'robustness_heatmap.png'}")
 
@@ -131,7 +131,7 @@ def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig)
     write_csv(run / "corrected_archive.csv", corrected.data(return_type="pandas"))
     save_heatmap(corrected, [MEASURES[m] for m in config.measures], run / "corrected_heatmap.png",
                  f"Corrected archive: {summary['elites_flown']} elites, mean of {summary['repeats']} "
-                 f"new seeds", task_of(config).heat)
+                 f"new seeds", returns_of(config).heat)
     write_json(run / "corrected.json", summary)
     own = summary["run"]
     print(f"corrected archive of {summary['elites_flown']} elites on {summary['repeats']} new seeds: "

@@ -61,6 +61,7 @@ from qdsearch.options import (
     refuse_unused_row_flags,
     search_defaults,
     with_budget,
+    with_offset,
     with_task,
 )
 from qdsearch.parts import (
@@ -260,7 +261,7 @@ def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
     for setting in settings:
         for seed in seeds:
             # its iterations, of --evaluations; none of the flags its policy ignores
-            config = with_budget(for_policy({**common, **setting, "seed": seed}))
+            config = with_offset(with_budget(for_policy({**common, **setting, "seed": seed})))
             label = run_setting(config)
             name = re.sub(r"[^A-Za-z0-9.]+", "_", label) + f"_seed{seed}"
             runs.append({"name": name, "setting": label, "seed": seed, "config": config,

@@ -22,7 +22,7 @@ import numpy as np
 from qdsearch.algorithms import cvt_positions, kind_of, task_of
 from qdsearch.cluster import dask_client, scheduler_of
 from qdsearch.engine import gather_with_progress, worker_env
-from qdsearch.family import require_drawing
+from qdsearch.family import require_drawing, require_one_world
 from qdsearch.flags import takes
 from qdsearch.metrics import load_metrics
 from qdsearch.options import CLUSTER_FLAGS, TERRAIN_FLAGS, checked
@@ -30,7 +30,16 @@ from qdsearch.policies import LINEAR, Policy, policy_of
 from qdsearch.run_config import RunConfig
 from qdsearch.run_files import atomic_write, check_writable, console_log
 from qdsearch.run_folder import elite_rows, load_run, shown_terrain
-from qdsearch.tasks import ENVIRONMENTS, MEASURES, TASKS_OWN, Episode, episode_of, fly
+from qdsearch.tasks import (
+    ENVIRONMENTS,
+    MEASURES,
+    TASKS_OWN,
+    Episode,
+    episode_of,
+    flown_seeds,
+    fly,
+    returns_of,
+)
 
 # The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
 # fills in its /*DATA*/ (the run's data) and /*POLICY*/ (its Content-Security-Policy).
@@ -62,12 +71,13 @@ def explorer_page(data: dict) -> str:
 # family's `pose_scale`: units per metre or radian; its `pose_angles` wrapped to [-pi, pi]) and
 # sent as base64; the page decodes them into an Int16Array.
 
-def record_poses(solutions: np.ndarray, env_seed: int, env_name: str, policy: Policy = LINEAR,
+def record_poses(solutions: np.ndarray, env_seeds: list[int], env_name: str, policy: Policy = LINEAR,
                  episode: Episode = TASKS_OWN) -> list[np.ndarray]:
     """Runs on a worker: each solution's episode as quantised poses (steps + 1, pose size), the
-    reset's pose first, flown as `policy` in the env `rollout` flies it in."""
+    reset's pose first, flown as `policy` from its reset seed in the env `rollout` flies it in."""
     env = worker_env(env_name, True, episode)
-    return [record_flight(solution, env_seed, env, env_name, policy) for solution in solutions]
+    return [record_flight(solution, seed, env, env_name, policy)
+            for solution, seed in zip(solutions, env_seeds)]
 
 
 def record_flight(solution: np.ndarray, env_seed: int, env: gym.Env, env_name: str,
@@ -127,7 +137,7 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
         "measures": [{"name": name, "label": MEASURES[name].label, "descending": MEASURES[name].descending,
                       "range": [float(lo), float(hi)]}
                      for name, lo, hi in zip(config.measures, archive.lower_bounds, archive.upper_bounds)],
-        "dims": dims, "heat_range": list(task.heat),
+        "dims": dims, "heat_range": list(returns_of(config).heat),
         "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
         "elites": elites, "pose_scale": list(task.family.pose_scale),
         "poses": base64.b64encode(np.concatenate(flights).tobytes()).decode(),
@@ -152,6 +162,7 @@ def explore(run_dir: str, **flags: Any) -> None:
     env_seed, workers = flags["env_seed"], flags["workers"]
     archive, config = load_run(run_dir)
     require_drawing(task_of(config).family, "explore")
+    require_one_world(task_of(config).family, config.reset, "explore")
     shown = shown_terrain(config, env_seed)
     workers, run = checked("workers", workers), Path(str(run_dir))
     metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown
@@ -160,7 +171,8 @@ def explore(run_dir: str, **flags: Any) -> None:
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
-        futures = [client.submit(record_poses, chunk, shown, config.env, policy_of(config),
+        futures = [client.submit(record_poses, chunk, flown_seeds(chunk, shown, config), config.env,
+                                 policy_of(config),
                                  episode_of(config), pure=False, retries=3)
                    for chunk in chunks]
         flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]

@@ -18,6 +18,8 @@ Map:
   missing simulator or renderer in one line: `renderer_missing`, GL_PACKAGES) and `spaces`
   (read once, on first use), whence the policy's `shape`, `continuous`, `solution_dim` (of the
   linear policy) and `policy` (any policy's act);
+- `Returns`: the range of a run's objectives (its QD offset, solved return, CQD's top and the
+  heatmaps' colours), `Environment.returns` (a task's, for an episode's length);
 - `Measure`: a behaviour solutions are told apart by (a row of MEASURES).
 """
 
@@ -55,6 +57,8 @@ class Family:
     # obs -> action, the policy flown
     # The words the commands name its things with (a task's own words never show for another's):
     seed_noun: str = "seed"  # what one --env_seed value is (the lander's "terrain"): "terrain 52"
+    seed_shapes_world: bool = False  # a seed makes the ground the pictures draw (a terrain), so
+    # one picture can't hold elites flown from resets of their own (--reset each)
     solved_words: str = "solved episodes"  # what scoring the task's `solved` return or more is
     # (the lander's "good landings"): "3 score 200 or more: good landings"
     prepare: Callable[[], None] = lambda: None  # called before one of its envs is made
@@ -93,6 +97,15 @@ def require_drawing(family: Family, command: str) -> None:
                          f"{', '.join(missing)}; docs/extending.md)")
 
 
+def require_one_world(family: Family, reset: str, command: str) -> None:
+    """Refuse, in one line, one picture of elites each flown from its own terrain (--reset each
+    of a family whose seed makes its ground): it has no one ground to draw them on."""
+    if reset == "each" and family.seed_shapes_world:
+        raise UsageError(f"{command}: each elite of this --reset each run flew its own "
+                         f"{family.seed_noun}, which one picture can't draw; the video command "
+                         f"shows each elite as it was flown")
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Environment:
     """A Gymnasium task a search can fly (a row of ENVIRONMENTS, picked by --env).
@@ -113,9 +126,26 @@ class Environment:
     fast: Callable[[], gym.Env] | None = None  # a streamlined copy, bitwise the same
     heat: tuple[float, float] = (-300.0, 300.0)  # the heatmaps' colour range of objectives
     objective_max: float = 350.0  # a return above (almost) every policy's: CQD's normalisation
+    # True: qd_offset, solved, heat and objective_max are per step of an episode, and a run's are
+    # those times its episode's length (a robot earns its reward every step; the lander's landing
+    # and crash are paid once, so its range does not follow the episode's length)
+    per_step: bool = False
     archive: str = "grid"  # the default --archive (a CVT for measures too many for a grid)
     objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
     # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)
+
+    @property
+    def own_length(self) -> int | None:
+        """The steps of the task's own episode (gym.make's max_episode_steps in its spec)."""
+        return gym.spec(self.gym_id).max_episode_steps
+
+    def returns(self, length: int | None = None, qd_offset: float | None = None) -> Returns:
+        """The range of a run's objectives when its episodes last at most `length` steps (None: the
+        task's own), its QD offset `qd_offset` if the run recorded one."""
+        scale = (length or self.own_length or 1) if self.per_step else 1
+        offset = self.qd_offset * scale if qd_offset is None else qd_offset
+        return Returns(offset=offset, solved=self.solved * scale, top=self.objective_max * scale,
+                       heat=(self.heat[0] * scale, self.heat[1] * scale))
 
     def make(self, render_mode: str | None = None, name: str | None = None, **rules: Any) -> gym.Env:
         """gym.make's env of the task, its family prepared (`rules`: gym.make's keywords for a run's
@@ -173,6 +203,16 @@ class Environment:
     def policy(self, solution: np.ndarray, policy: Policy = LINEAR) -> Callable:
         """obs -> action of `solution` as `policy` (default: the linear one) in this task."""
         return policy.act(solution, self.shape, self.continuous)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Returns:
+    """The range of a run's objectives, from its task and episode's length (Environment.returns)."""
+
+    offset: float  # the QD offset: QD score sums each elite's objective less this; CMA-MAE's floor
+    solved: float  # the return that solves the task: the solved cells, `elites`' count
+    top: float  # a return above (almost) every policy's: CQD's obj_max, the normalised QD score
+    heat: tuple[float, float]  # the heatmaps' and the explorer's colour range
 
 
 # The Debian packages each of MuJoCo's headless renderers (MUJOCO_GL) needs.

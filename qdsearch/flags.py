@@ -75,6 +75,13 @@ def positive_float(name: str, value: Any) -> float:
     return float(value)
 
 
+def finite_number(name: str, value: Any) -> float:
+    """Any real number, as a float (a QD offset)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise UsageError(f"--{name} must be a number, got {shown(value)}")
+    return float(value)
+
+
 def number_up_to(most: float) -> Check:
     """A check for a positive number of at most `most`."""
     def check(name: str, value: Any) -> float:

@@ -195,7 +195,7 @@ def draw_paths(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, task: Env
 # ---- the declarations ------------------------------------------------------------------------
 
 LANDER = Family(name="lander", title="Lunar Lander", fly=fly_lander, seed_noun="terrain",
-                solved_words="good landings", position=position,
+                seed_shapes_world=True, solved_words="good landings", position=position,
                 marked_step=marked_step, draw_paths=draw_paths, pose=pose, pose_scale=POSE_SCALE,
                 pose_angles=POSE_ANGLES, scene=scene)
 

@@ -17,13 +17,12 @@ import io
 import os
 from pathlib import Path
 
-from qdsearch.algorithms import task_of
 from qdsearch.flags import UsageError, positive_int
 from qdsearch.metrics import load_metrics
 from qdsearch.run_config import RunConfig, load_checked_config
 from qdsearch.run_files import check_present, read_regular
 from qdsearch.stopping import STOP
-from qdsearch.tasks import MEASURES
+from qdsearch.tasks import MEASURES, returns_of
 
 REFRESH_MS = 2000  # how often the page looks at the folder's files
 # The files the page shows (name: kind of run_files.FILE_BOUNDS)
@@ -77,7 +76,7 @@ def live_document(run_dir: Path, config: RunConfig):
     from bokeh.palettes import Magma256
     from bokeh.plotting import figure
 
-    task, axes = task_of(config), [MEASURES[name] for name in config.measures]
+    heat, axes = returns_of(config).heat, [MEASURES[name] for name in config.measures]
 
     def make(doc) -> None:
         # the files as this page last showed them: each page (each tab, each session) keeps its own,
@@ -86,7 +85,7 @@ def live_document(run_dir: Path, config: RunConfig):
         elites = ColumnDataSource(elite_columns(run_dir, config), name="elites")
         curve = ColumnDataSource(metric_columns(run_dir), name="metrics")
         title = Div(text=headline(run_dir, config, curve.data, len(elites.data["x"])), name="headline")
-        colours = LinearColorMapper(palette=Magma256, low=task.heat[0], high=task.heat[1])
+        colours = LinearColorMapper(palette=Magma256, low=heat[0], high=heat[1])
         x_range = axes[0].range
         y_range = axes[1].range if len(axes) > 1 else (-1.0, 1.0)
         if len(axes) > 1 and axes[1].descending:  # as heatmap.png and the explorer draw it

@@ -246,30 +246,31 @@ ROBOT_FAMILIES = (HOPPER, WALKER2D, HALFCHEETAH, ANT)
 ANT_KWARGS = {"include_cfrc_ext_in_observation": False}  # 27 observations, as in the QD-RL tasks
 
 # Every policy's action is a tanh of its last layer (the linear one's: tanh(W @ obs)): each task's
-# action box is [-1, 1]. The QD offsets are below the lowest returns of real runs
-# (docs/locomotion.md); "solved" and CQD's top are Gymnasium's reward thresholds (Walker2d has
-# none: 5,000, as the others' scale). The heatmaps' colours top out at
-# 1,500, above the best returns of 300-iteration runs (docs/locomotion.md): a fixed range keeps a
-# run's snapshots comparable.
+# action box is [-1, 1]. A robot earns its reward every step, so its range is declared per step
+# (per_step) and a run's is that times its episode's length, as QDax's reward_offset. The QD
+# offsets are below the lowest returns of random policies and below the worst a policy can do
+# by its control cost (docs/locomotion.md); "solved" and CQD's top are Gymnasium's reward
+# thresholds over its 1,000 steps (Walker2d has none: 5 a step, as the others' scale); the
+# heatmaps' colours top out above the best returns of 300-iteration runs.
 NOISE = "the reset's noise"  # what --env_seed seeds in a MuJoCo task
 ENVIRONMENTS: dict[str, Environment] = {
     "Hopper-v5": Environment(
-        gym_id="Hopper-v5", family=HOPPER, measures=("hopper_foot1",), qd_offset=-100.0, env_seed=NOISE,
-        solved=3800.0, heat=(-100.0, 1500.0), objective_max=3800.0),
+        gym_id="Hopper-v5", family=HOPPER, measures=("hopper_foot1",), qd_offset=-0.1, env_seed=NOISE,
+        solved=3.8, heat=(-0.1, 1.5), objective_max=3.8, per_step=True),
     "Walker2d-v5": Environment(
         gym_id="Walker2d-v5", family=WALKER2D, measures=("walker2d_foot1", "walker2d_foot2"),
-        qd_offset=-100.0, env_seed=NOISE, solved=5000.0, heat=(-100.0, 1500.0), objective_max=5000.0),
+        qd_offset=-0.1, env_seed=NOISE, solved=5.0, heat=(-0.1, 1.5), objective_max=5.0, per_step=True),
     "HalfCheetah-v5": Environment(
         gym_id="HalfCheetah-v5", family=HALFCHEETAH, measures=("halfcheetah_foot1", "halfcheetah_foot2"),
-        qd_offset=-4000.0, env_seed=NOISE, solved=4800.0, heat=(-1000.0, 1500.0), objective_max=4800.0),
+        qd_offset=-4.0, env_seed=NOISE, solved=4.8, heat=(-1.0, 1.5), objective_max=4.8, per_step=True),
     "Ant-v5": Environment(
         gym_id="Ant-v5", kwargs=ANT_KWARGS, family=ANT,
-        measures=("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), qd_offset=-5000.0, env_seed=NOISE,
-        solved=6000.0, heat=(-1000.0, 1500.0), archive="cvt", objective_max=6000.0),
+        measures=("ant_foot1", "ant_foot2", "ant_foot3", "ant_foot4"), qd_offset=-5.0, env_seed=NOISE,
+        solved=6.0, heat=(-1.0, 1.5), archive="cvt", objective_max=6.0, per_step=True),
     # The Ant in every direction: the final position as measures, no reward for going forward.
     "ant_omni": Environment(
-        gym_id="Ant-v5", kwargs=ANT_KWARGS, family=ANT, measures=("final_x", "final_y"), qd_offset=-4000.0,
-        env_seed=NOISE, solved=1000.0, heat=(-1000.0, 1000.0), objective_max=1000.0,
+        gym_id="Ant-v5", kwargs=ANT_KWARGS, family=ANT, measures=("final_x", "final_y"), qd_offset=-4.0,
+        env_seed=NOISE, solved=1.0, heat=(-1.0, 1.0), objective_max=1.0, per_step=True,
         objective=without_forward_reward),
 }
 

@@ -44,7 +44,7 @@ from qdsearch.run_files import RunError, atomic_write, fault_text
 from qdsearch.saving import SAVER_PROCESSES, Savers
 from qdsearch.signing import user_key, write_signed_pickle
 from qdsearch.stopping import STOP
-from qdsearch.tasks import episode_of
+from qdsearch.tasks import episode_of, reset_seeds
 from qdsearch.trackers import Tracking, wait_for_trackers
 
 
@@ -69,6 +69,7 @@ class Run:
         self.saved = self.iteration
         self.pending: Future | None = None  # a save being written by the saver thread
         self.chunks: list = []  # the batch on the cluster: its chunks' results, in order
+        self.seeds: np.ndarray | None = None  # its solutions' reset seeds (tasks.reset_seeds)
         self.waiting = 0  # chunks of that batch not back yet
         self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
         self.target = config.iterations  # where this drive stops (resume may stop it sooner)
@@ -137,7 +138,9 @@ class Run:
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
         """Ask the next batch and send it to the cluster; the futures of its chunks, in order."""
         config = self.config
-        futures = submit_flights(client, self.ask(), config.env_seed, config.measures,
+        solutions = self.ask()
+        self.seeds = reset_seeds(solutions, config)
+        futures = submit_flights(client, solutions, self.seeds, config.measures,
                                  config.fast_env, sharing=sharing, threads=threads,
                                  env_name=config.env, policy=self.policy, episode=self.episode)
         self.chunks, self.waiting = [None] * len(futures), len(futures)
@@ -156,7 +159,7 @@ class Run:
         chunks, self.chunks = self.chunks, []
         if failed := next((chunk for chunk in chunks if isinstance(chunk, BaseException)), None):
             raise failed
-        objectives, measures = averaged(per_terrain(chunks, self.config.env_seed))
+        objectives, measures = averaged(per_terrain(chunks, self.seeds))
         if self.gradients is not None:
             flown = np.column_stack([objectives, measures])
             self.scheduler.tell_dqd(*estimate(flown, self.gradients, self.config.es_sigma))

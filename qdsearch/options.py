@@ -32,6 +32,7 @@ from qdsearch.flags import (
     UsageError,
     boolean,
     distinct_names,
+    finite_number,
     fraction,
     number_up_to,
     one_of,
@@ -48,6 +49,7 @@ from qdsearch.tasks import (
     ENVIRONMENTS,
     FAMILIES,
     MEASURES,
+    RESETS,
     check_episode,
     episode_of,
     family_measures,
@@ -228,6 +230,15 @@ SEARCH_FLAGS: dict[str, Flag] = {
                                  "default: the task's own (1,000; BipedalWalker's 1,600). QDax's "
                                  "examples fly 100 to 1,000 (docs/locomotion.md).",
                            whole_number_up_to(MAX_EPISODE), sweep=True, label=16),
+    "reset": Flag("fixed", "Each episode's reset: fixed (every evaluation flies from its --env_seed "
+                           "reset, a deterministic task) or each (every evaluation its own reset "
+                           "seed, drawn from --seed, the --env_seed and the solution's weights, as "
+                           "dqd-rl reset each evaluation; an elite is replayed on its own seed).",
+                  one_of(RESETS), sweep=True, label=20, text=True),
+    "qd_offset": Flag(None, "What QD score subtracts from each elite's objective (and CMA-MAE's "
+                            "threshold floor); default: the task's offset, per step times the "
+                            "episode's length for the robots (QDax's rule; docs/locomotion.md).",
+                      finite_number),
     "terminate_when_unhealthy": Flag(None, "Hopper-v5, Walker2d-v5, Ant-v5: whether a robot that "
                                            "falls ends its episode (Gymnasium's flag); default: "
                                            "the task's own (true).", boolean, label=17),
@@ -372,6 +383,22 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
     config = {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
     check_episode(env, episode_of(config))
     return with_budget(with_policy(config))
+
+
+def with_offset(config: dict[str, Any]) -> dict[str, Any]:
+    """The config's --qd_offset: its task's for its episode's length unless given or recorded
+    (each run of an experiment its own: a swept --episode_length has offsets of its own)."""
+    if config.get("qd_offset") is not None:
+        return config
+    return {**config, "qd_offset": ENVIRONMENTS[config["env"]].returns(episode_of(config).length).offset}
+
+
+def legacy_offset(recorded: dict[str, Any]) -> dict[str, Any]:
+    """What a run recorded before --qd_offset ran with: its task's offset at the task's own
+    episode length, whatever its --episode_length (the offsets did not follow the episode then)."""
+    if "qd_offset" in recorded or recorded.get("env", DEFAULT_ENV) not in ENVIRONMENTS:
+        return {}
+    return {"qd_offset": ENVIRONMENTS[recorded.get("env", DEFAULT_ENV)].returns().offset}
 
 
 def with_policy(config: dict[str, Any]) -> dict[str, Any]:

@@ -28,6 +28,7 @@ import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, kind_of
 from qdsearch.engine import averaged, per_terrain
+from qdsearch.family import require_one_world
 from qdsearch.flags import UsageError, check_flags, positive_int, shown, takes
 from qdsearch.options import SELECTION_FLAGS, TERRAIN_FLAGS
 from qdsearch.policies import LINEAR, Policy, policy_of
@@ -41,9 +42,12 @@ from qdsearch.tasks import (
     TASKS_OWN,
     Episode,
     episode_of,
+    flown_seeds,
     fly,
     make_env,
     renderer_missing,
+    reset_seeds,
+    returns_of,
     rollout,
 )
 
@@ -231,9 +235,9 @@ def reflown(elite: dict, config: RunConfig) -> tuple[float, list[float]]:
     """The elite flown again in its run's setting (every terrain, averaged as the engine does):
     rollouts are deterministic, so this is exactly its stored objective and measures."""
     env = make_env(config.fast_env, env_name=config.env, episode=episode_of(config))
-    seeds, policy = config.env_seed, policy_of(config)
-    rows = [np.array([rollout(elite["solution"], seed, env, config.measures, env_name=config.env,
-                              policy=policy) for seed in seeds])]
+    seeds, policy = reset_seeds(elite["solution"][None], config), policy_of(config)
+    rows = [np.array([rollout(elite["solution"], int(seed), env, config.measures, env_name=config.env,
+                              policy=policy) for seed in seeds[0]])]
     objectives, measures = averaged(per_terrain(rows, seeds))
     return float(objectives[0]), measures[0].tolist()
 
@@ -275,8 +279,8 @@ def video(run_dir: str, **flags: Any) -> None:
     folder, rows, measures = Path(str(run_dir)) / "videos", [], config.measures
     for elite in chosen:
         STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
-        path = folder / f"{elite['name']}.mp4"
-        record_video(elite["solution"], shown, path, config.env, policy_of(config), episode_of(config))
+        path, (seed,) = folder / f"{elite['name']}.mp4", flown_seeds(elite["solution"][None], shown, config)
+        record_video(elite["solution"], seed, path, config.env, policy_of(config), episode_of(config))
         print(f"{path}: {describe_elite(elite, measures)}")
         objective, values = reflown(elite, config)
         reproduced = objective == elite["objective"] and values == list(elite["measures"])
@@ -284,7 +288,8 @@ def video(run_dir: str, **flags: Any) -> None:
             print(f"warning: flown again, {path.name} scored {objective!r} with measures {values}, "
                   f"not the stored {elite['objective']!r}, {list(elite['measures'])} "
                   f"(other library versions?)", file=sys.stderr)
-        rows.append({"video": path.name, "env_seed": shown, "cell_index": int(elite["index"]),
+        rows.append({"video": path.name, "env_seed": shown, "reset_seed": seed,
+                     "cell_index": int(elite["index"]),
                      "objective": float(elite["objective"]),
                      **{name: float(value) for name, value in zip(measures, elite["measures"])},
                      "reflown_objective": objective, "reproduced": reproduced})
@@ -347,20 +352,22 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
 def solved_count(archive, config: RunConfig) -> str:
     """How many elites score the task's solved return or more, in its family's words: " (3 score
     200 or more: good landings)"."""
-    task = ENVIRONMENTS[config.env]
-    solved = int((archive.data("objective") >= task.solved).sum())
-    return f" ({solved} score {task.solved:g} or more: {task.family.solved_words})"
+    task, least = ENVIRONMENTS[config.env], returns_of(config).solved
+    solved = int((archive.data("objective") >= least).sum())
+    return f" ({solved} score {least:g} or more: {task.family.solved_words})"
 
 
-def fly_paths(chosen: list[dict], env_seed: int, env_name: str, policy: Policy = LINEAR,
+def fly_paths(chosen: list[dict], env_seed: int | list[int], env_name: str, policy: Policy = LINEAR,
               episode: Episode = TASKS_OWN) -> list[tuple[np.ndarray, int]]:
     """Each elite's path and the step marked on it, as its task's family draws them (the lander's
-    (x, y) per step and its touchdown; the walker's hull and its last step)."""
+    (x, y) per step and its touchdown; the walker's hull and its last step), flown from
+    `env_seed`'s reset (or each elite from its own, a list)."""
     env, paths, family = make_env(env_name=env_name, episode=episode), [], ENVIRONMENTS[env_name].family
-    for elite in chosen:
+    seeds = env_seed if isinstance(env_seed, list) else [env_seed] * len(chosen)
+    for elite, seed in zip(chosen, seeds):
         STOP.check()
         path: list = []
-        summary = fly(elite["solution"], env_seed, env, path, env_name=env_name, policy=policy)
+        summary = fly(elite["solution"], seed, env, path, env_name=env_name, policy=policy)
         paths.append((np.array(path), family.marked_step(summary) - 1))
     return paths
 
@@ -409,8 +416,10 @@ def trajectories(run_dir: str, **flags: Any) -> None:
         run_dir: A run folder written by this script.
     """
     config, chosen, shown = load_chosen_elites(run_dir, flags)
+    require_one_world(ENVIRONMENTS[config.env].family, config.reset, "trajectories")
     path, kept = Path(str(run_dir)) / "trajectories.png", Path(str(run_dir)) / "trajectories"
-    paths = fly_paths(chosen, shown, config.env, policy_of(config), episode_of(config))
+    seeds = flown_seeds(np.array([elite["solution"] for elite in chosen]), shown, config) if chosen else []
+    paths = fly_paths(chosen, seeds, config.env, policy_of(config), episode_of(config))
     save_trajectory_plot(chosen, paths, shown, path, config.env)
     kept.mkdir(exist_ok=True)
     drawing = kept / f"trajectories_{1 + len(list(kept.glob('trajectories_*.png'))):03d}.png"

@@ -106,7 +106,8 @@ NOT_FROM_CONFIG = ("outdir", *CLUSTER_FLAGS)
 # file's value made or alone used, each back to the flag's (its default, unless given too), so
 # another task gets its own measures and archive, not the file's task's.
 FOLLOWS: dict[str, tuple[str, ...]] = {
-    "env": ("measures", "archive", "grid", "cells", "terminate_when_unhealthy"),
+    "env": ("measures", "archive", "grid", "cells", "terminate_when_unhealthy", "qd_offset"),
+    "episode_length": ("qd_offset",),
     "archive": ("grid", "cells"),
     "policy": ("hidden",),
 }

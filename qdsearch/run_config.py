@@ -35,7 +35,9 @@ from qdsearch.options import (
     SEARCH_FLAGS,
     before_the_flags,
     check_sizes,
+    legacy_offset,
     search_defaults,
+    with_offset,
     with_task,
 )
 from qdsearch.run_files import read_regular, read_run_json, write_json
@@ -87,9 +89,10 @@ def upgrade(recorded: dict) -> dict:
     """A recorded config of any age in today's form: a run from before a flag existed ran with
     what its entry's `before` says (--learning_rate 0.01, before it was a flag) or its default
     (--env LunarLander-v3 and --grid 50, the tutorial's); one from before --measures, with its
-    task's own measures (with_task: the tutorial's). No flag has ever been removed or renamed:
+    task's own measures (with_task: the tutorial's); one from before --qd_offset, with its task's
+    offset at the task's own length (legacy_offset). No flag has ever been removed or renamed:
     every field a folder of any age holds is a flag of SEARCH_FLAGS or one of RECORDS."""
-    return {**search_defaults(), **before_the_flags(), **recorded}
+    return {**search_defaults(), **before_the_flags(), **legacy_offset(recorded), **recorded}
 
 
 def write_config(run_dir: Path, config: RunConfig) -> None:
@@ -269,7 +272,7 @@ def check_run_config(recorded: Any) -> RunConfig:
     for name, (kind, holds, _) in RECORDS.items():
         if config.get(name) is not None and not isinstance(config[name], holds):
             raise UsageError(f"{name} is {shown(config[name])}, not a {kind}")
-    config = with_task(config)
+    config = with_offset(with_task(config))
     seed_number("seed", config["seed"])
     check_sizes(config)
     return RunConfig(**{name: config[name] for name in SEARCH_FLAGS},

@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator
 from qdsearch.archive_data import write_archive_data
 from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_files import atomic_write, write_csv, write_json, write_pickle
-from qdsearch.tasks import ENVIRONMENTS, MEASURES
+from qdsearch.tasks import MEASURES, returns_of
 
 # At most this many saver processes a driver: two keep up with the saves of the largest
 # experiments docs/performance.md#saves predicts (benchmarks/bench_saves.py measures a save).
@@ -54,7 +54,7 @@ def save_pictures(run_dir: Path, archive, metrics: list[dict], config: dict, ite
     title = f"{config['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
     save_heatmap(archive, [MEASURES[m] for m in config["measures"]], snapshot, title,
-                 ENVIRONMENTS[config["env"]].heat)
+                 returns_of(config).heat)
     atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
     save_progress_plot(metrics, run_dir / "progress.png")
 

@@ -10,7 +10,8 @@ Map:
 - the tables: FAMILIES, ENVIRONMENTS (--env), MEASURES (--measures), DEFAULT_ENV,
   TUTORIAL_MEASURES; `family_measures`;
 - the episode's rules: `Episode` (--episode_length, --terminate_when_unhealthy; `episode_of` a
-  config's), `check_episode`;
+  config's), `check_episode`; `returns_of` (a run's range of objectives: family.Returns);
+- the resets: RESETS (--reset), `reset_seeds` (each solution's episodes' reset seeds);
 - the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (a policy can serve the
   env's spaces); `renderer_missing` (family.py's, for the video command);
 - an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
@@ -21,15 +22,17 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import importlib
 import inspect
+import struct
 import warnings
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.family import Environment, Family, Measure, OnStep, require_drawing
+from qdsearch.family import Environment, Family, Measure, OnStep, Returns, require_drawing
 from qdsearch.family import renderer_missing as renderer_missing  # results.py's video imports it here
 from qdsearch.flags import UsageError, setting
 from qdsearch.policies import LINEAR, Policy
@@ -102,6 +105,47 @@ def episode_of(config: Any) -> Episode:
     """A run's episode rules, from its config (a RunConfig or a dict); runs from before the flags
     flew the task's own."""
     return Episode(setting(config, "episode_length"), setting(config, "terminate_when_unhealthy"))
+
+
+def returns_of(config: Any) -> Returns:
+    """A run's range of objectives (its QD offset as recorded, the rest for its episode's length)."""
+    return ENVIRONMENTS[setting(config, "env") or DEFAULT_ENV].returns(
+        episode_of(config).length, setting(config, "qd_offset"))
+
+
+def fixed_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np.ndarray:
+    """--reset fixed: every solution flies from the same resets, its --env_seed ones."""
+    return np.tile(np.asarray(env_seeds, dtype=np.int64), (len(solutions), 1))
+
+
+def own_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np.ndarray:
+    """--reset each: every evaluation its own reset seed per env seed, a hash of the run's seed,
+    the env seed and the solution's weights. A fresh reset for each solution flown (an ES
+    sample, a mutant), yet the same on any worker, after a resume, and when an elite is flown
+    again by the results commands: its reset is known from the elite alone."""
+    rows = np.ascontiguousarray(solutions, dtype=np.float64).reshape(len(solutions), -1)
+    return np.array([[int.from_bytes(hashlib.blake2b(
+        row.tobytes(), digest_size=4, key=struct.pack("<QQ", run_seed, seed)).digest(), "little")
+        for seed in env_seeds] for row in rows], dtype=np.int64).reshape(len(rows), len(env_seeds))
+
+
+# --reset: how each solution's episodes are reset, as (solutions, env seeds, run seed) -> the
+# reset seeds, a row per solution and a column per env seed.
+RESETS = {"fixed": fixed_resets, "each": own_resets}
+
+
+def reset_seeds(solutions: np.ndarray, config: Any) -> np.ndarray:
+    """The reset seeds of each solution's episodes in a run: a row per solution, a column per
+    --env_seed (runs from before --reset flew fixed ones)."""
+    return RESETS[setting(config, "reset") or "fixed"](solutions, list(setting(config, "env_seed")),
+                                                       setting(config, "seed"))
+
+
+def flown_seeds(solutions: np.ndarray, env_seed: int, config: Any) -> list[int]:
+    """The reset each solution of a run flies from for its env seed `env_seed` (the results
+    commands' one shown seed): the seed itself, or under --reset each each solution's own."""
+    resets = RESETS[setting(config, "reset") or "fixed"](solutions, [env_seed], setting(config, "seed"))
+    return [int(seed) for seed in resets[:, 0]]
 
 
 @functools.cache

@@ -146,7 +146,7 @@ def draw_paths(ax, paths: list[tuple[np.ndarray, int]], env_seed: int, task: Env
 # ---- the declarations ------------------------------------------------------------------------
 
 WALKER = Family(name="walker", title="BipedalWalker", fly=fly_walker, seed_noun="terrain",
-                solved_words="walks to the far end", position=position,
+                seed_shapes_world=True, solved_words="walks to the far end", position=position,
                 marked_step=marked_step, draw_paths=draw_paths, pose=pose, pose_scale=POSE_SCALE,
                 pose_angles=POSE_ANGLES, scene=scene)
 

@@ -80,8 +80,9 @@ def test_compare_of_an_experiment_writes_into_it(small_experiment, tmp_path, run
 
 
 def test_a_summary_of_counts_keeps_its_decimals():
+    values = [10.0, 3.0, 0.5, 1.0, 0.5, 5.0, 0.25]
     stats = pd.DataFrame([{"setting": "a", "runs": 2, "metric": name, "mean": value, "low": 0.0, "high": 1.0}
-                          for name, value in zip(comparison.SUMMARISED, [10.0, 0.5, 1.0, 0.5, 5.0, 0.25])])
+                          for name, value in zip(comparison.SUMMARISED, values)])
     [row] = comparison.settings_table(stats, "mean", "low", "high")[2:]
     solved = row.split(" | ")[2 + comparison.SUMMARISED.index(comparison.SOLVED_CELLS)]
     assert solved == "0.5 [0.0, 1.0]"  # (0 and 1 solved cells: not "0 [0, 1]")

@@ -28,6 +28,8 @@ ROWS = {
     "policy": ("mlp", {"algorithm": "map_elites", "grid": 5}),  # no covariance of 18,000 weights
     "hidden": ("4", {"policy": "mlp", "algorithm": "map_elites", "grid": 5}),
     "episode_length": (100, {}),
+    "reset": ("each", {}),
+    "qd_offset": (-50.0, {}),
     "terminate_when_unhealthy": (False, {"env": "Hopper-v5"}),
     "measures": ("fuel,flight_time", {}),
     "archive": ("cvt", {}),

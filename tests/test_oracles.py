@@ -200,7 +200,7 @@ def test_cqd_is_pyribs_cqd_score_on_the_tasks_objective_range(kind: str, make_ar
     archive = make_archive(kind)
     best = fill(kind, archive)
     task = tasks.ENVIRONMENTS[LANDER]
-    value = comparison.cqd(archive, task)
+    value = comparison.cqd(archive, task.returns())
 
     targets = np.random.default_rng(0).uniform(LOWER, UPPER, size=(1, 1000, 2))
     diagonal = math.hypot(2.0, 3.0)
@@ -453,18 +453,21 @@ RUNS = {
           "cqd_score": [806.1, 790.4, 812.9, 799.0, math.nan, 805.5],
           "coverage": [0.5, 0.5625, 0.625, 0.5, 0.4375, 0.5625],
           "best_objective": [250.5, 270.0, 231.25, 288.0, 240.0, 266.5],
+          "mean_objective": [40.5, 12.0, 66.25, 30.0, 51.0, 20.5],
           "solved_cells": [3, 5, 2, 6, 2, 4]},
     "B": {"qd_score": [900.0, 1250.0, 870.5, 1005.0, 940.0, 1190.0],
           "qd_auc": [500.0, 450.0, 470.0, 520.0, 430.0, 505.0],
           "cqd_score": [780.2, 801.7, 770.0, 795.3, 788.8, 790.4],
           "coverage": [0.375, 0.5, 0.4375, 0.5, 0.375, 0.3125],
           "best_objective": [200.0, 190.5, 230.0, 185.0, 201.0, 212.25],
+          "mean_objective": [-10.0, 5.5, 3.0, -2.25, 8.0, 1.0],
           "solved_cells": [1, 0, 2, 0, 1, 1]},
     "C": {"qd_score": [1600.0, 1450.0, 1380.0, 1700.0],
           "qd_auc": [600.0, 600.0, 640.0, 590.0],
           "cqd_score": [math.nan, math.nan, math.nan, 820.0],
           "coverage": [0.75, 0.6875, 0.625, 0.8125],
           "best_objective": [301.0, 295.5, 310.0, 299.0],
+          "mean_objective": [70.0, 70.0, 81.5, 64.0],
           "solved_cells": [3, 3, 3, 3]},
 }
 
