@@ -6,6 +6,7 @@ Map, a module per role, imports going down the list only:
 - run_files: locks, atomic writes, JSON and pickles, logs; RunError;
 - signing: the user's key (QDSEARCH_KEY, or ~/.config/qdsearch/key) and the checkpoints signed
   with it, their signature checked before anything is unpickled (resume --trust adopts another's);
+- compact_pickle: the checkpoint's and the snapshots' pickles, an archive's occupied cells alone;
 - stopping: Ctrl-C and SIGTERM (`STOP`), acted on where stopping is safe;
 - plots: heatmaps and progress curves;
 - trackers: TensorBoard, W&B and MLflow (--track), offline first, each iteration once;

@@ -127,7 +127,8 @@ def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig)
     """The corrected archive beside the run's own: its data (what compare reads), pickle (for
     pyribs' users), CSV, heatmap, and corrected.json."""
     write_archive_data(run / "corrected_archive.npz", corrected, config.to_json())
-    write_pickle(run / "corrected_archive.pkl", corrected)
+    if config.archive_pkl:
+        write_pickle(run / "corrected_archive.pkl", corrected)
     write_csv(run / "corrected_archive.csv", corrected.data(return_type="pandas"))
     save_heatmap(corrected, [MEASURES[m] for m in config.measures], run / "corrected_heatmap.png",
                  f"Corrected archive: {summary['elites_flown']} elites, mean of {summary['repeats']} "

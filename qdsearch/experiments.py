@@ -125,21 +125,31 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
             writes the plan, each keeps its runs' states in parts/I_of_K/. Run again, a part
             continues where it stopped.
         plan: A TOML file of the experiment (see the README's Experiments): its algorithms, seeds,
-            max_in_flight and any flag it passes on, a list of values for an axis of the grid. A
-            flag given beside it replaces the file's value, whatever its value (--seeds 1-5
-            too). The file is copied into the experiment folder as plan.toml.
+            max_in_flight and any flag it passes on, a list of values for an axis of the grid;
+            and [[rows]] tables, each a grid of its own with its own algorithms and flags over the
+            file's (dqd-rl's rows differ in emitters and batches: docs/presets/). A flag given
+            beside it replaces the file's value and every row's, whatever its value (--seeds
+            1-5 too). The file is copied into the experiment folder as plan.toml.
         search_flags: Any flag of search that it passes to every run (see: lunar_lander.py --help):
             {passed_on}. A list of values of {sweeps}, e.g. --learning_rate "[0.01, 0.1]", is one
             more axis of the grid.
     """
     cluster = {name: search_flags.pop(name) for name in CLUSTER_FLAGS}
-    plan_text = None
+    plan_text, rows = None, [{}]
     if plan is not None:
         plan_text, planned = read_plan(Path(str(plan)))
+        rows = [without_given(row, given) for row in planned.pop(ROWS, [{}])]
         search_flags = with_plan(planned, {"algorithms": algorithms, "seeds": seeds,
                                            "max_in_flight": max_in_flight, **search_flags}, given)
         algorithms, seeds, max_in_flight = (search_flags.pop(name) for name in EXPERIMENT_OWN)
-    axes, common, seeds = experiment_grid(algorithms, seeds, search_flags)
+    own = [{k: v for k, v in row.items() if k != "algorithms"} for row in rows]
+    grids = [experiment_grid(row.get("algorithms", algorithms), seeds, {**search_flags, **flags},
+                             list(flags) if len(rows) > 1 else None) for row, flags in zip(rows, own)]
+    if len(rows) > 1:  # the file's flags beside its rows: used by some row
+        policies = [p for axes, common, _ in grids for p in axes.get("policy", [common["policy"]])]
+        refuse_unused_row_flags([a for axes, _, _ in grids for a in axes["algorithm"]], list(search_flags),
+                                policies)
+    (axes, common, seeds), runs = grids[0], rows_runs(grids)
     workers = checked("workers", cluster["workers"])
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
     scheduler_address = scheduler_of(cluster)
@@ -149,7 +159,8 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
         return {"format": EXPERIMENT_FORMAT, "created": datetime.datetime.now().isoformat(),
                 "command": sys.argv, "axes": axes, "seeds": seeds, "common": common,
                 "workers": workers, "max_in_flight": limit, "versions": library_versions(),
-                **({} if parts is None else {"parts": parts}), "runs": experiment_runs(axes, common, seeds)}
+                **({} if len(grids) == 1 else {ROWS: [{"axes": a, "common": c} for a, c, _ in grids]}),
+                **({} if parts is None else {"parts": parts}), "runs": runs}
 
     if split is not None:
         if outdir is None:
@@ -173,6 +184,27 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
 
 # The keys of a plan file that are experiment's own flags (the others are flags it passes on).
 EXPERIMENT_OWN = ("algorithms", "seeds", "max_in_flight")
+ROWS = "rows"  # a plan's [[rows]]: grids of their own, each with its algorithms and flags
+
+
+def without_given(row: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
+    """A plan's row less the flags given beside the file (they replace every row's value; a
+    budget given, the row's budget)."""
+    dropped = {*given, *(BUDGETS if set(BUDGETS) & set(given) else ())}
+    return {name: value for name, value in row.items() if name not in dropped}
+
+
+def rows_runs(grids: list[tuple[dict, dict, list[int]]]) -> list[dict]:
+    """The runs of every row's grid, in the rows' order; two rows that make one setting are
+    refused (a run would be planned twice)."""
+    runs: list[dict] = []
+    for row, (axes, common, seeds) in enumerate(grids, 1):
+        for entry in experiment_runs(axes, common, seeds):
+            if any(other["name"] == entry["name"] for other in runs):
+                raise UsageError(f"--plan: row {row} makes the setting {entry['setting']!r} "
+                                 f"that an earlier row makes too")
+            runs.append(entry)
+    return runs
 
 
 def with_plan(planned: dict[str, Any], flags: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
@@ -198,14 +230,24 @@ def read_plan(path: Path) -> tuple[str, dict[str, Any]]:
         raise UsageError(f"--plan {path}: cannot read it ({fault_text(error)})") from None
     except tomllib.TOMLDecodeError as error:
         raise UsageError(f"--plan {path}: not TOML ({error})") from None
-    known = [*EXPERIMENT_OWN, *passed_on()]
-    for name, value in planned.items():
-        if name not in known:
-            raise UsageError(f"--plan {path}: {shown(name)} is not a flag of experiment; "
-                             f"{did_you_mean(name, known)}")
-        if isinstance(value, dict):
-            raise UsageError(f"--plan {path}: {name} is a table; give a value or a list of values")
+    check_plan_flags(path, planned, [*EXPERIMENT_OWN, *passed_on(), ROWS], "")
+    rows = planned.get(ROWS, [{}])
+    if not (isinstance(rows, list) and rows and all(isinstance(row, dict) for row in rows)):
+        raise UsageError(f"--plan {path}: {ROWS} must be [[{ROWS}]] tables, each a grid's flags")
+    for i, row in enumerate(rows, 1):
+        check_plan_flags(path, row, ["algorithms", *passed_on()], f"[[{ROWS}]] {i}: ")
     return text, planned
+
+
+def check_plan_flags(path: Path, flags: dict[str, Any], known: list[str], where: str) -> None:
+    """Every name of a plan's table is a flag it may hold, with a value or a list of values."""
+    for name, value in flags.items():
+        if name not in known:
+            raise UsageError(f"--plan {path}: {where}{shown(name)} is not a flag of experiment"
+                             f"{' a row may set' if where else ''}; {did_you_mean(name, known)}")
+        if isinstance(value, dict) or (name != ROWS and isinstance(value, list)
+                                       and any(isinstance(v, dict) for v in value)):
+            raise UsageError(f"--plan {path}: {where}{name} is a table; give a value or a list of values")
 
 
 experiment.__doc__ = experiment.__doc__.format(
@@ -214,9 +256,12 @@ experiment.__doc__ = experiment.__doc__.format(
 experiment = takes(CLUSTER_FLAGS)(experiment)
 
 
-def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[dict, dict, list[int]]:
+def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
+                    own_flags: list[str] | None = None) -> tuple[dict, dict, list[int]]:
     """The grid's axes (algorithm first, then each swept flag), the flags every run shares and
-    the seeds, each value checked as search checks it."""
+    the seeds, each value checked as search checks it. A row's own flag (cma_mae's
+    --learning_rate) must be of an algorithm of the grid: of `own_flags` (a plan's row's), or of
+    every flag given."""
     if given := sorted(set(search_flags) - set(passed_on()) & set(SEARCH_FLAGS)):
         raise UsageError(f"--{given[0]} is set by the experiment for each run; use --algorithms, "
                          f"--seeds, --outdir, --workers and --scheduler_address (or --scheduler_file) "
@@ -245,7 +290,8 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict) -> tuple[di
         config = with_task(for_policy({**common, **dict(zip(axes, setting))}))
         check_sizes(config)
         check_memory(config)
-    refuse_unused_row_flags(axes["algorithm"], list(search_flags),  # given here: flags the user set
+    refuse_unused_row_flags(axes["algorithm"],  # given here: flags the user set
+                            list(search_flags) if own_flags is None else own_flags,
                             axes.get("policy", [common["policy"]]))
     return axes, common, seed_list("seeds", seeds)
 

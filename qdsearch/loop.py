@@ -32,6 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from qdsearch import compact_pickle
 from qdsearch.algorithms import ALGORITHMS, ARCHIVES, build_scheduler
 from qdsearch.cluster import SchedulerLost, shares_this_machine
 from qdsearch.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
@@ -42,7 +43,7 @@ from qdsearch.policies import policy_of
 from qdsearch.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.run_files import RunError, atomic_write, fault_text
 from qdsearch.saving import SAVER_PROCESSES, Savers
-from qdsearch.signing import user_key, write_signed_pickle
+from qdsearch.signing import user_key, write_signed
 from qdsearch.stopping import STOP
 from qdsearch.tasks import episode_of, reset_seeds
 from qdsearch.trackers import Tracking, wait_for_trackers
@@ -65,7 +66,7 @@ class Run:
                  log: logging.Logger) -> None:
         self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
         self.name, self.log = run_dir.name, log
-        self.snapshot = pickle.dumps(scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+        self.snapshot = compact_pickle.dumps(scheduler)
         self.saved = self.iteration
         self.pending: Future | None = None  # a save being written by the saver thread
         self.chunks: list = []  # the batch on the cluster: its chunks' results, in order
@@ -171,7 +172,7 @@ class Run:
         """Record the evaluated batch; returns the new row of metrics, whose evaluations count
         the iteration's every solution flown (a DQD row's gradient samples too)."""
         self.scheduler.tell(objectives, measures)
-        self.snapshot = pickle.dumps(self.scheduler, protocol=pickle.HIGHEST_PROTOCOL)
+        self.snapshot = compact_pickle.dumps(self.scheduler)
         last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
         spent, self.sampled = len(objectives) + self.sampled, 0
         self.metrics.append(iteration_metrics(
@@ -197,7 +198,7 @@ class Run:
             self.settle()
         finally:
             if force or self.iteration > self.saved:
-                write_signed_pickle(self.dir / "checkpoint.pkl", self.checkpoint())
+                write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(self.checkpoint()))
                 self.saved = self.iteration
 
     def save(self, savers: Savers) -> None:
@@ -207,7 +208,7 @@ class Run:
         self.pending = savers.submit(self.write, self.checkpoint(), savers)
 
     def write(self, checkpoint: dict, savers: Savers) -> None:
-        write_signed_pickle(self.dir / "checkpoint.pkl", checkpoint)
+        write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(checkpoint))
         self.saved = checkpoint["iteration"]
         savers.write_outputs(self.dir, checkpoint["scheduler"].result_archive, checkpoint["metrics"],
                              checkpoint["config"], checkpoint["iteration"])

@@ -298,6 +298,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
                            "writes the data alone (archive.csv, archive.npz, metrics.json), which "
                            "every results command reads: the pictures are most of a refresh's CPU.",
                      boolean),
+    "archive_pkl": Flag(False, "Also write archive.pkl at each refresh: the pyribs archive pickled "
+                               "whole, a row per cell (a 32 x 32 grid of 128,128-MLP robots: ~160 MB "
+                               "however few its elites), for pyribs' own tools; every command reads "
+                               "archive.npz, which holds the elites alone.", boolean, before=True),
     "outdir": Flag(None, "Run folder; default outputs/<timestamp>_seed<seed>. Must be new or "
                          "empty.", per_run=True),
     "scheduler_address": CLUSTER_FLAGS["scheduler_address"],

@@ -32,7 +32,7 @@ MAX_PARTS = 10_000
 PART_FORMAT = "lunar_lander.experiment-part/1"
 # What two parts' plans must agree on to be parts of one experiment (with each run's name and
 # config); the command, the time and the library versions may differ.
-PLAN_IDENTITY = ("format", "axes", "seeds", "common", "parts", "max_in_flight")
+PLAN_IDENTITY = ("format", "axes", "seeds", "common", "rows", "parts", "max_in_flight")
 
 
 def parse_part(value: Any) -> tuple[int, int]:

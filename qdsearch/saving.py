@@ -24,6 +24,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from qdsearch import compact_pickle
 from qdsearch.archive_data import write_archive_data
 from qdsearch.plots import save_heatmap, save_progress_plot
 from qdsearch.run_files import atomic_write, write_csv, write_json, write_pickle
@@ -35,15 +36,17 @@ SAVER_PROCESSES = 2
 
 
 def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
-    """The run folder's files besides the checkpoint: metrics, the archive (a pickle for pyribs'
-    users, archive.npz for the results commands, which never unpickle), its CSV, and unless
-    --pictures is false the heatmaps and the progress plot. At a full Lunar Lander archive (300
+    """The run folder's files besides the checkpoint: metrics, the archive (archive.npz for the
+    results commands, which never unpickle, and with --archive_pkl a pickle for pyribs' users),
+    its CSV, and unless --pictures is false the heatmaps and the progress plot. At a full Lunar
+    Lander archive (300
     iterations) they take ~0.27 s of CPU, the CSV and the pictures nearly all of it
     (benchmarks/bench_saves.py; archive.npz ~5 ms)."""
     write_json(run_dir / "metrics.json", metrics)
     # archive.npz before archive.pkl: a reader that finds the pickle finds the data it reads too.
     write_archive_data(run_dir / "archive.npz", archive, config)
-    write_pickle(run_dir / "archive.pkl", archive)
+    if config.get("archive_pkl"):
+        write_pickle(run_dir / "archive.pkl", archive)
     write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
     if config["pictures"]:
         save_pictures(run_dir, archive, metrics, config, iteration)
@@ -109,6 +112,7 @@ def saver_processes(most: int) -> ProcessPoolExecutor:
     first saver process, and the saver thread that asks for it, do, while the driver's loop goes
     on. (Waited for here, they held every run of the driver and its workers at its first save.)
     Later saver processes start in ~30 ms."""
+    compact_pickle.compact_transfers()  # an archive goes to a saver as its elites, not its cells
     if "forkserver" not in multiprocessing.get_all_start_methods():  # not on Windows
         return ProcessPoolExecutor(most, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=start_saving)

@@ -29,16 +29,16 @@ from qdsearch import algorithms, experiments, options, results, run, run_config,
 from util import (
     archive_table,
     assert_one_line_error,
-    load_pickle,
     read_checkpoint,
     run_archive,
     run_metrics,
+    saved_archive,
     tiny_flags,
     write_checkpoint,
 )
 
 ALGORITHMS = list(algorithms.ALGORITHMS)  # every row: a run folder each, and their resumes
-RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
+RUN_FILES = {"config.json", "checkpoint.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
 
 
@@ -224,13 +224,13 @@ def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == algorithm
     checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
     assert checkpoint["config"]["algorithm"] == algorithm
-    assert 0 < metrics[-1]["num_elites"] == len(load_pickle(run_dir / "archive.pkl"))
+    assert 0 < metrics[-1]["num_elites"] == len(saved_archive(run_dir))
 
 
 def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
     run_dir = tiny_runs["cma_mae"]
     scheduler = read_checkpoint(run_dir / "checkpoint.pkl")["scheduler"]
-    saved = load_pickle(run_dir / "archive.pkl")
+    saved = saved_archive(run_dir)
 
     assert saved.learning_rate == 1.0  # the result archive, not the soft archive
     assert archive_table(saved).equals(archive_table(scheduler.result_archive))
@@ -261,12 +261,12 @@ def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path
 @pytest.mark.slow  # a resume or warm start per algorithm: the whole suite has them
 @pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
 def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algorithm):
-    source = tiny_runs["cma_me"] / "archive.pkl"
+    source = tiny_runs["cma_me"] / "archive.npz"
     run_dir = tmp_path / "warm"
     run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1),
               outdir=str(run_dir), from_archive=str(source))
 
-    elites = len(load_pickle(source))
+    elites = len(saved_archive(tiny_runs["cma_me"]))
     metrics = run_metrics(run_dir)
     assert metrics[0]["iteration"] == 0 and metrics[0]["evaluations"] == elites
     assert metrics[0]["num_elites"] == elites  # same terrain, same grid: every elite lands again
@@ -280,7 +280,7 @@ def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorith
 
     run_dir = tmp_path / algorithm
     shutil.copytree(tiny_runs[algorithm], run_dir)
-    best = load_pickle(run_dir / "archive.pkl").best_elite
+    best = saved_archive(run_dir).best_elite
 
     results.video(str(run_dir), best=True)
     results.elites(str(run_dir), top=3)

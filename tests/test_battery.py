@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from qdsearch import evaluation, experiments, options, run
 from qdsearch.parts import runs_of_part
-from util import assert_one_line_error, folder_state, load_pickle, tiny_flags
+from util import assert_one_line_error, folder_state, saved_archive, tiny_flags
 
 # ---- bad values, refused up front ------------------------------------------------------------
 
@@ -90,7 +90,7 @@ def test_resume_refuses_an_edited_centroids_file_and_writes_a_deleted_one_again(
                      "--scheduler_address", dask_cluster.scheduler_address)
     assert result.returncode == 0, result.stderr
     assert np.array_equal(np.load(path), centroids)
-    assert np.array_equal(load_pickle(run_dir / "archive.pkl").centroids, centroids)
+    assert np.array_equal(saved_archive(run_dir).centroids, centroids)
 
 
 # ---- compare of an unfinished plan -----------------------------------------------------------

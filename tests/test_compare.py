@@ -18,7 +18,14 @@ from scipy.stats import bootstrap, mannwhitneyu, trim_mean
 
 from qdsearch import comparison, experiments, options, run, stats, tasks
 from qdsearch.flags import UsageError
-from util import LANDER, assert_one_line_error, folder_state, load_pickle, run_metrics, tiny_flags
+from util import (
+    LANDER,
+    assert_one_line_error,
+    folder_state,
+    run_metrics,
+    saved_archive,
+    tiny_flags,
+)
 
 WALKER = "BipedalWalker-v3"
 
@@ -49,7 +56,7 @@ def test_compare_writes_png_and_table(run_cli, tmp_path, two_runs):
         assert float(row["qd_score"]) == pytest.approx(final["qd_score"])
         assert float(row["coverage"]) == pytest.approx(final["coverage"])
         assert float(row["best_objective"]) == pytest.approx(final["best_objective"])
-        objectives = load_pickle(run_dir / "archive.pkl").data("objective")
+        objectives = saved_archive(run_dir).data("objective")
         assert int(row["solved_cells"]) == int((objectives >= 200).sum())
     assert labels[0] in result.stdout and labels[1] in result.stdout
     assert f"{final['qd_score']:,.0f}" in result.stdout

@@ -58,7 +58,7 @@ def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
     for entry in plan["runs"]:
         run_dir = experiment_dir / entry["name"]
         written = {p.name for p in run_dir.iterdir() if not p.name.startswith(".")}  # not its .lock
-        assert written == {"config.json", "checkpoint.pkl", "archive.pkl", "archive.npz", "archive.csv",
+        assert written == {"config.json", "checkpoint.pkl", "archive.npz", "archive.csv",
                            "metrics.json", "run.log"}  # and no picture: none was asked for
         assert [row["iteration"] for row in run_metrics(run_dir)] == [1, 2, 3, 4]
     assert "Done: 8 of 8 runs" in (experiment_dir / "experiment.log").read_text()

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from qdsearch import archive_data, evaluation, explorer, fast_lander, lander, run_files, tasks
-from util import DATA_BLOCK, LANDER, folder_state, load_pickle, page_data, small_disk
+from util import DATA_BLOCK, LANDER, folder_state, page_data, saved_archive, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
 
@@ -34,7 +34,7 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     assert "<script src" not in html and "http://" not in page and "https://" not in page  # nothing fetched
     assert "default-src 'none'; script-src 'sha256-" in page  # and nothing but its own script runs
     data = page_data(explored)
-    archive = load_pickle(explored / "archive.pkl")
+    archive = saved_archive(explored)
     assert len(data["elites"]) == len(archive)
     scale = np.array(lander.LANDER.pose_scale)
     poses = np.frombuffer(base64.b64decode(data["poses"]), dtype="<i2").reshape(-1, len(scale))

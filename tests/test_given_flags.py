@@ -47,6 +47,7 @@ ROWS = {
     "es_sigma": (0.05, {"algorithm": "cma_mega_es"}),
     "log_every": (5, {}),
     "pictures": (False, {}),
+    "archive_pkl": (True, {}),
     "from_archive": ("elsewhere/archive.npz", {}),
     "track": (TRACKER, {}),
     "fast_env": (False, {}),

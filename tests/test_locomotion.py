@@ -19,9 +19,9 @@ from util import (
     assert_one_line_error,
     assert_same_run,
     folder_state,
-    load_pickle,
     read_checkpoint,
     run_archive,
+    saved_archive,
     tiny_flags,
 )
 
@@ -158,7 +158,7 @@ def test_every_command_reads_a_cvt_run(cvt_run, tmp_path, run_cli, dask_cluster)
     for name in ("trajectories.png", "robustness_heatmap.png", "corrected_heatmap.png", "explorer.html",
                  "heatmap.png"):
         assert (run_dir / name).stat().st_size > 10_000, name
-    corrected = load_pickle(run_dir / "corrected_archive.pkl")
+    corrected = saved_archive(run_dir, "corrected_archive")
     assert np.array_equal(corrected.centroids, archive.centroids)  # the run's cells, refilled
     assert (tmp_path / "c.csv").is_file() and (tmp_path / "fixed_scores.png").is_file()
     assert run_archive(run_dir).equals(before)  # nothing changed the run's archive

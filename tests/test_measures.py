@@ -14,14 +14,14 @@ from qdsearch.flags import UsageError
 from util import (
     LANDER,
     assert_one_line_error,
-    load_pickle,
     read_checkpoint,
     run_archive,
     run_metrics,
+    saved_archive,
     tiny_flags,
 )
 
-RUN_FILES = {"config.json", "checkpoint.pkl", "archive.pkl", "archive.csv", "metrics.json",
+RUN_FILES = {"config.json", "checkpoint.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
 
 
@@ -43,7 +43,7 @@ def test_chosen_measures_and_terrains_write_a_complete_run_folder(fuel_run):
     assert RUN_FILES <= {p.name for p in fuel_run.iterdir()}
     config = json.loads((fuel_run / "config.json").read_text())
     assert config["measures"] == ["fuel", "flight_time"] and config["env_seed"] == [0, 1, 2, 3, 4]
-    archive = load_pickle(fuel_run / "archive.pkl")
+    archive = saved_archive(fuel_run)
     assert tuple(archive.dims) == (20, 20)
     ranges = [tasks.MEASURES[name].range for name in ("fuel", "flight_time")]
     assert archive.lower_bounds.tolist() == [lo for lo, _ in ranges]
@@ -52,7 +52,7 @@ def test_chosen_measures_and_terrains_write_a_complete_run_folder(fuel_run):
 
 
 def test_the_archive_holds_the_mean_over_the_terrains(fuel_run):
-    data = load_pickle(fuel_run / "archive.pkl").data()
+    data = saved_archive(fuel_run).data()
     env = tasks.make_env(env_name=LANDER)
     for solution, objective, measures in list(zip(data["solution"], data["objective"], data["measures"]))[:3]:
         flights = np.array([tasks.rollout(solution, seed, env, ["fuel", "flight_time"], env_name=LANDER)
@@ -62,7 +62,7 @@ def test_the_archive_holds_the_mean_over_the_terrains(fuel_run):
 
 
 def test_results_commands_speak_the_runs_measures(fuel_run, capsys):
-    archive = load_pickle(fuel_run / "archive.pkl")
+    archive = saved_archive(fuel_run)
     point = tuple(float(v) for v in archive.data("measures")[0])
 
     results.video(str(fuel_run), cells=[point], env_seed=3)
@@ -83,7 +83,7 @@ def test_results_commands_speak_the_runs_measures(fuel_run, capsys):
 def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
     run_dir = tmp_path / "run"
     run.search(**tiny(dask_cluster, measures=measures, grid=grid), outdir=str(run_dir))
-    archive = load_pickle(run_dir / "archive.pkl")
+    archive = saved_archive(run_dir)
     assert tuple(archive.dims) == (grid,) * len(measures.split(","))
     assert imread(run_dir / "heatmap.png").std() > 0.05
     results.trajectories(str(run_dir), best=True)

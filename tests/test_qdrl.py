@@ -15,7 +15,7 @@ from qdsearch import experiments, gradients, run, tasks
 from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration
 from qdsearch.policies import LINEAR, POLICIES, Policy, policy_of
 from qdsearch.run_config import load_run_config
-from util import assert_one_line_error, load_pickle, run_archive, run_metrics, tiny_flags
+from util import assert_one_line_error, run_archive, run_metrics, saved_archive, tiny_flags
 
 HOPPER = "Hopper-v5"
 # A tiny DQD run: 2 emitters, each flying its point, 10 gradient samples and 6 branches: 34 an iteration.
@@ -309,7 +309,7 @@ def test_a_dqd_run_of_an_experiment_is_its_lone_twin(dqd_runs, tmp_path, dask_cl
     flags = {key: value for key, value in DQD.items() if key != "algorithm"}
     experiments.experiment(algorithms="cma_mega_es", seeds="11", iterations=4, outdir=str(tmp_path / "exp"),
                            scheduler_address=dask_cluster.scheduler_address, **flags)
-    [run_dir] = [path for path in (tmp_path / "exp").iterdir() if (path / "archive.pkl").is_file()]
+    [run_dir] = [path for path in (tmp_path / "exp").iterdir() if (path / "archive.npz").is_file()]
     assert run_archive(run_dir).equals(run_archive(dqd_runs / "two"))
     assert run_metrics(run_dir) == run_metrics(dqd_runs / "two")
 
@@ -320,7 +320,7 @@ def test_elites_of_a_dqd_run_are_their_networks_flown_by_hand(dqd_runs):
     (the run's 12-step episodes), computed here without the tool's policy or family code."""
     import mujoco
 
-    elites = load_pickle(dqd_runs / "two" / "archive.pkl").data()
+    elites = saved_archive(dqd_runs / "two").data()
     env = rules_env(HOPPER, DQD["episode_length"], None)
     model = env.unwrapped.model
     foot = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "foot_geom")

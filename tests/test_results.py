@@ -13,7 +13,7 @@ from matplotlib.image import imread
 import lunar_lander as ll
 from qdsearch import evaluation, fast_lander, lander, results, run, tasks
 from qdsearch.flags import UsageError, seed_list
-from util import LANDER, assert_one_line_error, folder_state, load_pickle, tiny_flags
+from util import LANDER, assert_one_line_error, folder_state, saved_archive, tiny_flags
 
 TUTORIAL = list(tasks.TUTORIAL_MEASURES)  # the measures of the run the tests look at
 
@@ -28,7 +28,7 @@ def run_dir(tmp_path_factory, tiny_run):
 
 @pytest.fixture(scope="module")
 def archive(run_dir):
-    return load_pickle(run_dir / "archive.pkl")
+    return saved_archive(run_dir)
 
 
 def read_csv(path):
@@ -77,7 +77,8 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
 
     index = read_csv(run_dir / "videos" / "index.csv")
     assert index.to_dict("records") == [{
-        "video": name, "env_seed": 52, "cell_index": data["index"][shortest], "objective": objective,
+        "video": name, "env_seed": 52, "reset_seed": 52, "cell_index": data["index"][shortest],
+        "objective": objective,
         "impact_x": point[0], "impact_y_velocity": point[1], "reflown_objective": objective,
         "reproduced": True}]
     out, err = capsys.readouterr()
@@ -199,7 +200,7 @@ def test_corrected_metrics_of_a_run_searched_on_several_terrains(tmp_path, dask_
 
     summary = json.loads((run_dir / "corrected.json").read_text())
     assert summary["env_seeds"] == [3, 4, 5, 6] and summary["repeats"] == 4
-    archive, task = load_pickle(run_dir / "archive.pkl"), tasks.ENVIRONMENTS[LANDER]
+    archive, task = saved_archive(run_dir), tasks.ENVIRONMENTS[LANDER]
     env, best = tasks.make_env(fast=False, env_name=LANDER), {}
     low, high = np.array(archive.lower_bounds), np.array(archive.upper_bounds)
     for solution in archive.data()["solution"]:
@@ -244,13 +245,13 @@ def test_corrected_archive_equals_a_hand_recomputation(run_dir, archive, dask_cl
                                                     for v in best.values()), rel=1e-12)
     assert summary["coverage"] == pytest.approx(len(best) / archive.cells)
     assert summary["run"]["qd_score"] == pytest.approx(float(archive.stats.qd_score))
-    corrected = load_pickle(run_dir / "corrected_archive.pkl")
+    corrected = saved_archive(run_dir, "corrected_archive")
     assert sorted(corrected.data()["index"].tolist()) == sorted(best)
     assert read_csv(run_dir / "corrected_archive.csv")["objective"].max() == pytest.approx(max(best.values()))
     assert imread(run_dir / "corrected_heatmap.png").std() > 0.05
     after = folder_state(run_dir)  # the run's own files are as they were; four files are new
     assert {name: after[name] for name in before} == before
-    assert set(after) - set(before) == set(evaluation.CORRECTED_FILES)
+    assert set(after) - set(before) == set(evaluation.CORRECTED_FILES) - {"corrected_archive.pkl"}
 
 
 @pytest.mark.parametrize("value, seeds", [

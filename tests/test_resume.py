@@ -20,8 +20,8 @@ from util import (
     checkpoint_payload,
     folder_state,
     launch,
-    load_pickle,
     read_checkpoint,
+    saved_archive,
     tiny_flags,
     wait_for,
     write_checkpoint,
@@ -126,7 +126,7 @@ def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, dask_cluster, r
 
 
 def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, reference):
-    source = load_pickle(reference / "archive.pkl")
+    source = saved_archive(reference)
     run_dir = tmp_path / "warm"
     run.search(**run_flags(dask_cluster, iterations=2, env_seed=7, seed=11),
               outdir=str(run_dir), from_archive=str(reference / "archive.pkl"))

@@ -47,7 +47,7 @@ def fill(folder):
 
 def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path, dask_cluster,
                                                                         reference):
-    with small_disk(tmp_path, "2400k") as disk:
+    with small_disk(tmp_path, "400k") as disk:
         run_dir = disk / "run"
         # with its pictures: its heatmaps' snapshots are what fill the disk
         process = launch(**{**FLAGS, "pictures": True}, outdir=run_dir,
@@ -119,8 +119,8 @@ def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, ca
     flags = {**FLAGS, "iterations": 40, "log_every": 2}
     process = launch(**flags, outdir=run_dir, scheduler_address=dask_cluster.scheduler_address)
     try:
-        # archive.pkl is a save's last archive file: the readers' archive.npz is there before it
-        wait_for(lambda: checkpoint_iteration(run_dir) >= 2 and (run_dir / "archive.pkl").exists(),
+        # archive.csv is a save's last archive file: the readers' archive.npz is there before it
+        wait_for(lambda: checkpoint_iteration(run_dir) >= 2 and (run_dir / "archive.csv").exists(),
                  process, "a first saved iteration")
 
         assert ll.main(["resume", str(run_dir)]) == 2

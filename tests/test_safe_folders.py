@@ -25,8 +25,8 @@ from util import (
     checkpoint_payload,
     folder_state,
     launch,
-    load_pickle,
     read_checkpoint,
+    saved_archive,
     stop_all,
     tiny_flags,
 )
@@ -122,7 +122,7 @@ def cvt_run(tmp_path_factory, dask_cluster):
 def test_the_data_file_makes_the_pickled_archive_again(tiny_run, cvt_run, kind):
     """archive.npz, and an old folder's archive.csv, give the archive bit for bit, in its order."""
     run_dir = tiny_run if kind == "grid" else cvt_run
-    pickled = load_pickle(run_dir / "archive.pkl")
+    pickled = saved_archive(run_dir)
     archive, config = run_folder.load_run(run_dir)
     from_csv = archive_data.archive_from_csv(run_dir / "archive.csv",
                                              archive_data.empty_archive(config, run_dir / "centroids.npy"))
@@ -190,7 +190,7 @@ def test_a_checkpoint_changed_by_a_byte_is_refused(tmp_path, tiny_run, run_cli):
 def test_an_old_folder_opens_everywhere_and_resumes_with_trust(tmp_path, dask_cluster, reference, run_cli):
     """A folder from before archive.npz and signing: archive.pkl, archive.csv, a plain pickle."""
     run_dir = tmp_path / "run"
-    run.search(**run_flags(dask_cluster, iterations=4), outdir=str(run_dir))
+    run.search(**run_flags(dask_cluster, iterations=4, archive_pkl=True), outdir=str(run_dir))
     (run_dir / "archive.npz").unlink()
     (run_dir / "checkpoint.pkl").write_bytes(checkpoint_payload(run_dir / "checkpoint.pkl"))
     shutil.copytree(run_dir, tmp_path / "bare")

@@ -99,8 +99,16 @@ def archive_table(archive) -> pd.DataFrame:
     return archive.data(return_type="pandas").sort_values("index").reset_index(drop=True)
 
 
+def saved_archive(run_dir: Path, name: str = "archive"):
+    """A run folder's archive as the commands read it: its archive.npz (or corrected_archive.npz),
+    made back into the pyribs archive (a run writes archive.pkl only with --archive_pkl)."""
+    from qdsearch.archive_data import read_archive_data
+
+    return read_archive_data(Path(run_dir) / f"{name}.npz")[0]
+
+
 def run_archive(run_dir: Path) -> pd.DataFrame:
-    return archive_table(load_pickle(Path(run_dir) / "archive.pkl"))
+    return archive_table(saved_archive(Path(run_dir)))
 
 
 def run_metrics(run_dir: Path) -> list[dict]:

@@ -1,0 +1,118 @@
+"""A plan's [[rows]] each give their own flags (one experiment, one SLURM array, holds a whole
+comparison), the papers' settings are such plans (docs/presets/), and the SLURM recipe takes its
+number of parts from the array."""
+
+import json
+import subprocess
+import tomllib
+
+import pytest
+
+from conftest import ROOT
+from util import assert_one_line_error, run_archive, run_metrics
+
+PRESETS = sorted((ROOT / "docs" / "presets").glob("*.toml"))
+ROWS_PLAN = """\
+seeds = "1"
+iterations = 2
+n_emitters = 1
+log_every = 2
+pictures = false
+es_sigma = 0.05
+
+[[rows]]
+algorithms = "cma_mega_es"
+batch_size = 3
+es_samples = 4
+
+[[rows]]
+algorithms = ["map_elites", "cma_me"]
+batch_size = 5
+"""
+
+
+def test_each_row_of_a_plan_runs_with_its_own_flags_as_search_alone_would(tmp_path, run_cli, dask_cluster):
+    (tmp_path / "plan.toml").write_text(ROWS_PLAN)
+    on_cluster = ["--scheduler_address", dask_cluster.scheduler_address]
+    result = run_cli("experiment", "--plan", tmp_path / "plan.toml", *on_cluster,
+                     "--outdir", tmp_path / "exp")
+    assert result.returncode == 0, result.stderr
+    plan = json.loads((tmp_path / "exp" / "experiment.json").read_text())
+    made = [(entry["config"]["algorithm"], entry["config"]["batch_size"], entry["config"]["es_samples"],
+             entry["config"]["es_sigma"]) for entry in plan["runs"]]
+    assert made == [("cma_mega_es", 3, 4, 0.05), ("map_elites", 5, 100, 0.05), ("cma_me", 5, 100, 0.05)]
+    assert [row["axes"]["algorithm"] for row in plan["rows"]] == [["cma_mega_es"], ["map_elites", "cma_me"]]
+    for entry in plan["runs"]:  # each run is bit for bit its lone twin's
+        config = entry["config"]
+        flags = ["--algorithm", config["algorithm"], "--batch_size", config["batch_size"], "--seed", 1,
+                 "--iterations", 2, "--n_emitters", 1, "--log_every", 2, "--pictures", "false"]
+        flags += ["--es_samples", 4, "--es_sigma", 0.05] if config["algorithm"] == "cma_mega_es" else []
+        alone = tmp_path / f"alone_{config['algorithm']}"
+        result = run_cli(*flags, *on_cluster, "--outdir", alone)
+        assert result.returncode == 0, result.stderr
+        assert run_archive(tmp_path / "exp" / entry["name"]).equals(run_archive(alone))
+        assert run_metrics(tmp_path / "exp" / entry["name"]) == run_metrics(alone)
+
+
+def test_a_flag_given_beside_a_plan_replaces_every_rows_value(tmp_path, run_cli, dask_cluster):
+    (tmp_path / "plan.toml").write_text(ROWS_PLAN)
+    result = run_cli("experiment", "--plan", tmp_path / "plan.toml", "--batch_size", 2, "--iterations", 1,
+                     "--scheduler_address", dask_cluster.scheduler_address, "--outdir", tmp_path / "exp")
+    assert result.returncode == 0, result.stderr
+    plan = json.loads((tmp_path / "exp" / "experiment.json").read_text())
+    assert {(e["config"]["batch_size"], e["config"]["iterations"]) for e in plan["runs"]} == {(2, 1)}
+    assert [e["config"]["es_samples"] for e in plan["runs"]] == [4, 100, 100]
+
+
+@pytest.mark.parametrize("text, words", [
+    ('[[rows]]\nalgorithms = "cma_me"\nseeds = "1-2"\n', ["[[rows]] 1: 'seeds'", "a row may set"]),
+    ('[[rows]]\nalgorithms = "cma_me"\nbatch_sise = 3\n', ["[[rows]] 1: 'batch_sise'", "batch_size"]),
+    ('rows = 3\n', ["rows must be [[rows]] tables"]),
+    ('[[rows]]\nalgorithms = "cma_me"\n[[rows]]\nalgorithms = "cma_me"\n',
+     ["row 2 makes the setting 'cma_me'"]),
+    ('[[rows]]\nalgorithms = "map_elites"\nlearning_rate = 0.1\n', ["--learning_rate", "map_elites"]),
+])
+def test_a_rows_mistakes_are_one_line(tmp_path, run_cli, text, words):
+    (tmp_path / "plan.toml").write_text(text)
+    result = run_cli("experiment", "--plan", tmp_path / "plan.toml", "--outdir", tmp_path / "exp")
+    assert_one_line_error(result, *words)
+    assert not (tmp_path / "exp").exists()
+
+
+@pytest.mark.parametrize("path", PRESETS, ids=[path.stem for path in PRESETS])
+def test_each_preset_is_a_plan_of_its_papers_settings(path, run_cli, tmp_path):
+    """Every preset is planned as it stands (checked, each run's config made; --evaluations 1 is
+    below one iteration, so nothing is flown), and says in its comments what still differs."""
+    planned = tomllib.loads(path.read_text())
+    assert "What still differs" in path.read_text()
+    assert planned["evaluations"] >= 100_000 and planned["seeds"] == "1-5"
+    result = run_cli("experiment", "--plan", path, "--evaluations", 1, "--outdir", tmp_path / "exp")
+    assert_one_line_error(result, "--evaluations 1 is less than one iteration")
+
+
+@pytest.mark.slow  # MuJoCo runs of 19,590-weight networks
+def test_dqd_rls_preset_runs_a_tiny_budget_given_beside_it(tmp_path, run_cli, dask_cluster):
+    path = ROOT / "docs" / "presets" / "dqd_rl_walker.toml"
+    result = run_cli("experiment", "--plan", path, "--evaluations", 200, "--seeds", 1, "--episode_length", 5,
+                     "--scheduler_address", dask_cluster.scheduler_address, "--outdir", tmp_path / "exp")
+    assert result.returncode == 0, result.stderr
+    plan = json.loads((tmp_path / "exp" / "experiment.json").read_text())
+    rows = [(e["config"]["algorithm"], e["config"]["batch_size"], e["config"]["grid"], e["config"]["reset"],
+             e["config"]["hidden"], e["state"]) for e in plan["runs"]]
+    assert rows == [("cma_mega_es", 99, 32, "each", [128, 128], "done"),
+                    ("map_elites", 100, 32, "each", [128, 128], "done")]
+    assert [run_metrics(tmp_path / "exp" / e["name"])[-1]["evaluations"] for e in plan["runs"]] == [200, 200]
+
+
+def slurm_parts(environment: dict[str, str]) -> str:
+    """The number of parts the SLURM recipe's PARTS line makes in this environment, run by bash."""
+    line = next(line for line in (ROOT / "docs" / "slurm_parts.sbatch").read_text().splitlines()
+                if line.startswith("PARTS="))
+    shown = subprocess.run(["bash", "-c", f'{line}\necho "$PARTS"'], capture_output=True, text=True,
+                           env={"PATH": "/usr/bin:/bin", **environment}, check=True)
+    return shown.stdout.strip()
+
+
+def test_the_slurm_recipe_takes_its_parts_from_the_array():
+    assert slurm_parts({"SLURM_ARRAY_TASK_COUNT": "12"}) == "12"
+    assert slurm_parts({"SLURM_ARRAY_TASK_COUNT": "2", "PARTS": "8"}) == "8"  # a rerun of two parts
