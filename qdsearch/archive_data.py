@@ -4,8 +4,8 @@ archive it was; and, for folders from before archive.npz, their archive.csv.
 
 Why numpy's .npz: numpy is a dependency already; it keeps every float64 bit (a CSV keeps them
 only if its writer printed every digit); and it holds arrays of any shape, such as a CVT
-archive's centroids. archive.pkl is still written (pyribs users load it), but no command reads
-it: loading a pickle runs any code it holds.
+archive's centroids. archive.pkl is written only with --archive_pkl (pyribs users load it), and
+no command reads it: loading a pickle runs any code it holds.
 
 An archive.npz holds `format` (ARCHIVE_FORMAT), the archive's `kind` (grid, cvt), `solution_dim`,
 `dims` (a CVT's: its cells), `lower_bounds`, `upper_bounds`, `qd_score_offset`, a CVT's

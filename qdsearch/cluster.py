@@ -453,6 +453,9 @@ def quiet_dask_logs() -> None:
     must know of is reported by this script, in one line."""
     for name in ("distributed", "distributed.client"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
+    # A batch of big networks (200 of 19,590 weights: 31 MB) is a large graph to Dask, which says
+    # so on every send; the weights must reach the workers whichever way they are sent.
+    warnings.filterwarnings("ignore", "Sending large graph", UserWarning)
     if sys.unraisablehook is not not_a_future_released_late:
         sys.unraisablehook = not_a_future_released_late
 

@@ -43,7 +43,7 @@ from qdsearch.compared_runs import (
     load_run_metrics,
     read_corrected,
 )
-from qdsearch.experiment_folder import run_setting
+from qdsearch.experiment_folder import run_setting, shortened
 from qdsearch.family import Returns
 from qdsearch.flags import UsageError, boolean, shown
 from qdsearch.plots import save_metric_panels
@@ -81,12 +81,20 @@ def solved_cells(path: Path, returns: Returns) -> int | None:
         return None
 
 
-def run_labels(run_dirs: list[Path], configs: list[RunConfig]) -> list[str]:
+def run_settings(configs: list[RunConfig]) -> list[str]:
+    """Each run's setting, labelled by what tells the compared settings apart (the algorithm and
+    the flags the settings do not all share: experiment_folder.shortened)."""
+    labels = [run_setting(config.to_json()) for config in configs]
+    short = shortened(labels)
+    return [short[label] for label in labels]
+
+
+def run_labels(run_dirs: list[Path], configs: list[RunConfig], settings: list[str]) -> list[str]:
     """'setting seed N' for each run ('TASK: setting seed N' with several tasks), or the folders
     as given when that would be ambiguous."""
     several = len({config.env for config in configs}) > 1
-    labels = [f"{config.env + ': ' if several else ''}{run_setting(config.to_json())} seed {config.seed}"
-              for config in configs]
+    labels = [f"{config.env + ': ' if several else ''}{setting} seed {config.seed}"
+              for config, setting in zip(configs, settings)]
     return labels if len(set(labels)) == len(labels) else [str(run_dir) for run_dir in run_dirs]
 
 
@@ -178,7 +186,7 @@ def normalised_qd_score(qd_score: float, config: RunConfig) -> float:
 
 
 def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunConfig],
-                     runs: list[list[dict]], corrected: list[dict] | None = None,
+                     runs: list[list[dict]], settings: list[str], corrected: list[dict] | None = None,
                      cut: list[bool] | None = None):
     """One row per run: its final metrics (or its `corrected` ones), with the task, algorithm and
     seed that produced them; and each run's final objectives (None without a readable archive),
@@ -189,14 +197,15 @@ def comparison_table(labels: list[str], run_dirs: list[Path], configs: list[RunC
 
     data_name, csv_name = ARCHIVE_FILES[corrected is not None]
     rows, objectives = [], []
-    for i, (label, run_dir, config, metrics) in enumerate(zip(labels, run_dirs, configs, runs)):
+    for i, (label, run_dir, config, metrics, setting) in enumerate(zip(labels, run_dirs, configs, runs,
+                                                                         settings)):
         final = metrics[-1] if corrected is None else {**metrics[-1], **{
             key: corrected[i][key] for key in CORRECTED}}
         returns = returns_of(config)
         archive = None if cut and cut[i] else final_archive(run_dir / data_name)
         objectives.append(None if archive is None else archive.data("objective"))
         rows.append({"run": label, "folder": str(run_dir), "task": config.env,
-                     "setting": run_setting(config.to_json()), "seed": config.seed,
+                     "setting": setting, "seed": config.seed,
                      "iterations": metrics[-1]["iteration"], "qd_offset": returns.offset,
                      **{key: final[key] for key in COMPARED},
                      NORMALISED: normalised_qd_score(final["qd_score"], config),
@@ -543,10 +552,11 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     fixes = [read_corrected(path) for path in paths] if corrected else None
     if fixes is not None:
         check_fresh(fixes, list(runs), paths)
-    baseline = check_baseline(baseline, list(dict.fromkeys(run_setting(c.to_json()) for c in configs)))
+    settings = run_settings(list(configs))
+    baseline = check_baseline(baseline, list(dict.fromkeys(settings)))
     files = comparison_outputs(None if out is None else str(out), overwrite, experiment_home(run_dirs))
-    labels = run_labels(paths, list(configs))
-    table, objectives = comparison_table(labels, paths, list(configs), runs, fixes, cut)
+    labels = run_labels(paths, list(configs), settings)
+    table, objectives = comparison_table(labels, paths, list(configs), runs, settings, fixes, cut)
     several = table["task"].nunique() > 1
     keys = table["task"] + ": " + table["setting"] if several else table["setting"]
     grouped = several or keys.duplicated().any()

@@ -124,8 +124,8 @@ def corrected_summary(corrected: Any, run_metrics: dict, seeds: list[int], elite
 
 
 def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig) -> None:
-    """The corrected archive beside the run's own: its data (what compare reads), pickle (for
-    pyribs' users), CSV, heatmap, and corrected.json."""
+    """The corrected archive beside the run's own: its data (what compare reads), CSV, heatmap,
+    corrected.json, and with --archive_pkl its pickle (for pyribs' users)."""
     write_archive_data(run / "corrected_archive.npz", corrected, config.to_json())
     if config.archive_pkl:
         write_pickle(run / "corrected_archive.pkl", corrected)
@@ -139,7 +139,8 @@ def write_corrected(run: Path, corrected: Any, summary: dict, config: RunConfig)
           f"QD score {summary['qd_score']:,.0f} (the run's {own['qd_score']:,.0f}), coverage "
           f"{summary['coverage']:.4f} ({own['coverage']:.4f}), {summary['num_elites']} cells "
           f"({own['num_elites']})")
-    print(f"written to {', '.join(str(run / name) for name in CORRECTED_FILES)}")
+    written = [name for name in CORRECTED_FILES if config.archive_pkl or not name.endswith(".pkl")]
+    print(f"written to {', '.join(str(run / name) for name in written)}")
 
 
 def archive_metrics(archive: Any, metrics: list[dict], run: Path) -> dict:

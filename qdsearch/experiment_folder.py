@@ -3,8 +3,9 @@ writes it (experiments.py): experiment.json's format, its run states, and the la
 run's setting.
 
 Map: EXPERIMENT_FORMAT, RUN_STATES; `label_flags`, `run_setting` (a setting's label, shared by the
-runs of an experiment and compare's groups); `read_experiment` (experiment.json checked, with its
-parts' states merged); `unfinished_note` (what a reader of an unfinished plan is told).
+runs of an experiment and compare's groups), `shortened` (labels less what all settings share);
+`read_experiment` (experiment.json checked, with its parts' states merged); `unfinished_note`
+(what a reader of an unfinished plan is told).
 """
 
 from __future__ import annotations
@@ -51,6 +52,22 @@ def run_setting(config: dict) -> str:
             if value != defaults[flag] or flag in own:
                 changed.append(f"{flag}={','.join(map(str, value)) if isinstance(value, list) else value}")
     return " ".join([str(config.get("algorithm", "?")), *changed])
+
+
+def shortened(labels: list[str]) -> dict[str, str]:
+    """Each of the settings' `labels` (run_setting's) less the flags every one of them names
+    alike: the algorithm with its own flags, and what tells the settings apart (an experiment's
+    folder names, compare's legend). Labels that differ keep a flag that tells them apart, so
+    the short ones differ too."""
+    settings = [label.split(" ") for label in dict.fromkeys(labels)]
+    shared = set.intersection(*(set(words[1:]) for words in settings)) if settings else set()
+
+    def kept(algorithm: str, word: str) -> bool:
+        own = own_flags(algorithm) if algorithm in ALGORITHMS else ()
+        return word not in shared or word.split("=", 1)[0] in own
+
+    return {" ".join(words): " ".join([words[0], *(w for w in words[1:] if kept(words[0], w))])
+            for words in settings}
 
 
 RUN_STATES = ("pending", "running", "done", "stopped", "failed")

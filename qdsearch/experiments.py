@@ -33,7 +33,7 @@ import numpy as np
 
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.cluster import scheduler_of
-from qdsearch.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting
+from qdsearch.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting, shortened
 from qdsearch.flags import (
     UsageError,
     boolean,
@@ -59,6 +59,7 @@ from qdsearch.options import (
     for_policy,
     ignores,
     refuse_unused_row_flags,
+    resumed_budget,
     search_defaults,
     with_budget,
     with_offset,
@@ -199,12 +200,12 @@ def rows_runs(grids: list[tuple[dict, dict, list[int]]]) -> list[dict]:
     refused (a run would be planned twice)."""
     runs: list[dict] = []
     for row, (axes, common, seeds) in enumerate(grids, 1):
-        for entry in experiment_runs(axes, common, seeds):
-            if any(other["name"] == entry["name"] for other in runs):
-                raise UsageError(f"--plan: row {row} makes the setting {entry['setting']!r} "
-                                 f"that an earlier row makes too")
-            runs.append(entry)
-    return runs
+        made = grid_runs(axes, common, seeds)
+        if twice := {entry["setting"] for entry in made} & {entry["setting"] for entry in runs}:
+            raise UsageError(f"--plan: row {row} makes the setting {min(twice)!r} that an earlier "
+                             f"row makes too")
+        runs += made
+    return named(runs)
 
 
 def with_plan(planned: dict[str, Any], flags: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
@@ -298,6 +299,19 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
 
 def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
     """One entry per (setting, seed): its folder name, setting label, config and state."""
+    return named(grid_runs(axes, common, seeds))
+
+
+def named(runs: list[dict]) -> list[dict]:
+    """The runs with their settings' labels shortened to what tells the settings apart
+    (experiment_folder.shortened), and each its folder name: its setting's label and seed."""
+    short = shortened([entry["setting"] for entry in runs])
+    return [{"name": re.sub(r"[^A-Za-z0-9.]+", "_", short[entry["setting"]]) + f"_seed{entry['seed']}",
+             **entry, "setting": short[entry["setting"]]} for entry in runs]
+
+
+def grid_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
+    """One entry per (setting, seed) of a grid: its setting's whole label, seed, config, state."""
     runs, settings = [], []
     for values in itertools.product(*axes.values()):
         setting = {flag: common.get(flag) if ignores(values[0], flag) else value
@@ -308,10 +322,7 @@ def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
         for seed in seeds:
             # its iterations, of --evaluations; none of the flags its policy ignores
             config = with_offset(with_budget(for_policy({**common, **setting, "seed": seed})))
-            label = run_setting(config)
-            name = re.sub(r"[^A-Za-z0-9.]+", "_", label) + f"_seed{seed}"
-            runs.append({"name": name, "setting": label, "seed": seed, "config": config,
-                         "state": "pending"})
+            runs.append({"setting": run_setting(config), "seed": seed, "config": config, "state": "pending"})
     return runs
 
 
@@ -488,7 +499,8 @@ def resume(run_dir: str, part: str | None = None, **flags: Any) -> None:
     path = Path(str(run_dir))
     if (path / "experiment.json").is_file():
         split = None if part is None else parse_part(part)
-        return resume_experiment(path, flags["iterations"], flags["workers"], flags, split)
+        return resume_experiment(path, flags["iterations"], flags["workers"], flags, split,
+                                 flags["evaluations"])
     if part is not None:
         raise UsageError(f"--part is for an experiment folder; {path} is a run")
     return resume_run(run_dir, **flags)
@@ -505,12 +517,13 @@ def check_split(plan: dict, folder: Path, split: tuple[int, int] | None, iterati
 
 
 def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
-                      cluster: dict[str, Any], split: tuple[int, int] | None = None) -> None:
+                      cluster: dict[str, Any], split: tuple[int, int] | None = None,
+                      evaluations: int | None = None) -> None:
     """Continue every unfinished run of an experiment, or of one part of it (failed ones are
     tried again), on the cluster the `cluster` flags name (by default a local one). A part locks
     its own folder; the whole of a split experiment locks every part's. With --trust, the
     checkpoints of its unfinished runs are signed with the user's key first."""
-    check_split(read_experiment(folder), folder, split, iterations)  # before anything is written
+    check_split(read_experiment(folder), folder, split, iterations or evaluations)  # before any write
     trust = boolean("trust", cluster.get("trust", False))  # experiment --part: its own runs only
     scheduler_address = scheduler_of(cluster)
     with contextlib.ExitStack() as locks:
@@ -529,15 +542,15 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
                 adopt(folder / entry["name"] / "checkpoint.pkl")
         workers = checked("workers", plan["workers"] if workers is None else workers)
         planned = max(entry["config"]["iterations"] for entry in plan["runs"])
-        if iterations is not None:
-            iterations = checked("iterations", iterations)
-            if iterations < planned:
-                raise UsageError(f"the runs of {folder} go to iteration {planned}; --iterations must "
-                                 f"be at least that")
-            for entry in plan["runs"]:
-                if iterations > entry["config"]["iterations"]:
-                    entry["config"]["iterations"], entry["config"]["evaluations"] = iterations, None
-                    entry["state"] = "pending"
+        for entry in plan["runs"] if iterations is not None or evaluations is not None else []:
+            budget = resumed_budget(upgrade(entry["config"]), iterations, evaluations)
+            if budget["iterations"] < entry["config"]["iterations"]:
+                given = f"--evaluations {evaluations:,}" if evaluations else f"--iterations {iterations:,}"
+                raise UsageError(f"{entry['name']} of {folder} goes to iteration "
+                                 f"{entry['config']['iterations']:,}; {given} would end it sooner")
+            if budget["iterations"] > entry["config"]["iterations"]:
+                entry["config"].update(iterations=budget["iterations"], evaluations=budget["evaluations"])
+                entry["state"] = "pending"
         which = f"part {split[0]} of {split[1]} of {folder}" if split else str(folder)
         if all(entry["state"] == "done" for entry in mine):
             print(f"nothing to do: all {len(mine)} runs of {which} are done (iteration "

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from qdsearch.experiment_folder import read_experiment as read_plan
-from qdsearch.experiment_folder import run_setting
 from qdsearch.flags import UsageError
 from qdsearch.metrics import load_metrics
 from qdsearch.run_config import load_run_config
@@ -64,5 +63,5 @@ def read_experiment(folder: Any) -> list[RunData]:
     for entry in read_plan(path)["runs"]:
         if os.path.lexists(path / entry["name"] / "archive.csv"):  # there: read, or refused as what it is
             run = read_run(path / entry["name"])
-            runs.append(dataclasses.replace(run, setting=run_setting(entry["config"])))
+            runs.append(dataclasses.replace(run, setting=entry["setting"]))
     return runs

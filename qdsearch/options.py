@@ -43,7 +43,7 @@ from qdsearch.flags import (
     shown,
     whole_number_up_to,
 )
-from qdsearch.policies import POLICIES, policy_of
+from qdsearch.policies import POLICIES, STARTS, policy_of
 from qdsearch.tasks import (
     DEFAULT_ENV,
     ENVIRONMENTS,
@@ -224,6 +224,10 @@ SEARCH_FLAGS: dict[str, Flag] = {
     "policy": Flag("linear", "The policy a solution's numbers make, a row of POLICIES: " + "; ".join(
         f"{name} ({row.summary})" for name, row in POLICIES.items()) + ".", one_of(POLICIES),
         sweep=True, label=14, before="linear"),
+    "start": Flag(None, "Where the emitters start, a row of STARTS: zeros, or glorot (a Glorot "
+                        "uniform draw of each layer's weights, biases zero, seeded from --seed); "
+                        "default: the policy's own (linear: zeros; mlp: glorot).", one_of(STARTS),
+                  sweep=True, label=21, text=True),
     "hidden": Flag(None, f"--policy mlp: the hidden layers' sizes, comma-separated; default "
                          f"{','.join(map(str, DEFAULT_HIDDEN))}.", layer_widths, label=15, text=True),
     "episode_length": Flag(None, "Steps an episode lasts at most (gym.make's max_episode_steps); "
@@ -326,6 +330,10 @@ RESUME_FLAGS: dict[str, Flag] = {
     "iterations": dataclasses.replace(
         SEARCH_FLAGS["iterations"], default=None, help="Total iterations to reach; default: those "
         "the run was started with. A larger number extends a finished run."),
+    "evaluations": dataclasses.replace(
+        SEARCH_FLAGS["evaluations"], help="A total budget in evaluations to reach instead of "
+        "--iterations: each run goes to its last iteration within it (an experiment's rows that fly "
+        "different numbers per iteration meet at one budget)."),
     "workers": dataclasses.replace(CLUSTER_FLAGS["workers"], default=None, help=(
         CLUSTER_FLAGS["workers"].help + " Default: as the run was started.")),
     **{name: flag for name, flag in CLUSTER_FLAGS.items() if name != "workers"},
@@ -421,6 +429,20 @@ def for_policy(config: dict[str, Any]) -> dict[str, Any]:
     in its settings of a policy without hidden layers, which record what search alone does."""
     kind = config.get("policy") or "linear"
     return {**config, **{flag: None for flag in POLICY_FLAGS if flag not in POLICIES[kind].flags}}
+
+
+def resumed_budget(config: dict[str, Any], iterations: int | None, evaluations: int | None) -> dict[str, Any]:
+    """A run's iterations and evaluations once resumed to `iterations` or `evaluations` (one of
+    them, or neither: its own): a budget in iterations past its own drops its evaluations."""
+    if iterations is not None and evaluations is not None:
+        raise UsageError("--iterations and --evaluations are two budgets; give one")
+    if evaluations is not None:
+        return with_budget({**config, "evaluations": checked("evaluations", evaluations)})
+    if iterations is None:
+        return config
+    iterations = checked("iterations", iterations)
+    return {**config, "iterations": iterations,
+            "evaluations": None if iterations > config["iterations"] else config.get("evaluations")}
 
 
 def with_budget(config: dict[str, Any]) -> dict[str, Any]:

@@ -87,18 +87,19 @@ _PROGRESS_FIGURES = threading.local()  # each thread's progress figure (matplotl
 
 
 def save_progress_plot(metrics: list[dict], path: Path) -> None:
-    """QD score, coverage and best objective over iterations, side by side. A run's saves draw
+    """QD score, coverage and best objective over evaluations (as `compare` draws them: rows that
+    fly different numbers per iteration read alike), side by side. A run's saves draw
     this figure again and again: each thread keeps one and moves its curves, for ~0.65x the CPU
     of a new one and the same picture (docs/performance.md#saves)."""
     from matplotlib.transforms import Bbox
 
     figure = getattr(_PROGRESS_FIGURES, "figure", None)
     if figure is None:
-        figure, axes = panel_figure("Iteration")
+        figure, axes = panel_figure("Evaluations")
         for ax in axes:
             ax.plot([], [])
         _PROGRESS_FIGURES.figure = figure
-    x = [row["iteration"] for row in metrics]
+    x = [row["evaluations"] for row in metrics]
     for ax, (key, _) in zip(figure.axes, PROGRESS_PANELS):
         ax.lines[0].set_data(x, [np.nan if row[key] is None else row[key] for row in metrics])
         # The limits a new panel would take: without this, a panel with no value yet (a best

@@ -9,8 +9,9 @@ Map:
 - `PolicyKind`: a row of POLICIES (its weights' count, its act, its start, its own flags);
 - POLICIES: `linear` (W @ obs, no bias: the tutorial's, zeros at the start) and `mlp` (tanh
   hidden layers with biases, a Glorot draw at the start, as dqd-rl and QDax start theirs);
-- `Policy`: what a run flies (a row and its hidden sizes), small and hashable: it travels with
-  every chunk of rollouts; `policy_of` reads it from a run's config; LINEAR;
+- STARTS (--start): where the emitters start, zeros or a Glorot draw, for any row;
+- `Policy`: what a run flies (a row, its hidden sizes, its start), small and hashable: it travels
+  with every chunk of rollouts; `policy_of` reads it from a run's config; LINEAR;
 - `layer_sizes`, `mlp_act`, `glorot`: the network, its forward pass and its initial draw.
 """
 
@@ -47,8 +48,9 @@ def output(scores: Callable[[np.ndarray], np.ndarray], continuous: bool) -> Call
     return lambda obs: int(scores(obs).argmax())
 
 
-def zeros(shape: Shape, hidden: tuple[int, ...], seed: int) -> np.ndarray:
-    return np.zeros(linear_size(shape, hidden))
+def zeros(shape: Shape, hidden: tuple[int, ...], seed: int, biases: bool) -> np.ndarray:
+    """Every weight zero (the tutorial's linear start)."""
+    return np.zeros(sum(out * (inputs + biases) for out, inputs in layer_sizes(shape, hidden)))
 
 
 def layer_sizes(shape: Shape, hidden: tuple[int, ...]) -> list[tuple[int, int]]:
@@ -84,15 +86,21 @@ def mlp_act(solution: np.ndarray, shape: Shape, hidden: tuple[int, ...], continu
     return output(scores, continuous)
 
 
-def glorot(shape: Shape, hidden: tuple[int, ...], seed: int) -> np.ndarray:
-    """A Glorot (Xavier) uniform draw of every layer's weights, biases zero (dqd-rl's and QDax's
-    start), seeded from the run's seed apart from the archive's and emitters' seeds."""
+def glorot(shape: Shape, hidden: tuple[int, ...], seed: int, biases: bool) -> np.ndarray:
+    """A Glorot (Xavier) uniform draw of every layer's weights, biases (if the row has them) zero:
+    dqd-rl's and QDax's start; seeded from the run's seed apart from the archive's and emitters'
+    seeds."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6107]))
     parts = []
     for out, inputs in layer_sizes(shape, hidden):
         limit = np.sqrt(6.0 / (inputs + out))
-        parts += [rng.uniform(-limit, limit, out * inputs), np.zeros(out)]
+        parts += [rng.uniform(-limit, limit, out * inputs), np.zeros(out if biases else 0)]
     return np.concatenate(parts)
+
+
+# --start: where a run's emitters start, as (shape, hidden, seed, biases) -> the weights.
+STARTS: dict[str, Callable[[Shape, tuple[int, ...], int, bool], np.ndarray]] = {
+    "zeros": zeros, "glorot": glorot}
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -103,25 +111,28 @@ class PolicyKind:
     summary: str  # what --help calls it
     size: Callable[[Shape, tuple[int, ...]], int]
     act: Callable[[np.ndarray, Shape, tuple[int, ...], bool], Callable]
-    start: Callable[[Shape, tuple[int, ...], int], np.ndarray]  # the emitters' x0, from the run's seed
+    start: str  # its STARTS row unless --start names another: the emitters' x0, from the run's seed
+    biases: bool  # whether each layer has a bias after its weights
     flags: tuple[str, ...] = ()
 
 
 POLICIES: dict[str, PolicyKind] = {
     "linear": PolicyKind(summary="W @ obs, no bias, starting at zeros (the tutorial's)",
-                         size=linear_size, act=linear_act, start=zeros),
+                         size=linear_size, act=linear_act, start="zeros", biases=False),
     "mlp": PolicyKind(summary="tanh hidden layers of --hidden units with biases, starting from a "
                               "Glorot draw (dqd-rl's 128,128; QDax's 64,64)",
-                      size=mlp_size, act=mlp_act, start=glorot, flags=("hidden",)),
+                      size=mlp_size, act=mlp_act, start="glorot", biases=True, flags=("hidden",)),
 }
 
 
 @dataclasses.dataclass(frozen=True)
 class Policy:
-    """What a run flies: a row of POLICIES and, for a network, its hidden layers' sizes."""
+    """What a run flies: a row of POLICIES and, for a network, its hidden layers' sizes; and where
+    its emitters start (a row of STARTS; "": the row's own)."""
 
     kind: str = "linear"
     hidden: tuple[int, ...] = ()
+    start_rule: str = ""
 
     @property
     def row(self) -> PolicyKind:
@@ -136,14 +147,15 @@ class Policy:
         return self.row.act(solution, shape, self.hidden, continuous)
 
     def start(self, shape: Shape, seed: int) -> np.ndarray:
-        return self.row.start(shape, self.hidden, seed)
+        return STARTS[self.start_rule or self.row.start](shape, self.hidden, seed, self.row.biases)
 
 
 LINEAR = Policy()
 
 
 def policy_of(config: Any) -> Policy:
-    """A run's policy, from its config (a RunConfig or a dict): --policy, and --hidden if its row
-    uses it. Runs from before --policy are linear."""
+    """A run's policy, from its config (a RunConfig or a dict): --policy, --hidden if its row uses
+    it, and --start. Runs from before --policy are linear, from before --start the row's own."""
     kind = setting(config, "policy") or "linear"
-    return Policy(kind, tuple(setting(config, "hidden") or ()) if "hidden" in POLICIES[kind].flags else ())
+    hidden = tuple(setting(config, "hidden") or ()) if "hidden" in POLICIES[kind].flags else ()
+    return Policy(kind, hidden, setting(config, "start") or "")

@@ -31,6 +31,7 @@ from qdsearch.options import (
     SEARCH_FLAGS,
     check_memory,
     checked,
+    resumed_budget,
     with_task,
 )
 from qdsearch.run_config import RunConfig, check_run_config, load_archive, load_run_state, write_config
@@ -55,7 +56,7 @@ def search(config: str | None = None, *, given: frozenset[str] = frozenset(), **
 
     Each iteration asks the emitters for solutions, flies them on a local Dask cluster and tells
     the results back. Every log_every iterations (and at the end) the run folder is refreshed:
-    checkpoint.pkl (signed with your key), archive.npz, archive.pkl, archive.csv, metrics.json,
+    checkpoint.pkl (signed with your key), archive.npz, archive.csv, metrics.json,
     heatmap.png, heatmaps/, progress.png, config.json and run.log. The other commands: COMMANDS
     in --help.
 
@@ -168,7 +169,7 @@ def resume_run(run_dir: str, **flags: Any) -> None:
     Args:
         run_dir: A run folder written by this script.
     """
-    path, iterations, workers = Path(run_dir), flags["iterations"], flags["workers"]
+    path, workers = Path(run_dir), flags["workers"]
     trust = boolean("trust", flags["trust"])
     load_run_state(path, trust)  # refuse a bad folder before anything is written in it
     scheduler_address = scheduler_of(flags)
@@ -176,16 +177,18 @@ def resume_run(run_dir: str, **flags: Any) -> None:
         if trust:
             adopt(path / "checkpoint.pkl")
         config, checkpoint = load_run_state(path)  # as the last writer left it
-        iterations = checked("iterations", config.iterations if iterations is None else iterations)
+        budget = resumed_budget(config.to_json(), flags["iterations"], flags["evaluations"])
+        iterations = budget["iterations"]
         workers = checked("workers", config.workers if workers is None else workers)
         done = checkpoint["iteration"] if checkpoint else 0
         if iterations < done:
-            raise UsageError(f"{path} is already at iteration {done}; --iterations must be at least that")
+            raise UsageError(f"{path} is already at iteration {done}; "
+                             f"--{'evaluations' if flags['evaluations'] else 'iterations'} must reach that")
         seed_archive = load_archive(Path(config.from_archive), config) if (
             checkpoint is None and config.from_archive) else None
-        extended = iterations > config.iterations  # a budget in evaluations no longer holds it
         config = config.replace(iterations=max(iterations, config.iterations),
-                                evaluations=None if extended else config.evaluations, resumed=[
+                                evaluations=budget["evaluations"] if iterations >= config.iterations
+                                else config.evaluations, resumed=[
             *config.resumed, {"at": datetime.datetime.now().isoformat(), "from_iteration": done,
                               "to_iteration": iterations, "workers": workers}])
         write_config(path, config)

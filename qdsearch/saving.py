@@ -2,8 +2,8 @@
 cluster with cores of its own, the saver processes that draw the runs' CSVs and pictures.
 
 Map:
-- `save_outputs`: a run folder's files besides the checkpoint (metrics, archive.pkl for pyribs'
-  users, archive.npz for the results commands, archive.csv, and `save_pictures`: heatmaps,
+- `save_outputs`: a run folder's files besides the checkpoint (metrics, archive.npz for the
+  results commands, archive.csv, archive.pkl for pyribs' users if asked, `save_pictures`: heatmaps,
   progress plot): what a save costs, nearly all of it;
 - `Savers`: the threads a driver's saves run in, and the processes (`saver_processes`) they
   hand `save_outputs` to (`write_outputs`), started as saves come, with Ctrl-C and SIGTERM

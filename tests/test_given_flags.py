@@ -29,6 +29,7 @@ ROWS = {
     "hidden": ("4", {"policy": "mlp", "algorithm": "map_elites", "grid": 5}),
     "episode_length": (100, {}),
     "reset": ("each", {}),
+    "start": ("glorot", {}),
     "qd_offset": (-50.0, {}),
     "terminate_when_unhealthy": (False, {"env": "Hopper-v5"}),
     "measures": ("fuel,flight_time", {}),

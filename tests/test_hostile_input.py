@@ -95,7 +95,7 @@ def test_resuming_a_finished_experiment_changes_nothing(run_cli, tiny_experiment
     result = run_cli("resume", folder)
     assert result.returncode == 0 and "nothing to do: all 2 runs" in result.stdout
     assert_one_line_error(run_cli("resume", folder, "--iterations", 1),
-                          "go to iteration 2; --iterations must be at least that")
+                          "goes to iteration 2; --iterations 1 would end it sooner")
     assert folder_state(folder) == before  # the recorded timing and every run kept
 
 

@@ -64,6 +64,36 @@ def test_a_flag_given_beside_a_plan_replaces_every_rows_value(tmp_path, run_cli,
     assert [e["config"]["es_samples"] for e in plan["runs"]] == [4, 100, 100]
 
 
+def test_an_experiment_resumed_to_a_budget_in_evaluations_takes_each_row_to_its_own_iteration(
+        tmp_path, run_cli, dask_cluster):
+    """cma_mega_es here flies 8 evaluations an iteration (the point, 4 samples, 3 branches),
+    cma_me 5: resumed from 40 to 80 evaluations, they go from 5 and 8 to 10 and 16 iterations,
+    each run bit for bit its lone twin started with --evaluations 80."""
+    plan = ROWS_PLAN.replace("iterations = 2", "evaluations = 40")
+    (tmp_path / "plan.toml").write_text(plan.replace('["map_elites", "cma_me"]', '"cma_me"'))
+    on_cluster = ["--scheduler_address", dask_cluster.scheduler_address]
+    result = run_cli("experiment", "--plan", tmp_path / "plan.toml", *on_cluster,
+                     "--outdir", tmp_path / "exp")
+    assert result.returncode == 0, result.stderr
+    result = run_cli("resume", tmp_path / "exp", "--evaluations", 80, *on_cluster)
+    assert result.returncode == 0, result.stderr
+    entries = json.loads((tmp_path / "exp" / "experiment.json").read_text())["runs"]
+    assert [(e["config"]["iterations"], e["config"]["evaluations"], e["state"]) for e in entries] == [
+        (10, 80, "done"), (16, 80, "done")]
+    for entry, per_iteration in zip(entries, (8, 5)):
+        rows = run_metrics(tmp_path / "exp" / entry["name"])
+        assert rows[-1]["evaluations"] == 80 and len(rows) == 80 // per_iteration
+        twin = tmp_path / f"twin_{entry['config']['algorithm']}"
+        flags = ["--algorithm", entry["config"]["algorithm"], "--batch_size", entry["config"]["batch_size"],
+                 "--seed", 1, "--evaluations", 80, "--n_emitters", 1, "--log_every", 2, "--pictures", "false"]
+        flags += ["--es_samples", 4, "--es_sigma", 0.05] if per_iteration == 8 else []
+        assert run_cli(*flags, *on_cluster, "--outdir", twin).returncode == 0
+        assert run_archive(tmp_path / "exp" / entry["name"]).equals(run_archive(twin))
+        assert run_metrics(tmp_path / "exp" / entry["name"]) == run_metrics(twin)
+    assert_one_line_error(run_cli("resume", tmp_path / "exp", "--evaluations", 40, *on_cluster),
+                          "goes to iteration 10", "--evaluations 40 would end it sooner")
+
+
 @pytest.mark.parametrize("text, words", [
     ('[[rows]]\nalgorithms = "cma_me"\nseeds = "1-2"\n', ["[[rows]] 1: 'seeds'", "a row may set"]),
     ('[[rows]]\nalgorithms = "cma_me"\nbatch_sise = 3\n', ["[[rows]] 1: 'batch_sise'", "batch_size"]),

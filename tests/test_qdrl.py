@@ -90,9 +90,37 @@ def test_the_start_is_one_stream_of_draws_from_the_runs_seed():
 
 
 def test_a_policy_is_read_from_its_runs_config():
-    """Runs from before --policy are linear; --hidden belongs to a network only."""
+    """Runs from before --policy are linear; --hidden belongs to a network only; --start is any
+    policy's (runs from before it start as their row does)."""
     assert policy_of({}) == LINEAR and policy_of({"policy": "linear", "hidden": [8]}) == LINEAR
     assert policy_of({"policy": "mlp", "hidden": [8, 4]}) == Policy("mlp", (8, 4))
+    assert policy_of({"policy": "linear", "start": "glorot"}) == Policy("linear", (), "glorot")
+
+
+def test_start_gives_either_form_either_start():
+    """--start glorot draws the linear policy's W as the network's layers are drawn (no bias);
+    --start zeros starts a network at zeros; a row's own start is unchanged by the flag's
+    existence (the linear at zeros, the network's draw)."""
+    shape, seed = (6, 17), 9
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6107]))
+    limit = math.sqrt(6 / (17 + 6))
+    assert np.array_equal(Policy("linear", (), "glorot").start(shape, seed), rng.uniform(-limit, limit, 102))
+    network = Policy("mlp", (8,), "zeros")
+    assert network.start(shape, seed).shape == (network.size(shape),) and not network.start(shape, seed).any()
+    drawn = Policy("mlp", (8,), "glorot").start(shape, seed)
+    assert np.array_equal(drawn, Policy("mlp", (8,)).start(shape, seed))
+    assert not Policy("linear", (), "zeros").start(shape, seed).any() and not LINEAR.start(shape, seed).any()
+
+
+def test_a_runs_emitters_start_where_start_says():
+    from qdsearch.algorithms import build_scheduler
+    from qdsearch.options import search_defaults
+
+    config = run.search_config({**search_defaults(), "seed": 4, "env": HOPPER, "start": "glorot",
+                                "algorithm": "sep_cma_mae", "n_emitters": 2})
+    scheduler = build_scheduler(config)
+    expected = Policy("linear", (), "glorot").start(tasks.ENVIRONMENTS[HOPPER].shape, 4)
+    assert expected.any() and all(np.array_equal(emitter.x0, expected) for emitter in scheduler.emitters)
 
 
 def test_a_strided_solution_acts_as_w_at_obs():
@@ -343,6 +371,19 @@ def test_a_budget_in_evaluations_stops_at_the_last_iteration_within_it(tmp_path,
     rows, config = run_metrics(tmp_path / "run"), load_run_config(tmp_path / "run")
     assert [row["evaluations"] for row in rows] == [34, 68, 102]  # a fourth would fly 136 > 120
     assert (config.evaluations, config.iterations) == (120, 3)
+
+
+@pytest.mark.slow  # real MuJoCo searches
+def test_resume_to_a_budget_in_evaluations_equals_a_run_started_with_it(tmp_path, dask_cluster):
+    """resume --evaluations 240 of a run of 120: 3 -> 7 iterations of 34, bit for bit a run of 240."""
+    short, whole = tmp_path / "short", tmp_path / "whole"
+    run.search(**tiny_flags(dask_cluster, **DQD, evaluations=120, seed=2), outdir=str(short))
+    run.search(**tiny_flags(dask_cluster, **DQD, evaluations=240, seed=2), outdir=str(whole))
+    experiments.resume(str(short), evaluations=240, scheduler_address=dask_cluster.scheduler_address)
+    assert run_archive(short).equals(run_archive(whole)) and run_metrics(short) == run_metrics(whole)
+    config = load_run_config(short)
+    assert (config.evaluations, config.iterations) == (240, 7)
+    assert run_metrics(short)[-1]["evaluations"] == 7 * 34
 
 
 @pytest.mark.slow  # real MuJoCo searches

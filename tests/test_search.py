@@ -35,7 +35,7 @@ def test_a_progress_plot_drawn_again_is_the_picture_of_a_new_figure(tmp_path):
     the one a new figure gives, in a thread that has drawn none, whatever came before it (a
     longer run's curves, a best objective still unknown)."""
     rng = np.random.default_rng(0)
-    rows = [{"iteration": i, "qd_score": float(q), "coverage": float(q) / 1e4,
+    rows = [{"iteration": i, "evaluations": 12 * i, "qd_score": float(q), "coverage": float(q) / 1e4,
              "best_objective": None if i < 3 else float(b)}
             for i, (q, b) in enumerate(zip(np.cumsum(rng.uniform(0, 500, 80)), rng.normal(0, 100, 80)), 1)]
 
@@ -52,6 +52,21 @@ def test_a_progress_plot_drawn_again_is_the_picture_of_a_new_figure(tmp_path):
     anew = [drawn_anew(rows[:n], f"anew{n}.png") for n in (80, 2, 40, 5)]
     assert again == anew
     assert len(set(anew)) == 4  # four different pictures
+
+
+def test_the_progress_plot_is_drawn_against_evaluations(tmp_path):
+    """As compare draws runs: a DQD row's iteration flies 200 evaluations, a cma_me one's 150."""
+    rows = [{"iteration": i, "evaluations": 200 * i, "qd_score": 10.0 * i, "coverage": 0.1 * i,
+             "best_objective": 1.0} for i in (1, 2, 3)]
+
+    def drawn() -> tuple[list[str], list]:
+        plots.save_progress_plot(rows, tmp_path / "progress.png")
+        figure = plots._PROGRESS_FIGURES.figure
+        return [ax.get_xlabel() for ax in figure.axes], [list(ax.lines[0].get_xdata()) for ax in figure.axes]
+
+    with ThreadPoolExecutor(1) as thread:  # (a thread of its own: its own figure)
+        labels, xs = thread.submit(drawn).result()
+    assert labels == ["Evaluations"] * 3 and xs == [[200, 400, 600]] * 3
 
 
 def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys):
