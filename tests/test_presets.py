@@ -9,6 +9,9 @@ import tomllib
 import pytest
 
 from conftest import ROOT
+from qdsearch import options
+from qdsearch.experiment_folder import shortened
+from qdsearch.flags import UsageError
 from util import assert_one_line_error, run_archive, run_metrics
 
 PRESETS = sorted((ROOT / "docs" / "presets").glob("*.toml"))
@@ -31,6 +34,7 @@ batch_size = 5
 """
 
 
+@pytest.mark.slow  # real runs
 def test_each_row_of_a_plan_runs_with_its_own_flags_as_search_alone_would(tmp_path, run_cli, dask_cluster):
     (tmp_path / "plan.toml").write_text(ROWS_PLAN)
     on_cluster = ["--scheduler_address", dask_cluster.scheduler_address]
@@ -54,6 +58,7 @@ def test_each_row_of_a_plan_runs_with_its_own_flags_as_search_alone_would(tmp_pa
         assert run_metrics(tmp_path / "exp" / entry["name"]) == run_metrics(alone)
 
 
+@pytest.mark.slow  # real runs
 def test_a_flag_given_beside_a_plan_replaces_every_rows_value(tmp_path, run_cli, dask_cluster):
     (tmp_path / "plan.toml").write_text(ROWS_PLAN)
     result = run_cli("experiment", "--plan", tmp_path / "plan.toml", "--batch_size", 2, "--iterations", 1,
@@ -64,6 +69,7 @@ def test_a_flag_given_beside_a_plan_replaces_every_rows_value(tmp_path, run_cli,
     assert [e["config"]["es_samples"] for e in plan["runs"]] == [4, 100, 100]
 
 
+@pytest.mark.slow  # real runs
 def test_an_experiment_resumed_to_a_budget_in_evaluations_takes_each_row_to_its_own_iteration(
         tmp_path, run_cli, dask_cluster):
     """cma_mega_es here flies 8 evaluations an iteration (the point, 4 samples, 3 branches),
@@ -92,6 +98,32 @@ def test_an_experiment_resumed_to_a_budget_in_evaluations_takes_each_row_to_its_
         assert run_metrics(tmp_path / "exp" / entry["name"]) == run_metrics(twin)
     assert_one_line_error(run_cli("resume", tmp_path / "exp", "--evaluations", 40, *on_cluster),
                           "goes to iteration 10", "--evaluations 40 would end it sooner")
+
+
+def test_a_resumed_budget_is_the_last_iteration_within_it():
+    """cma_mega_es with 1 emitter, 4 samples and 3 branches flies 8 evaluations an iteration."""
+    config = {"algorithm": "cma_mega_es", "n_emitters": 1, "batch_size": 3, "es_samples": 4,
+              "iterations": 5, "evaluations": 40}
+    assert options.resumed_budget(config, None, 85) == {**config, "iterations": 10, "evaluations": 85}
+    assert options.resumed_budget(config, None, None) == config
+    assert options.resumed_budget(config, 9, None) == {**config, "iterations": 9, "evaluations": None}
+    assert options.resumed_budget(config, 5, None) == config  # its own budget: its evaluations kept
+    with pytest.raises(UsageError, match="two budgets"):
+        options.resumed_budget(config, 9, 85)
+    with pytest.raises(UsageError, match="less than one iteration"):
+        options.resumed_budget(config, None, 7)
+
+
+def test_a_label_keeps_what_tells_the_settings_apart_and_an_algorithms_own_flags():
+    labels = ["cma_mae grid=32 n_emitters=2 learning_rate=0.5",
+              "cma_mae grid=32 n_emitters=2 learning_rate=0.1",
+              "cma_me grid=32 n_emitters=4", "cma_mae grid=32 n_emitters=2 learning_rate=0.5"]
+    assert shortened(labels) == {labels[0]: "cma_mae n_emitters=2 learning_rate=0.5",
+                                 labels[1]: "cma_mae n_emitters=2 learning_rate=0.1",
+                                 labels[2]: "cma_me n_emitters=4"}
+    assert shortened(["cma_mae grid=32 learning_rate=0.5"]) == {
+        "cma_mae grid=32 learning_rate=0.5": "cma_mae learning_rate=0.5"}  # alone: its own flag stays
+    assert shortened([]) == {}
 
 
 @pytest.mark.parametrize("text, words", [

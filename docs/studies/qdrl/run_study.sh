@@ -2,7 +2,8 @@
 # The QD-RL study (docs/studies/qdrl/README.md): its plan (plan.toml: 4 rows x 5 seeds, 16,000
 # evaluations a run), each final archive re-evaluated on 5 new resets (the primary metric's
 # corrected archive), and the two comparisons the README reports. Run from the repository's root;
-# everything goes to outputs/qdrl/ (about 21 minutes on 2 cores for the first question, 2026-12-04).
+# everything goes to outputs/qdrl/ (on 2 cores, 2026-12-04: about 21 minutes for the first
+# question, 18 for the second).
 set -euo pipefail
 OUT=${OUT:-outputs/qdrl}
 STUDY=docs/studies/qdrl
