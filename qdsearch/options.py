@@ -408,9 +408,8 @@ def with_offset(config: dict[str, Any]) -> dict[str, Any]:
 def legacy_offset(recorded: dict[str, Any]) -> dict[str, Any]:
     """What a run recorded before --qd_offset ran with: its task's offset at the task's own
     episode length, whatever its --episode_length (the offsets did not follow the episode then)."""
-    if "qd_offset" in recorded or recorded.get("env", DEFAULT_ENV) not in ENVIRONMENTS:
-        return {}
-    return {"qd_offset": ENVIRONMENTS[recorded.get("env", DEFAULT_ENV)].returns().offset}
+    env = recorded.get("env", DEFAULT_ENV)  # (a recorded qd_offset is laid over this: upgrade)
+    return {"qd_offset": ENVIRONMENTS[env].returns().offset} if env in ENVIRONMENTS else {}
 
 
 def with_policy(config: dict[str, Any]) -> dict[str, Any]:

@@ -43,6 +43,17 @@ def test_a_compact_pickle_holds_the_occupied_rows_and_the_archive_goes_on_as_bef
                           archive._store._fields["threshold"][archive._store._props["occupied"]])
 
 
+def test_an_archive_sent_to_a_saver_process_is_compact_too():
+    """multiprocessing pickles what a save hands a saver process: ArrayStores compacted there too."""
+    from multiprocessing.reduction import ForkingPickler
+
+    archive = filled_archive(8)
+    compact_pickle.compact_transfers()
+    sent = bytes(ForkingPickler.dumps(archive))
+    assert len(sent) < 8 * WEIGHTS * 8 + 200_000
+    assert archive_table(pickle.loads(sent)).equals(archive_table(archive))
+
+
 @pytest.mark.slow  # a MuJoCo run of a 19,590-weight network
 def test_a_128_128_mlp_run_on_a_32x32_grid_writes_a_folder_in_proportion_to_its_elites(
         tmp_path, dask_cluster, recwarn):

@@ -9,7 +9,7 @@ import tomllib
 import pytest
 
 from conftest import ROOT
-from qdsearch import options
+from qdsearch import experiments, options
 from qdsearch.experiment_folder import shortened
 from qdsearch.flags import UsageError
 from util import assert_one_line_error, run_archive, run_metrics
@@ -108,7 +108,7 @@ def test_a_resumed_budget_is_the_last_iteration_within_it():
     assert options.resumed_budget(config, None, None) == config
     assert options.resumed_budget(config, 9, None) == {**config, "iterations": 9, "evaluations": None}
     assert options.resumed_budget(config, 5, None) == config  # its own budget: its evaluations kept
-    with pytest.raises(UsageError, match="two budgets"):
+    with pytest.raises(UsageError, match="^--iterations and --evaluations are two budgets; give one$"):
         options.resumed_budget(config, 9, 85)
     with pytest.raises(UsageError, match="less than one iteration"):
         options.resumed_budget(config, None, 7)
@@ -124,12 +124,36 @@ def test_a_label_keeps_what_tells_the_settings_apart_and_an_algorithms_own_flags
     assert shortened(["cma_mae grid=32 learning_rate=0.5"]) == {
         "cma_mae grid=32 learning_rate=0.5": "cma_mae learning_rate=0.5"}  # alone: its own flag stays
     assert shortened([]) == {}
+    firsts = ["dds bandwidth=0.1 grid=32", "dds bandwidth=0.2 grid=32"]  # the first flag tells them apart
+    assert list(shortened(firsts).values()) == ["dds bandwidth=0.1", "dds bandwidth=0.2"]
+    assert shortened(["? grid=32", "? grid=64"]) == {"? grid=32": "? grid=32", "? grid=64": "? grid=64"}
+
+
+def test_a_flag_given_beside_a_plan_is_dropped_from_each_row_a_budget_with_its_budget():
+    row = {"evaluations": 5, "batch_size": 3, "sigma0": 0.5}
+    assert experiments.without_given(row, {"iterations"}) == {"batch_size": 3, "sigma0": 0.5}
+    assert experiments.without_given(row, {"sigma0"}) == {"evaluations": 5, "batch_size": 3}
+    assert experiments.without_given(row, set()) == row
+
+
+def test_the_runs_of_a_plans_rows_are_every_rows_in_order():
+    grids = [experiments.experiment_grid(algorithm, "1-2", {"n_emitters": n, "iterations": 1}, None)
+             for algorithm, n in (("cma_me", 1), ("map_elites", 2))]
+    runs = experiments.rows_runs(grids)
+    assert [entry["name"] for entry in runs] == [
+        "cma_me_n_emitters_1_seed1", "cma_me_n_emitters_1_seed2", "map_elites_n_emitters_2_seed1",
+        "map_elites_n_emitters_2_seed2"]
 
 
 @pytest.mark.parametrize("text, words", [
-    ('[[rows]]\nalgorithms = "cma_me"\nseeds = "1-2"\n', ["[[rows]] 1: 'seeds'", "a row may set"]),
-    ('[[rows]]\nalgorithms = "cma_me"\nbatch_sise = 3\n', ["[[rows]] 1: 'batch_sise'", "batch_size"]),
+    ('[[rows]]\nalgorithms = "cma_me"\nseeds = "1-2"\n',
+     ["[[rows]] 1: 'seeds' is not a flag of experiment a row may set; did you mean"]),
+    ('learning_rat = 0.5\n', ["'learning_rat' is not a flag of experiment; did you mean learning_rate?"]),
+    ('[[rows]]\nalgorithms = "cma_me"\nbatch_sise = 3\n',
+     ["[[rows]] 1: 'batch_sise'", "did you mean batch_size?"]),
     ('rows = 3\n', ["rows must be [[rows]] tables"]),
+    ('n_emitters = [{x = 1}]\n', ["n_emitters is a table; give a value or a list of values"]),
+    ('[[rows]]\nbatch_size = {x = 1}\n', ["[[rows]] 1: batch_size is a table"]),
     ('[[rows]]\nalgorithms = "cma_me"\n[[rows]]\nalgorithms = "cma_me"\n',
      ["row 2 makes the setting 'cma_me'"]),
     ('[[rows]]\nalgorithms = "map_elites"\nlearning_rate = 0.1\n', ["--learning_rate", "map_elites"]),
@@ -138,6 +162,7 @@ def test_a_rows_mistakes_are_one_line(tmp_path, run_cli, text, words):
     (tmp_path / "plan.toml").write_text(text)
     result = run_cli("experiment", "--plan", tmp_path / "plan.toml", "--outdir", tmp_path / "exp")
     assert_one_line_error(result, *words)
+    assert ("a row may set" in result.stderr) == ("[[rows]]" in words[0] and "'" in words[0])
     assert not (tmp_path / "exp").exists()
 
 

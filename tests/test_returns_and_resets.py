@@ -9,6 +9,7 @@ with hashlib, objectives by flying gym.make's env by hand.
 import hashlib
 import json
 import math
+import re
 import struct
 
 import gymnasium as gym
@@ -16,7 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import algorithms, comparison, experiments, run, tasks
+from qdsearch import algorithms, comparison, experiments, options, run, tasks
+from qdsearch.flags import UsageError, check_flags
 from qdsearch.options import search_defaults
 from util import LANDER, assert_one_line_error, run_archive, run_metrics, tiny_flags
 
@@ -35,6 +37,21 @@ def test_a_robots_offset_is_its_per_step_offset_times_the_episodes_length():
     assert config_of(env=CHEETAH).qd_offset == -4000.0 == tasks.ENVIRONMENTS[CHEETAH].qd_offset * 1000
     hopper = tasks.returns_of(config_of(env="Hopper-v5", episode_length=200))
     assert (hopper.offset, hopper.solved, hopper.top, hopper.heat) == (-20.0, 760.0, 760.0, (-20.0, 300.0))
+
+
+def test_a_recorded_offset_is_the_runs_and_the_rest_follows_its_episode():
+    returns = tasks.returns_of(config_of(env=CHEETAH, episode_length=50, qd_offset=-7))
+    assert (returns.offset, returns.solved, returns.top, returns.heat) == (-7.0, 240.0, 240.0, (-50.0, 75.0))
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), True, "-5", None])
+def test_a_qd_offset_must_be_a_number(value):
+    if value is None:  # unset: the task's
+        assert check_flags(options.SEARCH_FLAGS, {"qd_offset": None}) == {"qd_offset": None}
+        return
+    with pytest.raises(UsageError, match=f"^--qd_offset must be a number, got {re.escape(repr(value))}$"):
+        check_flags(options.SEARCH_FLAGS, {"qd_offset": value})
+    assert check_flags(options.SEARCH_FLAGS, {"qd_offset": -3}) == {"qd_offset": -3.0}
 
 
 def test_the_lander_keeps_its_offset_whatever_the_episode():
@@ -61,6 +78,9 @@ def test_a_given_offset_is_kept_and_a_run_from_before_keeps_the_old_one(tmp_path
     path.write_text(json.dumps(old))
     assert run.recorded_settings(path)["qd_offset"] == -4000.0
     assert run.recorded_settings(path)["reset"] == "fixed"
+    assert options.legacy_offset({}) == {"qd_offset": -600.0}  # from before --env: the lander
+    assert options.legacy_offset({"env": "Hopper-v5", "episode_length": 10}) == {"qd_offset": -100.0}
+    assert options.legacy_offset({"env": "Pendulum-v1"}) == {}  # refused as an --env later
     flags = {**search_defaults(), "episode_length": 25}
     assert run.search_config(flags, {"episode_length"}, path).qd_offset == -100.0
     flags = {**search_defaults(), "episode_length": 25, "qd_offset": -1}
@@ -118,6 +138,9 @@ def test_each_solution_gets_its_own_reset_from_the_run_seed_env_seed_and_weights
     assert len({int(seed) for seed in seeds.ravel()}) == 10  # all different
     assert tasks.reset_seeds(solutions, {**config, "reset": "fixed"}).tolist() == [[52, 7]] * 5
     assert tasks.flown_seeds(solutions, 7, config) == seeds[:, 1].tolist()
+    before = {"env_seed": [52], "seed": 11}  # a run from before --reset
+    assert tasks.reset_seeds(solutions, before).tolist() == [[52]] * 5
+    assert tasks.flown_seeds(solutions, 7, before) == [7] * 5
 
 
 def hand_flown(solution, seed: int) -> float:
