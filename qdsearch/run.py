@@ -171,7 +171,8 @@ def resume_run(run_dir: str, **flags: Any) -> None:
     """
     path, workers = Path(run_dir), flags["workers"]
     trust = boolean("trust", flags["trust"])
-    load_run_state(path, trust)  # refuse a bad folder before anything is written in it
+    found, _ = load_run_state(path, trust)  # refuse a bad folder, or budget, before anything is
+    resumed_budget(found.to_json(), flags["iterations"], flags["evaluations"])  # written in it
     scheduler_address = scheduler_of(flags)
     with folder_lock(path):
         if trust:

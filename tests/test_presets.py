@@ -3,6 +3,7 @@ comparison), the papers' settings are such plans (docs/presets/), and the SLURM 
 number of parts from the array."""
 
 import json
+import shutil
 import subprocess
 import tomllib
 
@@ -12,7 +13,7 @@ from conftest import ROOT
 from qdsearch import experiments, options
 from qdsearch.experiment_folder import shortened
 from qdsearch.flags import UsageError
-from util import assert_one_line_error, run_archive, run_metrics
+from util import assert_one_line_error, folder_state, run_archive, run_metrics
 
 PRESETS = sorted((ROOT / "docs" / "presets").glob("*.toml"))
 ROWS_PLAN = """\
@@ -112,6 +113,18 @@ def test_a_resumed_budget_is_the_last_iteration_within_it():
         options.resumed_budget(config, 9, 85)
     with pytest.raises(UsageError, match="less than one iteration"):
         options.resumed_budget(config, None, 7)
+
+
+@pytest.mark.slow  # processes of their own (a lock file holds its writer's pid)
+def test_a_resume_to_a_bad_budget_is_one_line_and_touches_nothing(tiny_run, tmp_path, run_process):
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny_run, run_dir)
+    before = folder_state(run_dir)  # its lock file too: refused before the folder is locked
+    assert_one_line_error(run_process("resume", run_dir, "--evaluations", 10),
+                          "--evaluations 10 is less than one iteration of --algorithm cma_me, which flies 12")
+    assert_one_line_error(run_process("resume", run_dir, "--evaluations", 100, "--iterations", 9),
+                          "two budgets")
+    assert folder_state(run_dir) == before
 
 
 def test_a_label_keeps_what_tells_the_settings_apart_and_an_algorithms_own_flags():
