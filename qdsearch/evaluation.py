@@ -227,7 +227,8 @@ def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: 
         rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
     check_rollouts(len(rows["solution"]), len(seeds), "to fly")
     check_writable(run)  # before any elite is flown
-    if seen := sorted(set(seeds) & set(config.env_seed)):
+    # (a --reset each run flew resets of its own, hashed from its env seeds: none of them is one)
+    if config.reset == "fixed" and (seen := sorted(set(seeds) & set(config.env_seed))):
         print(f"note: the run searched on {task_of(config).family.seed_noun}(s) {seen} too; they are not "
               f"new to its elites")
     if not corrected:

@@ -189,6 +189,8 @@ def test_the_results_commands_fly_an_elite_from_its_own_reset(tmp_path, dask_clu
     for row in index.to_dict("records"):
         solution = archive.loc[row["cell_index"], [f"solution_{i}" for i in range(32)]].to_numpy(float)
         assert row["reset_seed"] == hashed_seed(solution, 7, 52)
+    evaluated = run_cli("evaluate", folder, "--env_seeds", 52, "--top", 2)  # not a reset it flew
+    assert evaluated.returncode == 0 and "searched on" not in evaluated.stdout, evaluated.stderr
     for command, *args in (("trajectories", "--best"), ("explore",)):
         assert_one_line_error(run_cli(command, folder, *args),
                               f"{command}: each elite of this --reset each run flew its own terrain")
