@@ -189,8 +189,8 @@ ROWS = "rows"  # a plan's [[rows]]: grids of their own, each with its algorithms
 
 
 def without_given(row: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
-    """A plan's row less the flags given beside the file (they replace every row's value; a
-    budget given, the row's budget)."""
+    """A plan's table (the file's, or a row's) less the flags given beside the file: they replace
+    its values, and a budget given its budget."""
     dropped = {*given, *(BUDGETS if set(BUDGETS) & set(given) else ())}
     return {name: value for name, value in row.items() if name not in dropped}
 
@@ -212,8 +212,7 @@ def with_plan(planned: dict[str, Any], flags: dict[str, Any], given: Collection[
     """An experiment's flags (its own of EXPERIMENT_OWN and those it passes on) from its plan
     file: the file's, each flag `given` beside it in the file's place, whatever its value (a
     budget given, --iterations or --evaluations, in place of the file's budget)."""
-    dropped = {*given, *(BUDGETS if set(BUDGETS) & set(given) else ())}
-    return {**flags, **{name: value for name, value in planned.items() if name not in dropped}}
+    return {**flags, **without_given(planned, given)}
 
 
 def read_plan(path: Path) -> tuple[str, dict[str, Any]]:

@@ -134,18 +134,17 @@ def own_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np
 RESETS = {"fixed": fixed_resets, "each": own_resets}
 
 
-def reset_seeds(solutions: np.ndarray, config: Any) -> np.ndarray:
-    """The reset seeds of each solution's episodes in a run: a row per solution, a column per
-    --env_seed (runs from before --reset flew fixed ones)."""
-    return RESETS[setting(config, "reset") or "fixed"](solutions, list(setting(config, "env_seed")),
-                                                       setting(config, "seed"))
+def reset_seeds(solutions: np.ndarray, config: Any, env_seeds: list[int] | None = None) -> np.ndarray:
+    """The reset seeds of each solution's episodes in a run: a row per solution, a column per env
+    seed (its --env_seed, or `env_seeds`; runs from before --reset flew fixed ones)."""
+    seeds = list(setting(config, "env_seed")) if env_seeds is None else env_seeds
+    return RESETS[setting(config, "reset") or "fixed"](solutions, seeds, setting(config, "seed"))
 
 
 def flown_seeds(solutions: np.ndarray, env_seed: int, config: Any) -> list[int]:
     """The reset each solution of a run flies from for its env seed `env_seed` (the results
     commands' one shown seed): the seed itself, or under --reset each each solution's own."""
-    resets = RESETS[setting(config, "reset") or "fixed"](solutions, [env_seed], setting(config, "seed"))
-    return [int(seed) for seed in resets[:, 0]]
+    return [int(seed) for seed in reset_seeds(solutions, config, [env_seed])[:, 0]]
 
 
 @functools.cache
