@@ -19,12 +19,12 @@ from pathlib import Path
 
 import pytest
 
-from qdsearch import run
+from qdsearch.search import run
 
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"
 
-# Checkpoints are signed with a key (qdsearch/signing.py): the tests', never the user's. Made once
+# Checkpoints are signed with a key (qdsearch/base/signing.py): the tests', never the user's. Made once
 # for the session (its pytest-xdist workers, and every process a test starts, inherit it), in a
 # folder that goes with the process that made it.
 if not os.environ.get("QDSEARCH_TESTS_KEY"):
@@ -87,7 +87,7 @@ def off_loopback_cluster():
     so it draws in saver processes."""
     from distributed.utils import get_ip
 
-    from qdsearch.cluster import is_loopback
+    from qdsearch.search.cluster import is_loopback
     from util import local_cluster
 
     host = get_ip()
@@ -132,7 +132,7 @@ def reference(tmp_path_factory, dask_cluster):
 def run_cli(tmp_path, monkeypatch):
     """The command line as a user types it, run in-process through main() (no interpreter start,
     no re-import): the exit code, stdout and stderr, from tmp_path as the working folder."""
-    import lunar_lander as ll
+    from qdsearch.cli import app as ll
     from util import Result
 
     monkeypatch.chdir(tmp_path)

@@ -34,7 +34,10 @@ def one_setting(dim: int, rounds: int) -> None:
     import numpy as np
 
     sys.path.insert(0, str(ROOT))
-    from qdsearch import algorithms, options, run_config, tasks
+    from qdsearch import algorithms, tasks
+
+    # A lander row with a policy of `dim` weights: the scheduler is the search's own.
+    from qdsearch.config import options, run_config
 
     # A lander row with a policy of `dim` weights: the scheduler is the search's own.
     lander = tasks.ENVIRONMENTS["LunarLander-v3"]

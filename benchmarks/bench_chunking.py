@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""How many chunks per worker a batch is split into (chunks_per_worker in qdsearch/engine.py), for a
+"""How many chunks per worker a batch is split into (chunks_per_worker in qdsearch/search/engine.py), for a
 task's episodes: the seconds of one batch of the default search (5 emitters x 30 policies) on a
 local cluster of --workers processes, for each chunk count, in interleaved rounds (the same
 batches for every count), with the median and its ratio to today's count.
@@ -23,8 +23,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from qdsearch import engine, options, run_config, tasks  # noqa: E402
-from qdsearch.cluster import dask_client  # noqa: E402
+from qdsearch import tasks  # noqa: E402
+from qdsearch.config import options, run_config  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
+from qdsearch.search.cluster import dask_client  # noqa: E402
 
 
 def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8), rounds: int = 3,

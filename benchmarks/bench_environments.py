@@ -6,7 +6,7 @@
 
 For each row of ENVIRONMENTS, the same seeded CMA-ME search (the default 5 emitters x 30, the
 task's default measures, terrain 52) runs for --iterations iterations twice:
-- serially, in this process, in the env the workers use (`qdsearch.engine.worker_env`): the cost
+- serially, in this process, in the env the workers use (`qdsearch.search.engine.worker_env`): the cost
   of a step, the mean episode length and rollouts per second on one core;
 - through the engine (`evaluate_batch`) on a local cluster of --workers worker processes:
   seconds per iteration and the parallel efficiency, serial rollout time / (workers x search
@@ -30,7 +30,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from qdsearch import algorithms, engine, options, run_config, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, tasks  # noqa: E402
+from qdsearch.base import run_files  # noqa: E402
+from qdsearch.config import options, run_config  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
 
 
 def config_of(env_name: str) -> dict:

@@ -35,8 +35,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from qdsearch import algorithms, engine, fast_lander, run_config, run_files, tasks  # noqa: E402
-from qdsearch.options import search_defaults, with_task  # noqa: E402
+from qdsearch import algorithms, tasks  # noqa: E402
+from qdsearch.base import run_files  # noqa: E402
+from qdsearch.config import run_config  # noqa: E402
+from qdsearch.config.options import search_defaults, with_task  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
+from qdsearch.tasks import fast_lander  # noqa: E402
 
 CONFIG = run_config.check_run_config(with_task(dict(
     search_defaults(), algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,
@@ -145,7 +149,7 @@ def run_variants(iterations: int, workers: tuple) -> dict[tuple[str, int], dict]
     }
     for n in workers:
         for name, evaluate in [("baseline: task per solution (tutorial)", tutorial_evaluate),
-                               ("engine: qdsearch.engine.evaluate_batch", engine_evaluate)]:
+                               ("engine: qdsearch.search.engine.evaluate_batch", engine_evaluate)]:
             cluster, client = local_client(n)
             try:
                 runs[name, n] = run_search(evaluate, client, iterations)

@@ -35,7 +35,8 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import algorithms, run_config, tasks  # noqa: E402
+from qdsearch import algorithms, tasks  # noqa: E402
+from qdsearch.config import run_config  # noqa: E402
 
 
 def timed(*args: str) -> float:

@@ -50,8 +50,8 @@ def one_search(script: Path, folder: Path, iterations: int = 20, extra: tuple[st
 
 def import_floor() -> float:
     """Wall seconds of a fresh process that only imports what a search imports."""
-    code = ("import importlib, lunar_lander, qdsearch.run\n"
-            "from qdsearch.cluster import DRAWING_IMPORTS, RUN_IMPORTS\n"
+    code = ("import importlib, lunar_lander, qdsearch.search.run\n"
+            "from qdsearch.search.cluster import DRAWING_IMPORTS, RUN_IMPORTS\n"
             "for name in (*RUN_IMPORTS, *DRAWING_IMPORTS, 'dask.distributed'):\n"
             "    importlib.import_module(name)\n")
     tic = time.perf_counter()

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """What Dask's housekeeping costs a cluster that waits: at Dask's own pace, and at the pace of
-qdsearch.cluster.QUIET_CLUSTER (what a search's local cluster runs at; QUIET_ENVIRONMENT for
+qdsearch.search.cluster.QUIET_CLUSTER (what a search's local cluster runs at; QUIET_ENVIRONMENT for
 processes started by hand).
 
     python benchmarks/bench_housekeeping.py --seconds 30 --rounds 2
@@ -33,7 +33,7 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from qdsearch.cluster import QUIET_CLUSTER, QUIET_ENVIRONMENT  # noqa: E402
+from qdsearch.search.cluster import QUIET_CLUSTER, QUIET_ENVIRONMENT  # noqa: E402
 
 
 def cpu_seconds(processes: list[psutil.Process]) -> list[float]:

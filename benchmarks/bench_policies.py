@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from qdsearch import tasks  # noqa: E402
-from qdsearch.policies import Policy  # noqa: E402
+from qdsearch.tasks.policies import Policy  # noqa: E402
 
 POLICIES = {"linear": Policy(), "mlp 64,64": Policy("mlp", (64, 64)),
             "mlp 128,128": Policy("mlp", (128, 128))}

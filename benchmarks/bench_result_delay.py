@@ -23,7 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from qdsearch import engine, tasks  # noqa: E402
+from qdsearch import tasks  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
 
 
 def timed_chunk(solutions: np.ndarray, seeds: np.ndarray, env_name: str, interval: float) -> float:

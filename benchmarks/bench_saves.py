@@ -28,7 +28,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from qdsearch import loop, run_config, saving  # noqa: E402
+from qdsearch.config import run_config  # noqa: E402
+from qdsearch.search import loop  # noqa: E402
+from qdsearch.store import saving  # noqa: E402
 
 
 def timed_saves(run: loop.Run, saves: int, processes: int) -> dict[str, float]:

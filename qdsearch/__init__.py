@@ -1,54 +1,20 @@
 """qdsearch: quality-diversity search of Gymnasium tasks with pyribs, on Dask; the package under
-`python lunar_lander.py`, which is its command line (the package never imports it).
+`python lunar_lander.py` (and the installed `lunar-lander`), whose command line is its top layer.
 
-Map, a module per role, imports going down the list only:
-- flags: the `Flag` entry, the checkers, UsageError;
-- run_files: locks, atomic writes, JSON and pickles, logs; RunError;
-- signing: the user's key (QDSEARCH_KEY, or ~/.config/qdsearch/key) and the checkpoints signed
-  with it, their signature checked before anything is unpickled (resume --trust adopts another's);
-- compact_pickle: the checkpoint's and the snapshots' pickles, an archive's occupied cells alone;
-- stopping: Ctrl-C and SIGTERM (`STOP`), acted on where stopping is safe;
-- plots: heatmaps and progress curves;
-- trackers: TensorBoard, W&B and MLflow (--track), offline first, each iteration once;
-- pinning: a local cluster's worker per core pinned to it (a Dask worker plugin);
-- cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
-  the package shipped to workers that lack it;
-- policies: the policies a solution makes (POLICIES: linear, mlp; `Policy`);
-- gradients: the DQD rows' gradients, estimated from mirrored samples flown around a point;
-- family: what a task family declares (`Family`, `Environment` with its env's spaces, `Measure`),
-  `require_drawing`;
-- fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
-- lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
-  each): its rows, its episode, how it is drawn;
-- tasks: the families gathered from FAMILY_MODULES (`register_family`): ENVIRONMENTS, MEASURES;
-  the episode's rules (`Episode`); an episode of any policy (`fly`, `rollout`);
-- algorithms: ALGORITHMS (the DQD rows too), what a row holds in memory, and `build_scheduler`;
-- engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
-- options: every command's flags, declared once, and the bounds on sizes;
-- metrics: a run's metrics rows;
-- archive_data: a run's archive as data (archive.npz: numpy, already a dependency, keeps every
-  float64 bit, which a CSV may not, and holds arrays of any shape, a CVT's centroids too), made
-  back into its pyribs archive without unpickling; archive.csv of folders from before it;
-- saving: a run folder's files, written while the loop goes on (saver threads; on a cluster
-  joined by its address, saver processes);
-- run_config: the typed RunConfig made from the flags, `upgrade` of old folders, config.json and
-  the checkpoint read back;
-- loop: the one run loop (`Run`, `Driver`);
-- run: `search` and `resume` of a run folder;
-- parts: an experiment split into parts, each its own process: the plan written once, a state
-  file per part;
-- experiment_folder: experiment.json read and checked, a setting's label (what compare reads);
-- experiments: `experiment` (many runs through the one loop on one cluster), `resume`;
-- run_folder: what the results commands read of a run folder (`load_run`, `elite_rows`): data
-  files only, never a pickle, so a folder from anyone is safe to open;
-- results: `video`, `elites`, `trajectories`, and choosing elites;
-- evaluation: `evaluate`: the elites flown on other terrains, or on new seeds (corrected archive);
-- explorer: `explore`, the page (explorer_page.html) and the poses it plays;
-- live: `watch`, a live page of a run (Bokeh), redrawn from its files;
-- stats: statistics across seeds (BCa, rliable's IQM and P(A>B) with stratified bootstrap, Holm);
-- compared_runs: what `compare` reads of its runs (corrected metrics, a cut at a budget);
-- comparison: `compare` and its statistics;
-- notebook: run folders as pandas tables, the public API (`read_run`, `read_experiment`).
+Map, a subpackage per layer from the bottom up: a module imports only the layers below its own
+and, in its own layer, the modules its layer's map names before it (each layer's __init__.py);
+tests/test_imports.py holds this, and docs/code.md draws it:
+- base: errors and the checks of values, files, signatures, pickles, stopping, plots;
+- tasks: the policies, the task families (lander, walker, locomotion) and their registry: an
+  episode of any task;
+- algorithms: the table of algorithms (pyribs' archives, emitters, schedulers) and the DQD rows'
+  gradients;
+- store: what a run writes of itself as data: metrics, the archive's data, trackers, the saver;
+- config: every command's flags declared once, and a run's config made and read back;
+- search: the cluster, the rollouts on it, the one run loop, search, resume and experiments;
+- analysis: the commands that read runs (video, elites, evaluate, explore, watch, compare) and
+  the notebook tables;
+- cli: the command line: the commands, parsing, --help, exit codes.
 """
 
 import ctypes.util
@@ -106,7 +72,7 @@ def __getattr__(name: str):
     """`qdsearch.read_run` and `qdsearch.read_experiment`, imported when first used: the command
     line imports this package too, and answers --help without pandas and pyribs."""
     if name in __all__:
-        from qdsearch import notebook
+        from qdsearch.analysis import notebook
 
         return getattr(notebook, name)
     raise AttributeError(f"module 'qdsearch' has no attribute {name!r}")

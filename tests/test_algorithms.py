@@ -25,7 +25,10 @@ from ribs.emitters.rankers import (
 )
 from ribs.schedulers import BanditScheduler, Scheduler
 
-from qdsearch import algorithms, experiments, options, results, run, run_config, tasks
+from qdsearch import algorithms, tasks
+from qdsearch.analysis import results
+from qdsearch.config import options, run_config
+from qdsearch.search import experiments, run
 from util import (
     archive_table,
     assert_one_line_error,

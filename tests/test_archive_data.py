@@ -6,9 +6,11 @@ import zipfile
 import numpy as np
 import pytest
 
-from qdsearch import algorithms, archive_data, options, run_config
-from qdsearch.flags import UsageError
-from qdsearch.run_files import write_csv
+from qdsearch import algorithms
+from qdsearch.base.flags import UsageError
+from qdsearch.base.run_files import write_csv
+from qdsearch.config import options, run_config
+from qdsearch.store import archive_data
 
 
 def lander_config(kind: str):

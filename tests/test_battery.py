@@ -14,8 +14,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from qdsearch import evaluation, experiments, options, run
-from qdsearch.parts import runs_of_part
+from qdsearch.analysis import evaluation
+from qdsearch.config import options
+from qdsearch.search import experiments, run
+from qdsearch.search.parts import runs_of_part
 from util import assert_one_line_error, folder_state, saved_archive, tiny_flags
 
 # ---- bad values, refused up front ------------------------------------------------------------

@@ -3,7 +3,7 @@ the names it refuses: test_help.py)."""
 
 import pytest
 
-from qdsearch import options
+from qdsearch.config import options
 from util import assert_one_line_error
 
 

@@ -13,8 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from dask.distributed import Client
 
-from qdsearch import experiments, run
-from qdsearch.engine import ClusterShare
+from qdsearch.search import experiments, run
+from qdsearch.search.engine import ClusterShare
 from util import (
     Result,
     assert_one_line_error,
@@ -240,7 +240,7 @@ def test_the_slurm_scripts_start_dask_at_the_local_clusters_pace(script):
     """The batch scripts export, for the scheduler and workers they start, the settings a search's
     own local cluster runs with (cluster.QUIET_ENVIRONMENT), and no other Dask setting."""
     from conftest import ROOT
-    from qdsearch.cluster import QUIET_ENVIRONMENT
+    from qdsearch.search.cluster import QUIET_ENVIRONMENT
 
     lines = (ROOT / "docs" / script).read_text().splitlines()
     exported = dict(line.removeprefix("export ").split("=", 1) for line in lines
@@ -263,7 +263,7 @@ def test_a_future_that_fails_to_release_itself_after_its_client_closed_prints_no
 
     from dask.distributed import LocalCluster
 
-    from qdsearch.cluster import quiet_dask_logs
+    from qdsearch.search.cluster import quiet_dask_logs
 
     class Faulty:
         def __del__(self):

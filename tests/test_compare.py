@@ -16,8 +16,11 @@ import pandas as pd
 import pytest
 from scipy.stats import bootstrap, mannwhitneyu, trim_mean
 
-from qdsearch import comparison, experiments, options, run, stats, tasks
-from qdsearch.flags import UsageError
+from qdsearch import tasks
+from qdsearch.analysis import comparison, stats
+from qdsearch.base.flags import UsageError
+from qdsearch.config import options
+from qdsearch.search import experiments, run
 from util import (
     LANDER,
     assert_one_line_error,
@@ -412,8 +415,10 @@ def test_at_evaluations_keeps_the_row_at_exactly_that_budget(run_cli, tmp_path, 
 def written_run(folder, evaluations=(12, 24, 36)):
     """A run folder of the lander's config and metrics rows of a real (empty) grid archive, one per
     budget in `evaluations`, written as the search writes them: what compare reads of a run."""
-    from qdsearch import algorithms, metrics, run_config
-    from qdsearch.run_files import write_json
+    from qdsearch import algorithms
+    from qdsearch.base.run_files import write_json
+    from qdsearch.config import run_config
+    from qdsearch.store import metrics
 
     config = run_config.check_run_config(options.with_task({**options.search_defaults(), "seed": 7}))
     folder.mkdir(parents=True)
@@ -425,7 +430,7 @@ def written_run(folder, evaluations=(12, 24, 36)):
 
 
 def test_a_budget_cuts_each_runs_metrics_at_its_last_row_within_it(tmp_path):
-    from qdsearch import compared_runs
+    from qdsearch.analysis import compared_runs
 
     (one, rows), (two, _) = written_run(tmp_path / "one"), written_run(tmp_path / "two", (10, 20))
     config, read = compared_runs.load_run_metrics(one)
@@ -454,9 +459,9 @@ def test_a_budget_cuts_each_runs_metrics_at_its_last_row_within_it(tmp_path):
 
 
 def test_an_experiment_is_its_runs_with_metrics_each_counted_once(tmp_path, capsys):
-    from qdsearch import compared_runs
-    from qdsearch.experiment_folder import EXPERIMENT_FORMAT
-    from qdsearch.run_files import write_json
+    from qdsearch.analysis import compared_runs
+    from qdsearch.base.run_files import write_json
+    from qdsearch.search.experiment_folder import EXPERIMENT_FORMAT
 
     folder = tmp_path / "exp"
     done, _ = written_run(folder / "done")
@@ -474,8 +479,8 @@ def test_an_experiment_is_its_runs_with_metrics_each_counted_once(tmp_path, caps
 
 
 def test_corrected_metrics_are_read_checked_and_of_the_runs_last_iteration(tmp_path):
-    from qdsearch import compared_runs
-    from qdsearch.run_files import write_json
+    from qdsearch.analysis import compared_runs
+    from qdsearch.base.run_files import write_json
 
     run_dir, rows = written_run(tmp_path / "run")
     with pytest.raises(UsageError, match=re.escape(f"{run_dir} has no corrected.json: run `python "

@@ -13,7 +13,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import engine, evaluation, experiments, explorer, family, lander, results, run, tasks, walker
+from qdsearch import tasks
+from qdsearch.analysis import evaluation, explorer, results
+from qdsearch.search import engine, experiments, run
+from qdsearch.tasks import family, lander, walker
 from util import (
     assert_one_line_error,
     assert_same_run,

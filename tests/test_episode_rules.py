@@ -9,7 +9,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from qdsearch import engine, tasks
+from qdsearch import tasks
+from qdsearch.search import engine
 from util import HOVER_W, LANDER
 
 TERRAIN = 52  # HOVER_W hovers the whole 1,000 steps here: any shorter limit cuts its episode

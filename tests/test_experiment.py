@@ -11,8 +11,11 @@ import pandas as pd
 import pytest
 from scipy.stats import mannwhitneyu
 
-import lunar_lander as ll
-from qdsearch import algorithms, comparison, experiments, loop, options, run, run_folder
+from qdsearch import algorithms
+from qdsearch.analysis import comparison, run_folder
+from qdsearch.cli import app as ll
+from qdsearch.config import options
+from qdsearch.search import experiments, loop, run
 from util import (
     Replacements,
     Result,

@@ -10,7 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import archive_data, evaluation, explorer, fast_lander, lander, run_files, tasks
+from qdsearch import tasks
+from qdsearch.analysis import evaluation, explorer
+from qdsearch.base import run_files
+from qdsearch.store import archive_data
+from qdsearch.tasks import fast_lander, lander
 from util import DATA_BLOCK, LANDER, folder_state, page_data, saved_archive, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6

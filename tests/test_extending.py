@@ -16,8 +16,10 @@ import pytest
 from gymnasium.envs.classic_control.cartpole import CartPoleEnv
 
 from conftest import ROOT
-from qdsearch import family, loop, run, tasks
-from qdsearch.flags import UsageError
+from qdsearch import tasks
+from qdsearch.base.flags import UsageError
+from qdsearch.search import loop, run
+from qdsearch.tasks import family
 from util import assert_one_line_error, tiny_flags
 
 DOC = ROOT / "docs" / "extending.md"
@@ -142,7 +144,7 @@ def test_every_rows_dimensions_come_from_its_envs_spaces_read_on_first_use():
     assert {name: row.shape for name, row in tasks.ENVIRONMENTS.items() if name in SHAPES} == SHAPES
     assert tasks.ENVIRONMENTS["LunarLander-v3"].solution_dim == 32
     # A fresh process gathers every table and makes no env: --help stays quick, MuJoCo unloaded.
-    code = ("import sys; from qdsearch import options, tasks; "
+    code = ("import sys; from qdsearch import tasks; from qdsearch.config import options; "
             "print(sum('spaces' in row.__dict__ for row in tasks.ENVIRONMENTS.values()), "
             "'mujoco' in sys.modules, len(tasks.ENVIRONMENTS))")
     made, mujoco, rows = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,

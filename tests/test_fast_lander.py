@@ -10,7 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from qdsearch import fast_lander, tasks
+from qdsearch import tasks
+from qdsearch.tasks import fast_lander
 from util import HOVER_W, LANDER, LANDER_W, SEEDS
 
 pytestmark = pytest.mark.slow  # ~450 episodes of gym.make's lander, each flown again by the fast env

@@ -19,8 +19,8 @@ import time
 import psutil  # distributed's own dependency
 import pytest
 
-import lunar_lander as ll
-from qdsearch import cluster, run
+from qdsearch.cli import app as ll
+from qdsearch.search import cluster, run
 from util import (
     Result,
     assert_one_line_error,

@@ -16,8 +16,10 @@ import pandas as pd
 import pytest
 
 import qdsearch
-from qdsearch import live, run_config, run_files, signing
-from qdsearch.flags import UsageError
+from qdsearch.analysis import live
+from qdsearch.base import run_files, signing
+from qdsearch.base.flags import UsageError
+from qdsearch.config import run_config
 from util import assert_one_line_error, folder_state
 
 GIB = 1 << 30

@@ -12,8 +12,9 @@ import pandas as pd
 import pytest
 
 from conftest import ROOT
-from qdsearch import comparison, experiments, results
-from qdsearch.options import SEARCH_FLAGS
+from qdsearch.analysis import comparison, results
+from qdsearch.config.options import SEARCH_FLAGS
+from qdsearch.search import experiments
 from util import run_archive, tiny_flags
 
 
@@ -199,5 +200,5 @@ def test_read_run_gives_pyribs_archive_data_frame_and_refuses_a_non_run(tiny_run
     assert (run.archive.get_field("solution") == archive.filter(like="solution_").to_numpy()).all()
     assert run.metrics["qd_score"].tolist() == [r["qd_score"] for r in json.loads(
         (tiny_run / "metrics.json").read_text())]
-    with pytest.raises(qdsearch.notebook.UsageError, match="no such run folder"):
+    with pytest.raises(qdsearch.analysis.notebook.UsageError, match="no such run folder"):
         qdsearch.read_run(tmp_path / "nothing")

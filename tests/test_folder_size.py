@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from ribs.archives import GridArchive
 
-from qdsearch import compact_pickle, run
+from qdsearch.base import compact_pickle
+from qdsearch.search import run
 from util import archive_table, read_checkpoint, run_archive, tiny_flags
 
 WEIGHTS = 20_000

@@ -10,8 +10,10 @@ from pathlib import Path
 import fire
 import pytest
 
-from qdsearch import experiments, options, run, run_config, trackers
-from qdsearch.flags import Flag, UsageError, takes
+from qdsearch.base.flags import Flag, UsageError, takes
+from qdsearch.config import options, run_config
+from qdsearch.search import experiments, run
+from qdsearch.store import trackers
 from util import assert_one_line_error, folder_state
 
 DEFAULTS = options.search_defaults()

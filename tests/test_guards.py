@@ -16,7 +16,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import experiments, explorer, results, run, tasks, walker
+from qdsearch import tasks
+from qdsearch.analysis import explorer, results
+from qdsearch.search import experiments, run
+from qdsearch.tasks import walker
 from util import assert_one_line_error, folder_state, page_data, tiny_flags
 
 HARDCORE, WALKER = "BipedalWalkerHardcore-v3", "BipedalWalker-v3"
@@ -175,9 +178,9 @@ def test_a_scheduler_file_being_written_is_read_once_finished_and_a_garbled_one_
     if shorter."""
     import threading
 
-    from qdsearch import cluster
-    from qdsearch.cluster import read_scheduler_file
-    from qdsearch.flags import UsageError
+    from qdsearch.base.flags import UsageError
+    from qdsearch.search import cluster
+    from qdsearch.search.cluster import read_scheduler_file
 
     monkeypatch.setattr(cluster, "UNFINISHED_FILE_WAIT", 0.4)
 

@@ -5,8 +5,11 @@ import inspect
 
 import pytest
 
-import lunar_lander as ll
-from qdsearch import algorithms, flags, options, tasks
+from qdsearch import algorithms, tasks
+from qdsearch.base import flags
+from qdsearch.cli import app as ll
+from qdsearch.cli import help as cli_help
+from qdsearch.config import options
 from util import assert_one_line_error
 
 
@@ -50,7 +53,7 @@ def test_every_flags_help_is_whole_in_its_commands_page(run_cli, name):
         assert f"--{flag}=" in page or parameters[flag].default is inspect.Parameter.empty, (name, flag)
     for flag, text in declared(name).items():
         assert f"--{flag}=" in page and squeezed(text) in shown, (name, flag)
-    for flag, text in flags.documented_arguments(function.__doc__).items():  # its own (Args)
+    for flag, text in cli_help.documented_arguments(function.__doc__).items():  # its own (Args)
         assert squeezed(text) in shown, (name, flag)
     for noise in ("Optional[", "flag_table", "GROUPS", "-h, --"):
         assert noise not in page, (name, noise)
@@ -129,6 +132,6 @@ def test_a_docstrings_args_are_read_by_indent_not_by_colons():
             part: I/K: part I of K (a SLURM job
                 array: docs/clusters.md), run again: it continues.
         """
-    assert flags.documented_arguments(command.__doc__) == {
+    assert cli_help.documented_arguments(command.__doc__) == {
         "run_dir": "A folder: any.",
         "part": "I/K: part I of K (a SLURM job array: docs/clusters.md), run again: it continues."}

@@ -8,8 +8,9 @@ import shutil
 import pandas as pd
 import pytest
 
-import lunar_lander as ll
-from qdsearch import experiments, explorer
+from qdsearch.analysis import explorer
+from qdsearch.cli import app as ll
+from qdsearch.search import experiments
 from util import Result, assert_one_line_error, checkpoint_iteration, folder_state
 
 INJECTION = "p</script><img src=x onerror=document.title=1337>"  # a folder p< holding script><img...

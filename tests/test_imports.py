@@ -1,6 +1,9 @@
-"""Imports go one way: the script sits on top of the package `qdsearch`, which never imports it, and
-no two of the package's modules import each other, directly or through others, at load time or
-inside a function."""
+"""Imports go one way. The package `qdsearch` is in layers, each a subpackage, named from the bottom
+up in qdsearch/__init__.py's map: a module imports only the layers below its own and, in its own
+layer, the modules its layer's map names before it (qdsearch/LAYER/__init__.py). So no two modules
+import each other, directly or through others, at load time or inside a function. The command
+line (qdsearch.cli) is the top layer: no other imports it or Fire, and the package never imports
+the script."""
 
 import ast
 from pathlib import Path
@@ -11,39 +14,65 @@ PACKAGE = ROOT / "qdsearch"
 
 
 def imported_modules(path: Path) -> set[str]:
-    """Every module an `import` or `from ... import` anywhere in the file names (functions too)."""
+    """Every module an `import` or `from ... import` anywhere in the file names (functions too);
+    `from qdsearch.base import flags` names qdsearch.base.flags."""
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             found |= {alias.name for alias in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module:
             found.add(node.module)
-            if node.module == "qdsearch":  # from qdsearch import tasks
-                found |= {f"qdsearch.{alias.name}" for alias in node.names}
+            if node.module.split(".")[0] == "qdsearch":
+                found |= {f"{node.module}.{alias.name}" for alias in node.names}
     return found
 
 
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def map_lines(path: Path, marker: str) -> list[list[str]]:
+    """The names of a map's entries ("- name, name: what they are") after `marker` in a module's
+    docstring, in order, up to the paragraph's end; names on one line share a place."""
+    text = path.read_text().split(marker, 1)[1].split('"""', 1)[0].split("\n\n", 1)[0]
+    return [line[2:].split(":", 1)[0].split(", ") for line in text.splitlines() if line.startswith("- ")]
+
+
+LAYERS = [names[0] for names in map_lines(PACKAGE / "__init__.py", "Map,")]
+
+
+def module_places() -> dict[str, tuple[int, int]]:
+    """Each module's place: its layer's, then its place in its layer's map; a layer whose
+    __init__ holds code (the tasks' registry, the algorithms' table) has it last."""
+    places = {}
+    for layer_place, layer in enumerate(LAYERS):
+        lines = map_lines(PACKAGE / layer / "__init__.py", "imports going down the list only")
+        for place, names in enumerate(lines):
+            places |= {f"qdsearch.{layer}.{name}": (layer_place, place) for name in names}
+        places[f"qdsearch.{layer}"] = (layer_place, len(lines))
+    return places
+
+
 def package_graph() -> dict[str, set[str]]:
-    """Each module of the package, and the modules of the package it imports."""
-    modules = {f"qdsearch.{path.stem}": path for path in PACKAGE.glob("*.py") if path.stem != "__init__"}
-    return {name: {m for m in imported_modules(path) if m in modules and m != name}
-            for name, path in modules.items()}
+    """Each module of the package's layers, and the modules of the package it imports."""
+    paths = {module_name(path): path for path in PACKAGE.glob("*/*.py")}
+    return {name: {m for m in imported_modules(path) if m in paths and m != name}
+            for name, path in paths.items()}
 
 
-MODULES = {path.stem for path in PACKAGE.glob("*.py")}  # a sibling must be named as qdsearch.NAME
-
-
-def test_the_package_never_imports_the_script():
-    for path in PACKAGE.glob("*.py"):
-        assert not imported_modules(path) & MODULES, path  # a sibling by a top-level name
-        imported = imported_modules(path)
-        assert not any(m == "lunar_lander" or m.startswith("lunar_lander.") for m in imported), path
-        assert "import_module(\"lunar_lander" not in path.read_text(), path
+def test_every_module_imports_only_layers_below_and_modules_above_it_in_its_layer():
+    places, graph = module_places(), package_graph()
+    assert LAYERS == ["base", "tasks", "algorithms", "store", "config", "search", "analysis", "cli"]
+    assert set(places) == set(graph), set(places) ^ set(graph)  # every map names every module once
+    assert graph["qdsearch.search.loop"] >= {"qdsearch.search.engine", "qdsearch.store.saving"}
+    upward = {module: sorted(m for m in imported if places[m] >= places[module])
+              for module, imported in graph.items()}
+    assert not any(upward.values()), {module: up for module, up in upward.items() if up}
 
 
 def test_no_two_modules_import_each_other_even_through_others():
     graph = package_graph()
-    assert len(graph) >= 10 and graph["qdsearch.loop"] >= {"qdsearch.engine", "qdsearch.saving"}
 
     def reaches(start: str) -> set[str]:
         seen, todo = set(), list(graph[start])
@@ -58,24 +87,28 @@ def test_no_two_modules_import_each_other_even_through_others():
     assert not cycles, {module: sorted(graph[module]) for module in cycles}
 
 
+def test_only_the_command_line_layer_imports_fire_or_itself_and_none_imports_the_script():
+    for path in PACKAGE.rglob("*.py"):
+        imported, text = imported_modules(path), path.read_text()
+        assert not any(m == "lunar_lander" or m.startswith("lunar_lander.") for m in imported), path
+        assert "import_module(\"lunar_lander" not in text, path
+        if path.parent.name != "cli":
+            assert not {m for m in imported if m == "fire" or m.startswith("qdsearch.cli")}, path
+            assert '"qdsearch.cli' not in text and "'qdsearch.cli" not in text, path  # by name neither
+
+
+def test_a_module_names_its_siblings_by_their_full_names():
+    """`from qdsearch.base import flags`, never `import flags` or a relative import."""
+    stems = {path.stem for path in PACKAGE.rglob("*.py")}
+    for path in PACKAGE.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        relative = [node for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.level]
+        assert not relative, path
+        assert not imported_modules(path) & stems, path
+
+
 def test_the_import_check_sees_a_lazy_import_inside_a_function(tmp_path):
-    """The check itself: an import inside a function counts."""
+    """The check itself: an import inside a function counts, by its module's full name."""
     path = tmp_path / "lazy.py"
-    path.write_text("def f():\n    from qdsearch import run\n    import lunar_lander\n")
-    assert imported_modules(path) >= {"qdsearch.run", "lunar_lander"}
-
-
-def map_order() -> dict[str, int]:
-    """Each module's place in the package's map (qdsearch/__init__.py: "imports going down the
-    list only"); modules named on one line share a place."""
-    text = (PACKAGE / "__init__.py").read_text().split("Map,", 1)[1].split('"""', 1)[0]
-    lines = [line[2:].split(":", 1)[0] for line in text.splitlines() if line.startswith("- ")]
-    return {f"qdsearch.{name}": place for place, line in enumerate(lines) for name in line.split(", ")}
-
-
-def test_every_module_imports_only_those_above_it_in_the_packages_map():
-    order, graph = map_order(), package_graph()
-    assert set(order) == set(graph), set(order) ^ set(graph)  # the map names every module once
-    upward = {module: sorted(m for m in imported if order[m] >= order[module])
-              for module, imported in graph.items()}
-    assert not any(upward.values()), {module: up for module, up in upward.items() if up}
+    path.write_text("def f():\n    from qdsearch.search import run\n    import lunar_lander\n")
+    assert imported_modules(path) >= {"qdsearch.search.run", "lunar_lander"}

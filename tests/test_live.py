@@ -8,7 +8,8 @@ import time
 import pandas as pd
 import pytest
 
-from qdsearch import experiments, run, tasks
+from qdsearch import tasks
+from qdsearch.search import experiments, run
 from util import assert_one_line_error, launch, run_metrics, tiny_flags
 
 pytestmark = pytest.mark.slow  # a server process and a browser

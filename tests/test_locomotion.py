@@ -14,7 +14,11 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, SCRIPT
-from qdsearch import locomotion, results, run, run_config, tasks
+from qdsearch import tasks
+from qdsearch.analysis import results
+from qdsearch.config import run_config
+from qdsearch.search import run
+from qdsearch.tasks import locomotion
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -126,7 +130,7 @@ def test_a_cvt_run_keeps_its_centroids_and_resumes_to_its_twin(cvt_run, tmp_path
     assert len(archive) > 5
     resumed = tmp_path / "resumed"
     run.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=2), outdir=str(resumed))
-    from qdsearch import experiments
+    from qdsearch.search import experiments
 
     experiments.resume(str(resumed), iterations=4, scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(resumed, cvt_run)

@@ -9,8 +9,10 @@ import pandas as pd
 import pytest
 from matplotlib.image import imread
 
-from qdsearch import experiments, results, run, tasks
-from qdsearch.flags import UsageError
+from qdsearch import tasks
+from qdsearch.analysis import results
+from qdsearch.base.flags import UsageError
+from qdsearch.search import experiments, run
 from util import (
     LANDER,
     assert_one_line_error,

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from qdsearch.flags import UsageError
-from qdsearch.metrics import describe_progress, load_metrics
+from qdsearch.base.flags import UsageError
+from qdsearch.store.metrics import describe_progress, load_metrics
 
 ROW = {"iteration": 4, "evaluations": 48, "coverage": 0.1234, "num_elites": 5, "qd_score": 1234.56,
        "best_objective": 87.654, "mean_objective": -3.5, "elapsed_s": 2.0}

@@ -22,8 +22,11 @@ import pytest
 from ribs.archives import cqd_score
 from scipy.stats import bootstrap, mannwhitneyu
 
-from qdsearch import algorithms, comparison, evaluation, metrics, options, run_config, stats, tasks
-from qdsearch.run_files import write_csv
+from qdsearch import algorithms, tasks
+from qdsearch.analysis import comparison, evaluation, stats
+from qdsearch.base.run_files import write_csv
+from qdsearch.config import options, run_config
+from qdsearch.store import metrics
 
 TOL = 1e-12  # where the oracle adds in another order than the code
 LANDER = "LunarLander-v3"

@@ -13,22 +13,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ribs.archives import GridArchive
 
-from qdsearch import (
-    algorithms,
-    archive_data,
-    experiments,
-    flags,
-    metrics,
-    results,
-    run_config,
-    tasks,
-    trackers,
-)
-from qdsearch.flags import (
+from qdsearch import algorithms, tasks
+from qdsearch.analysis import results
+from qdsearch.base import flags
+from qdsearch.base.flags import (
     MAX_SEED,
     MAX_SEEDS,
     UsageError,
-    as_typed,
     boolean,
     distinct_names,
     fraction,
@@ -38,8 +29,12 @@ from qdsearch.flags import (
     seed_list,
     seed_number,
 )
-from qdsearch.parts import MAX_PARTS, parse_part
-from qdsearch.run_files import read_run_json
+from qdsearch.base.run_files import read_run_json
+from qdsearch.cli.parsing import as_typed
+from qdsearch.config import run_config
+from qdsearch.search import experiments
+from qdsearch.search.parts import MAX_PARTS, parse_part
+from qdsearch.store import archive_data, metrics, trackers
 
 QUICK = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

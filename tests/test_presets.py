@@ -10,9 +10,10 @@ import tomllib
 import pytest
 
 from conftest import ROOT
-from qdsearch import experiments, options
-from qdsearch.experiment_folder import shortened
-from qdsearch.flags import UsageError
+from qdsearch.base.flags import UsageError
+from qdsearch.config import options
+from qdsearch.search import experiments
+from qdsearch.search.experiment_folder import shortened
 from util import assert_one_line_error, folder_state, run_archive, run_metrics
 
 PRESETS = sorted((ROOT / "docs" / "presets").glob("*.toml"))

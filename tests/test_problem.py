@@ -7,7 +7,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from qdsearch import engine, lander, options, run_config, tasks
+from qdsearch import tasks
+from qdsearch.config import options, run_config
+from qdsearch.search import engine
+from qdsearch.tasks import lander
 from util import LANDER, LANDER_W, local_cluster
 
 
@@ -142,7 +145,7 @@ def test_a_drivers_runs_in_flight_share_the_chunks_and_never_change_the_results(
     the rows come back the same."""
     from dask.distributed import Client
 
-    from qdsearch.engine import ClusterShare
+    from qdsearch.search.engine import ClusterShare
 
     with local_cluster(2) as cluster, Client(cluster) as client:
         share = ClusterShare(client, every=0.0)

@@ -11,10 +11,11 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from qdsearch import experiments, gradients, run, tasks
-from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration
-from qdsearch.policies import LINEAR, POLICIES, Policy, policy_of
-from qdsearch.run_config import load_run_config
+from qdsearch import tasks
+from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration, gradients
+from qdsearch.config.run_config import load_run_config
+from qdsearch.search import experiments, run
+from qdsearch.tasks.policies import LINEAR, POLICIES, Policy, policy_of
 from util import assert_one_line_error, run_archive, run_metrics, saved_archive, tiny_flags
 
 HOPPER = "Hopper-v5"
@@ -114,7 +115,7 @@ def test_start_gives_either_form_either_start():
 
 def test_a_runs_emitters_start_where_start_says():
     from qdsearch.algorithms import build_scheduler
-    from qdsearch.options import search_defaults
+    from qdsearch.config.options import search_defaults
 
     config = run.search_config({**search_defaults(), "seed": 4, "env": HOPPER, "start": "glorot",
                                 "algorithm": "sep_cma_mae", "n_emitters": 2})
@@ -187,7 +188,9 @@ def test_a_dqd_run_flies_its_samples_at_es_sigma(tmp_path):
     samples at --es_sigma (not the emitters' --sigma0), drawn from the run's seed."""
     import logging
 
-    from qdsearch import algorithms, loop, options, run_config
+    from qdsearch import algorithms
+    from qdsearch.config import options, run_config
+    from qdsearch.search import loop
 
     config = run_config.check_run_config(options.with_task(
         {**options.search_defaults(), "algorithm": "cma_mega_es", "n_emitters": 2, "batch_size": 2,
@@ -240,8 +243,8 @@ def test_an_iteration_costs_its_rows_evaluations():
 def test_a_budget_in_evaluations_sets_the_most_iterations_within_it():
     """cma_mega_es, 2 emitters of 6 and 10 samples: 34 evaluations an iteration; a budget of
     exactly one iteration is one; one short of it is refused; a huge one stops at MAX_ITERATIONS."""
-    from qdsearch import options
-    from qdsearch.flags import UsageError
+    from qdsearch.base.flags import UsageError
+    from qdsearch.config import options
 
     config = {**options.search_defaults(), **DQD, "iterations": 7}
     for budget, iterations in [(34, 1), (135, 3), (136, 4), (10**12, options.MAX_ITERATIONS)]:
@@ -418,7 +421,7 @@ def test_every_policy_row_says_its_own_flags():
 
 def test_curves_over_evaluations_keep_their_tick_labels_apart(tmp_path, monkeypatch):
     """Budgets of 100,000s of evaluations: at most 6 labels on a panel's x axis, none overlapping."""
-    from qdsearch import plots
+    from qdsearch.base import plots
 
     drawn, panel_figure = [], plots.panel_figure
 

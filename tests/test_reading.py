@@ -10,8 +10,8 @@ import stat
 
 import pytest
 
-from qdsearch import run_files
-from qdsearch.flags import UsageError
+from qdsearch.base import run_files
+from qdsearch.base.flags import UsageError
 
 MIB = 1 << 20
 

@@ -10,9 +10,12 @@ import pandas as pd
 import pytest
 from matplotlib.image import imread
 
-import lunar_lander as ll
-from qdsearch import evaluation, fast_lander, lander, results, run, tasks
-from qdsearch.flags import UsageError, seed_list
+from qdsearch import tasks
+from qdsearch.analysis import evaluation, results
+from qdsearch.base.flags import UsageError, seed_list
+from qdsearch.cli import app as ll
+from qdsearch.search import run
+from qdsearch.tasks import fast_lander, lander
 from util import LANDER, assert_one_line_error, folder_state, saved_archive, tiny_flags
 
 TUTORIAL = list(tasks.TUTORIAL_MEASURES)  # the measures of the run the tests look at

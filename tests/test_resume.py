@@ -11,7 +11,11 @@ import numpy as np
 import pytest
 from ribs.archives import GridArchive
 
-from qdsearch import algorithms, archive_data, experiments, run, run_config, signing, tasks
+from qdsearch import algorithms, tasks
+from qdsearch.base import signing
+from qdsearch.config import run_config
+from qdsearch.search import experiments, run
+from qdsearch.store import archive_data
 from util import (
     LANDER,
     REFERENCE_ITERATIONS,

@@ -17,9 +17,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from qdsearch import algorithms, comparison, experiments, options, run, tasks
-from qdsearch.flags import UsageError, check_flags
-from qdsearch.options import search_defaults
+from qdsearch import algorithms, tasks
+from qdsearch.analysis import comparison
+from qdsearch.base.flags import UsageError, check_flags
+from qdsearch.config import options
+from qdsearch.config.options import search_defaults
+from qdsearch.search import experiments, run
 from util import LANDER, assert_one_line_error, run_archive, run_metrics, tiny_flags
 
 CHEETAH = "HalfCheetah-v5"

@@ -13,9 +13,9 @@ import sys
 
 import pytest
 
-import lunar_lander as ll
 from conftest import ROOT
-from qdsearch import experiments
+from qdsearch.cli import app as ll
+from qdsearch.search import experiments
 from util import (
     REFERENCE_ITERATIONS,
     Result,
@@ -146,7 +146,9 @@ def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, ca
 def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny_run):
     """A saver process killed (out of memory, say) between two saves: the saver thread writes
     the folder itself, whole."""
-    from qdsearch import loop, run_config, saving
+    from qdsearch.config import run_config
+    from qdsearch.search import loop
+    from qdsearch.store import saving
 
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run, run_dir)
@@ -178,7 +180,7 @@ if os.environ.get("QD_TEST_HOLD"):
 """
 DRIVER = """
 import os, pathlib, sys
-from qdsearch import saving
+from qdsearch.store import saving
 os.environ["QD_TEST_HOLD"] = sys.argv[1]  # for the fork server it starts
 processes = saving.saver_processes(2)  # as the driver's first save starts them
 pathlib.Path(sys.argv[1]).write_text("the driver went on")

@@ -15,8 +15,11 @@ import urllib.request
 import numpy as np
 import pytest
 
-from qdsearch import archive_data, experiments, run, run_folder, signing
-from qdsearch.flags import UsageError
+from qdsearch.analysis import run_folder
+from qdsearch.base import signing
+from qdsearch.base.flags import UsageError
+from qdsearch.search import experiments, run
+from qdsearch.store import archive_data
 from util import (
     REFERENCE_ITERATIONS,
     archive_table,
@@ -224,7 +227,7 @@ def test_experiments_resume_with_their_own_key_and_trust_anothers(tmp_path, dask
         assert read_checkpoint(folder / name / "checkpoint.pkl")["iteration"] == 4
 
 
-KEY_MAKER = ("import sys; from pathlib import Path; from qdsearch import signing; "
+KEY_MAKER = ("import sys; from pathlib import Path; from qdsearch.base import signing; "
              "print(signing.user_key().hex())")
 
 

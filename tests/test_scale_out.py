@@ -37,7 +37,7 @@ def can_import_the_code(client) -> list[bool]:
         import importlib.util
 
         return importlib.util.find_spec("qdsearch") is not None and (
-            importlib.util.find_spec("qdsearch.engine") is not None)
+            importlib.util.find_spec("qdsearch.search.engine") is not None)
     return list(client.run(finds_it).values())
 
 
@@ -70,12 +70,12 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
     import json
 
     from conftest import ROOT
-    from qdsearch import saving
+    from qdsearch.store import saving
     from util import read_checkpoint
 
     cluster = request.getfixturevalue("off_loopback_cluster" if workers == "elsewhere" else "dask_cluster")
     flags = {**tiny_flags(cluster, pictures=True), "outdir": str(tmp_path / "run")}
-    code = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
+    code = ("import json, sys; from qdsearch.search import run; run.search(**json.loads(sys.argv[1])); "
             "print('driver imported matplotlib:', 'matplotlib' in sys.modules)")
     result = subprocess.run([sys.executable, "-c", code, json.dumps(flags)], cwd=ROOT,
                             capture_output=True, text=True, timeout=300)
@@ -117,7 +117,7 @@ def test_local_workers_fly_without_dasks_profiler():
     would take the GIL from the rollouts every 10 ms (cluster.QUIET_CLUSTER)."""
     import logging
 
-    from qdsearch import cluster
+    from qdsearch.search import cluster
 
     with cluster.dask_client(2, None, logging.getLogger("test")) as client:
         callbacks = client.run(lambda dask_worker: sorted(dask_worker.periodic_callbacks))
@@ -172,8 +172,8 @@ def test_a_local_worker_per_core_is_pinned_to_its_core_and_so_is_its_restart():
     import logging
     import signal
 
-    from qdsearch import cluster
-    from qdsearch.pinning import PinToCore
+    from qdsearch.search import cluster
+    from qdsearch.search.pinning import PinToCore
 
     cores = sorted(os.sched_getaffinity(0))[:2]
     with on_cores(set(cores)), cluster.dask_client(len(cores), None, logging.getLogger("test")) as client:
@@ -207,7 +207,7 @@ def test_a_cluster_where_some_workers_have_the_code_and_some_do_not_gets_it_ever
     from dask.distributed import Client
 
     from conftest import ROOT
-    from qdsearch.cluster import ship_code
+    from qdsearch.search.cluster import ship_code
 
     (tmp_path / "temp").mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "temp"))

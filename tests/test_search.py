@@ -13,7 +13,9 @@ from matplotlib.image import imread
 from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
-from qdsearch import cpu_flags, plots, run
+from qdsearch import cpu_flags
+from qdsearch.base import plots
+from qdsearch.search import run
 from util import (
     TINY,
     archive_table,
@@ -153,7 +155,7 @@ def test_a_run_without_pictures_is_the_same_run_with_its_data_alone(tmp_path, ti
     assert len(pd.read_csv(run_dir / "elites.csv")) == 2
 
 
-DRAWING_PROBE = ("import json, sys; from qdsearch import run; run.search(**json.loads(sys.argv[1])); "
+DRAWING_PROBE = ("import json, sys; from qdsearch.search import run; run.search(**json.loads(sys.argv[1])); "
                  "print('imported:', *sorted({'matplotlib', 'ribs.visualize'} & set(sys.modules)))")
 
 
@@ -226,7 +228,7 @@ def test_a_seed_gives_one_archive_whatever_kernels_the_cpu_offers(tmp_path, dask
 def test_the_test_processes_run_the_kernels_the_command_line_does():
     """conftest.py imports the package before anything loads numpy, so the searches run inside the
     tests compute the command line's bits."""
-    from qdsearch.run_files import cpu_kernels
+    from qdsearch.base.run_files import cpu_kernels
 
     if {"avx2", "fma"} <= cpu_flags():
         assert cpu_kernels().endswith(" Haswell, X86_V3")

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from qdsearch import signing
-from qdsearch.flags import UsageError
+from qdsearch.base import signing
+from qdsearch.base.flags import UsageError
 
 
 @pytest.fixture

@@ -19,7 +19,8 @@ if missing := [name for name in ("tensorboardX", "wandb", "mlflow") if not impor
     pytest.skip(f"no {', '.join(missing)}: pip install -r requirements-trackers.txt", allow_module_level=True)
 
 from conftest import ROOT, SCRIPT  # noqa: E402
-from qdsearch import experiments, run, trackers  # noqa: E402
+from qdsearch.search import experiments, run  # noqa: E402
+from qdsearch.store import trackers  # noqa: E402
 from util import (  # noqa: E402
     assert_one_line_error,
     launch,
@@ -215,7 +216,7 @@ def test_a_save_handed_over_after_its_run_is_closed_is_tracked_whole(tracked, tm
     writers flush their files when closed, else every 30 s), as far as the notes say."""
     import logging
 
-    from qdsearch import run_config
+    from qdsearch.config import run_config
 
     run_dir, _ = tracked
     config = run_config.load_run_config(run_dir).replace(track=["tensorboard", "mlflow"])
@@ -240,7 +241,7 @@ def test_a_run_resumed_in_the_second_it_stopped_keeps_the_events_before(tmp_path
     in a loaded suite). Each writer's file is its own, and read in the order written."""
     import time
 
-    from qdsearch import run_config
+    from qdsearch.config import run_config
 
     config = run_config.check_run_config(tiny_flags(track="tensorboard"))
     rows = [{"iteration": i, "evaluations": 12 * i, **{name: float(i) for name in trackers.SCALARS
@@ -261,7 +262,7 @@ def test_an_unreachable_tracking_server_fails_the_tracker_within_seconds(tmp_pat
     does not answer; the tracker tries a few times, quickly, then fails (one line, in the run)."""
     import time
 
-    from qdsearch import run_config
+    from qdsearch.config import run_config
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")
     for name in trackers.MLFLOW_PATIENCE:

@@ -9,8 +9,10 @@ import shutil
 import pytest
 
 import qdsearch
-from qdsearch import algorithms, flags, options, tasks
-from qdsearch.flags import UsageError
+from qdsearch import algorithms, tasks
+from qdsearch.base import flags
+from qdsearch.base.flags import UsageError
+from qdsearch.config import options
 from util import LANDER, assert_one_line_error
 
 

@@ -37,7 +37,8 @@ TINY_EPISODE = 25
 
 def tiny_episode(env_name: str):
     """The episode rules of a tiny run of `env_name`."""
-    from qdsearch import lander, tasks
+    from qdsearch import tasks
+    from qdsearch.tasks import lander
 
     landing = tasks.ENVIRONMENTS[env_name].family is lander.LANDER
     return tasks.Episode(None if landing else TINY_EPISODE)
@@ -71,9 +72,9 @@ def load_pickle(path):
 
 
 def checkpoint_payload(path) -> bytes:
-    """A checkpoint's pickle: its bytes after the signature's header (qdsearch/signing.py), if it
+    """A checkpoint's pickle: its bytes after the signature's header (qdsearch/base/signing.py), if it
     has one."""
-    from qdsearch import signing
+    from qdsearch.base import signing
 
     data = Path(path).read_bytes()
     return data[len(signing.MAGIC) + signing.DIGITS + 1:] if data.startswith(signing.MAGIC) else data
@@ -86,7 +87,7 @@ def read_checkpoint(path):
 
 def write_checkpoint(path, checkpoint) -> None:
     """A checkpoint (any object) pickled and signed with the tests' key, as a run writes one."""
-    from qdsearch import signing
+    from qdsearch.base import signing
 
     signing.write_signed_pickle(Path(path), checkpoint)
 
@@ -102,7 +103,7 @@ def archive_table(archive) -> pd.DataFrame:
 def saved_archive(run_dir: Path, name: str = "archive"):
     """A run folder's archive as the commands read it: its archive.npz (or corrected_archive.npz),
     made back into the pyribs archive (a run writes archive.pkl only with --archive_pkl)."""
-    from qdsearch.archive_data import read_archive_data
+    from qdsearch.store.archive_data import read_archive_data
 
     return read_archive_data(Path(run_dir) / f"{name}.npz")[0]
 
@@ -236,7 +237,7 @@ def local_cluster(workers: int, host: str = "127.0.0.1", threads: int = 1):
     import dask
     from dask.distributed import LocalCluster
 
-    from qdsearch.cluster import QUIET_CLUSTER
+    from qdsearch.search.cluster import QUIET_CLUSTER
 
     with dask.config.set(QUIET_CLUSTER):
         return LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True, host=host,
@@ -246,7 +247,7 @@ def local_cluster(workers: int, host: str = "127.0.0.1", threads: int = 1):
 def by_hand(command: list[str], folder: Path, **environment: str) -> subprocess.Popen:
     """A `dask` command started in `folder` (where no code of ours is) in a session of its own, as
     docs/slurm.sbatch starts it: with cluster.QUIET_ENVIRONMENT, and `environment`."""
-    from qdsearch.cluster import QUIET_ENVIRONMENT
+    from qdsearch.search.cluster import QUIET_ENVIRONMENT
 
     folder.mkdir(parents=True, exist_ok=True)
     return subprocess.Popen([sys.executable, "-m", "dask", *command], cwd=folder,

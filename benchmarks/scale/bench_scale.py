@@ -82,7 +82,10 @@ sys.path.insert(0, str(ROOT))
 
 from scale_records import OUT, summarise  # noqa: E402
 
-from qdsearch import algorithms, engine, experiments, loop, run_config, run_files, tasks  # noqa: E402
+from qdsearch import algorithms, tasks  # noqa: E402
+from qdsearch.base import run_files  # noqa: E402
+from qdsearch.config import run_config  # noqa: E402
+from qdsearch.search import engine, experiments, loop  # noqa: E402
 
 VARIANTS = ("log_every", "savers", "chunks", "switch")  # the drive command's options a row may set
 # on a worker: task key -> (start, end, its thread), time.time(); the thread as "pid-ident"
@@ -110,7 +113,7 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
 
 
 def simulated_chunk(lengths: list[int], step_s: float):
-    """The stand-in for qdsearch.engine.fly_chunk on the simulated workers."""
+    """The stand-in for qdsearch.search.engine.fly_chunk on the simulated workers."""
     def fly_chunk(solutions, env_seeds, measures, fast_env, env_name):
         from distributed.worker import thread_state
 
@@ -399,7 +402,7 @@ def install_simulation(pool: list[int], step_s: float) -> None:
     """On each worker process: the engine's fly_chunk becomes the simulated chunk."""
     import bench_scale
 
-    from qdsearch import engine
+    from qdsearch.search import engine
 
     engine.fly_chunk = bench_scale.simulated_chunk(pool, step_s)
 

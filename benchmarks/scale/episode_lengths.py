@@ -21,7 +21,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from qdsearch import algorithms, engine, options, run_config, tasks  # noqa: E402
+from qdsearch import algorithms, tasks  # noqa: E402
+from qdsearch.config import options, run_config  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
 
 
 def record(iterations: int, env_name: str, seed: int) -> tuple[list[np.ndarray], float]:

@@ -70,7 +70,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent  # benchmarks/scale
 sys.path.insert(0, str(HERE.parents[1]))  # the repository: the package
 
-from qdsearch import engine  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,8 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from qdsearch import engine, tasks  # noqa: E402
-from qdsearch.results import load_run  # noqa: E402
+from qdsearch import tasks  # noqa: E402
+from qdsearch.analysis.results import load_run  # noqa: E402
+from qdsearch.search import engine  # noqa: E402
 
 
 def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = tasks.DEFAULT_ENV,

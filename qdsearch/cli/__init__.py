@@ -1,0 +1,7 @@
+"""qdsearch.cli: the command line, on top of every other layer (none imports it).
+
+Map, imports going down the list only:
+- help: a command's --help page, drawn from its signature, docstring and flag tables;
+- parsing: the words typed, checked before Fire parses them, and the values Fire would misread;
+- app: the commands (COMMANDS), `main` (exit codes, the one-line messages) and `run_as_script`.
+"""

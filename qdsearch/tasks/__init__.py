@@ -1,0 +1,246 @@
+"""qdsearch.tasks: the tasks a search can fly. This module is the layer's registry: every family
+module's rows gathered into the tables --env and --measures pick from, and one episode of any of
+them.
+
+The layer's modules, imports going down the list only (this registry last):
+- policies: the policies a solution makes (POLICIES: linear, mlp; `Policy`);
+- family: what a task family declares (`Family`, `Environment` with its env's spaces, `Measure`),
+  `require_drawing`;
+- fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
+- lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
+  each): its rows, its episode, how it is drawn.
+
+A family lives in a module of its own (lander.py, walker.py, locomotion.py; family.py says what
+one declares). To add one, write its module and name it in FAMILY_MODULES: its families, tasks
+and measures are gathered from it (docs/extending.md lists every step).
+
+Map:
+- the registration: FAMILY_MODULES, `register_family` (a module's rows into the tables, checked);
+- the tables: FAMILIES, ENVIRONMENTS (--env), MEASURES (--measures), DEFAULT_ENV,
+  TUTORIAL_MEASURES; `family_measures`;
+- the episode's rules: `Episode` (--episode_length, --terminate_when_unhealthy; `episode_of` a
+  config's), `check_episode`; `returns_of` (a run's range of objectives: family.Returns);
+- the resets: RESETS (--reset), `reset_seeds` (each solution's episodes' reset seeds);
+- the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (a policy can serve the
+  env's spaces); `renderer_missing` (family.py's, for the video command);
+- an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
+  measures), of any policy (policies.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import importlib
+import inspect
+import struct
+import warnings
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from qdsearch.base.flags import UsageError, setting
+from qdsearch.tasks.family import Environment, Family, Measure, OnStep, Returns, require_drawing
+from qdsearch.tasks.family import renderer_missing as renderer_missing  # results.py's video imports it here
+from qdsearch.tasks.policies import LINEAR, Policy
+
+# The family modules, by import name: the one place a family is registered. Each declares its
+# ENVIRONMENTS and MEASURES rows (family.py); a module outside the package must be importable
+# wherever the search runs (its driver, its Dask workers and saver processes).
+FAMILY_MODULES = ("qdsearch.tasks.lander", "qdsearch.tasks.walker", "qdsearch.tasks.locomotion")
+
+# The tables, gathered from FAMILY_MODULES in their order (and each module's rows in theirs).
+FAMILIES: list[Family] = []  # each in the order its module's rows first name it
+ENVIRONMENTS: dict[str, Environment] = {}  # the tasks (--env)
+MEASURES: dict[str, Measure] = {}  # the measures (--measures picks 1 to 3 of its task's family)
+
+
+def register_family(module_name: str) -> None:
+    """Gather a family module's ENVIRONMENTS and MEASURES rows, and the families they name, into
+    the tables. By name, so that a process can be told to (Dask's client.run on the workers).
+    A module whose rows are all there already changes nothing; a row named as another module's,
+    or a task whose default measures are not its family's, is refused at once."""
+    module = importlib.import_module(module_name)
+    tasks, measures = module.ENVIRONMENTS, module.MEASURES
+    if all(ENVIRONMENTS.get(name) is row for name, row in tasks.items()) and all(
+            MEASURES.get(name) is row for name, row in measures.items()):
+        return
+    if taken := sorted((tasks.keys() & ENVIRONMENTS.keys()) | (measures.keys() & MEASURES.keys())):
+        raise ValueError(f"{module_name}: {', '.join(taken)} already named by another family module")
+    known = {**MEASURES, **measures}
+    for name, task in tasks.items():
+        if wrong := [m for m in task.measures if m not in known or task.family not in known[m].families]:
+            raise ValueError(f"{module_name}: --env {name}'s default measures {', '.join(wrong)} "
+                             f"are not measures of its family {task.family.name}")
+    ENVIRONMENTS.update(tasks)
+    MEASURES.update(measures)
+    named = [task.family for task in tasks.values()] + [f for m in measures.values() for f in m.families]
+    FAMILIES.extend(dict.fromkeys(family for family in named if family not in FAMILIES))
+
+
+for _module in FAMILY_MODULES:
+    register_family(_module)
+
+DEFAULT_ENV = "LunarLander-v3"  # the tutorial's, and what run folders from before --env flew
+TUTORIAL_MEASURES = ENVIRONMENTS[DEFAULT_ENV].measures  # what old run folders used
+
+
+def family_measures(family: Family) -> list[str]:
+    return [name for name, measure in MEASURES.items() if family in measure.families]
+
+
+@dataclasses.dataclass(frozen=True)
+class Episode:
+    """The rules of a run's episodes where they are not the task's own (None: the task's): how many
+    steps at most (gym.make's max_episode_steps), and whether a robot that falls (MuJoCo's
+    "unhealthy" state) ends its episode."""
+
+    length: int | None = None
+    terminate_when_unhealthy: bool | None = None
+
+    def kwargs(self) -> dict[str, Any]:
+        """gym.make's keyword arguments for these rules."""
+        return {**({} if self.length is None else {"max_episode_steps": self.length}),
+                **({} if self.terminate_when_unhealthy is None
+                   else {"terminate_when_unhealthy": self.terminate_when_unhealthy})}
+
+
+TASKS_OWN = Episode()
+
+
+def episode_of(config: Any) -> Episode:
+    """A run's episode rules, from its config (a RunConfig or a dict); runs from before the flags
+    flew the task's own."""
+    return Episode(setting(config, "episode_length"), setting(config, "terminate_when_unhealthy"))
+
+
+def returns_of(config: Any) -> Returns:
+    """A run's range of objectives (its QD offset as recorded, the rest for its episode's length)."""
+    return ENVIRONMENTS[setting(config, "env") or DEFAULT_ENV].returns(
+        episode_of(config).length, setting(config, "qd_offset"))
+
+
+def fixed_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np.ndarray:
+    """--reset fixed: every solution flies from the same resets, its --env_seed ones."""
+    return np.tile(np.asarray(env_seeds, dtype=np.int64), (len(solutions), 1))
+
+
+def own_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np.ndarray:
+    """--reset each: every evaluation its own reset seed per env seed, a hash of the run's seed,
+    the env seed and the solution's weights. A fresh reset for each solution flown (an ES
+    sample, a mutant), yet the same on any worker, after a resume, and when an elite is flown
+    again by the results commands: its reset is known from the elite alone."""
+    rows = np.ascontiguousarray(solutions, dtype=np.float64).reshape(len(solutions), -1)
+    return np.array([[int.from_bytes(hashlib.blake2b(
+        row.tobytes(), digest_size=4, key=struct.pack("<QQ", run_seed, seed)).digest(), "little")
+        for seed in env_seeds] for row in rows], dtype=np.int64).reshape(len(rows), len(env_seeds))
+
+
+# --reset: how each solution's episodes are reset, as (solutions, env seeds, run seed) -> the
+# reset seeds, a row per solution and a column per env seed.
+RESETS = {"fixed": fixed_resets, "each": own_resets}
+
+
+def reset_seeds(solutions: np.ndarray, config: Any, env_seeds: list[int] | None = None) -> np.ndarray:
+    """The reset seeds of each solution's episodes in a run: a row per solution, a column per env
+    seed (its --env_seed, or `env_seeds`; runs from before --reset flew fixed ones)."""
+    seeds = list(setting(config, "env_seed")) if env_seeds is None else env_seeds
+    return RESETS[setting(config, "reset") or "fixed"](solutions, seeds, setting(config, "seed"))
+
+
+def flown_seeds(solutions: np.ndarray, env_seed: int, config: Any) -> list[int]:
+    """The reset each solution of a run flies from for its env seed `env_seed` (the results
+    commands' one shown seed): the seed itself, or under --reset each each solution's own."""
+    return [int(seed) for seed in reset_seeds(solutions, config, [env_seed])[:, 0]]
+
+
+@functools.cache
+def has_unhealthy_state(env_name: str) -> bool:
+    """Whether the task's env takes terminate_when_unhealthy (MuJoCo's Hopper, Walker2d, Ant)."""
+    entry = gym.spec(ENVIRONMENTS[env_name].gym_id).entry_point
+    if isinstance(entry, str):
+        module, _, name = entry.partition(":")
+        entry = getattr(importlib.import_module(module), name)
+    return "terminate_when_unhealthy" in inspect.signature(entry).parameters
+
+
+def check_episode(env_name: str, episode: Episode) -> None:
+    """Refuse rules the task can't follow: a fall that ends an episode needs a task that falls."""
+    if episode.terminate_when_unhealthy is not None and not has_unhealthy_state(env_name):
+        able = [name for name in ENVIRONMENTS if has_unhealthy_state(name)]
+        raise UsageError(f"--terminate_when_unhealthy: --env {env_name} has no unhealthy state; "
+                         f"the tasks that do: {', '.join(able)}")
+
+
+def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str,
+             episode: Episode = TASKS_OWN) -> gym.Env:
+    """The environment rollouts fly in: the task's streamlined copy if it has one (fast_lander.py)
+    and the episodes follow the task's own rules, or gym.make's plain one (needed to render, to
+    change the rules, and the reference the copy is tested against)."""
+    task = ENVIRONMENTS[env_name]
+    if fast and render_mode is None and task.fast is not None and episode == TASKS_OWN:
+        return task.fast()
+    return plain_env(env_name, render_mode, episode)
+
+
+def plain_env(env_name: str, render_mode: str | None = None, episode: Episode = TASKS_OWN) -> gym.Env:
+    """gym.make's env of the task; a simulator that is not installed (MuJoCo), or frames its env
+    can't render (a family's own env may draw nothing: the video command), is one line."""
+    task = ENVIRONMENTS[env_name]
+    with warnings.catch_warnings():  # Gymnasium's warning of frames the env can't render: refused below
+        warnings.filterwarnings("ignore", ".*not in the possible render_modes")
+        env = task.make(render_mode, env_name, **episode.kwargs())
+    if render_mode is not None and render_mode not in env.metadata.get("render_modes", ()):
+        env.close()
+        raise UsageError(f"--env {env_name} cannot be drawn: {task.gym_id} renders no {render_mode} frames")
+    return env
+
+
+def check_spaces(env_name: str) -> None:
+    """Refuse a row whose task the policies can't serve. Its shape is read from the env's
+    spaces, so only their kinds can be wrong: the observation must be a vector (a 1-D box), the
+    actions a choice among n (Discrete from 0: argmax) or a vector in [-1, 1] (a 1-D box: tanh).
+    The env is made through `plain_env` first: a missing simulator is one line naming --env."""
+    task = ENVIRONMENTS[env_name]
+    plain_env(env_name).close()
+    obs, act = task.spaces
+
+    def vector(space: gym.Space) -> bool:
+        return isinstance(space, gym.spaces.Box) and len(space.shape) == 1
+
+    choice = isinstance(act, gym.spaces.Discrete) and int(act.start) == 0
+    box = vector(act) and bool(np.all(act.low >= -1.0)) and bool(np.all(act.high <= 1.0))
+    if not (vector(obs) and (choice or box)):
+        raise UsageError(f"--env {env_name}: the policies (an argmax or a tanh of their outputs) can't serve "
+                         f"{task.gym_id}'s observations {obs} and actions {act}")
+
+
+def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
+        on_step: OnStep | None = None, *, env_name: str, policy: Policy = LINEAR) -> Any:
+    """Fly `solution` as `policy` (default: linear) for one episode on the terrain of `env_seed`;
+    its summary.
+
+    With a `trajectory` list, each step's point of the family's path is appended to it (the
+    lander's normalised (x, y), the walker's hull in metres; a family that declares no path is
+    refused in one line); `on_step` is called with each step's action and observation (the
+    explorer records poses with it).
+    """
+    task = ENVIRONMENTS[env_name]
+    if trajectory is not None:
+        require_drawing(task.family, "trajectories")
+
+        def on_step(action: Any, obs: np.ndarray) -> None:
+            trajectory.append(task.family.position(env, obs))
+    return task.family.fly(task.policy(solution, policy), env_seed, env, task, on_step)
+
+
+def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
+            trajectory: list | None = None, *, env_name: str, policy: Policy = LINEAR) -> tuple[float, ...]:
+    """(objective, *measures) of one episode (default: the task's measures): the objective is the
+    task's (its total reward, for every task but ant_omni)."""
+    task = ENVIRONMENTS[env_name]
+    flight = fly(solution, env_seed, env, trajectory, env_name=env_name, policy=policy)
+    measures = task.measures if measures is None else measures
+    return (float(task.objective(flight)), *(float(MEASURES[name].of(flight)) for name in measures))
