@@ -3,6 +3,7 @@
 import json
 import os
 import signal
+import sys
 import threading
 import time
 
@@ -214,3 +215,26 @@ def test_bad_warm_start_archive(tmp_path, run_cli, content, words):
     result = run_cli("--iterations", 1, "--from_archive", path, "--outdir", tmp_path / "run")
     assert result.returncode == 2 and words in result.stderr and result.stderr.count("\n") == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_a_checkpoint_from_before_the_package_had_layers_resumes(tmp_path, dask_cluster, reference,
+                                                                   monkeypatch):
+    """A checkpoint names the function that rebuilds its archive's rows by its module; before the
+    package had layers that module was qdsearch.compact_pickle. Such a checkpoint resumes, and the
+    run ends as the uninterrupted one."""
+    from qdsearch.base import compact_pickle
+
+    run_dir = tmp_path / "run"
+    run.search(**run_flags(dask_cluster, iterations=2), outdir=str(run_dir))
+    checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
+    with monkeypatch.context() as then:  # the module where it was
+        old = type(compact_pickle)("qdsearch.compact_pickle")
+        old.restore_store = compact_pickle.restore_store
+        then.setitem(sys.modules, "qdsearch.compact_pickle", old)
+        then.setattr(compact_pickle.restore_store, "__module__", "qdsearch.compact_pickle")
+        payload = compact_pickle.dumps(checkpoint)
+    assert b"qdsearch.compact_pickle" in payload and b"qdsearch.base" not in payload
+    signing.write_signed(run_dir / "checkpoint.pkl", payload)
+
+    experiments.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
+    assert_same_run(run_dir, reference)
