@@ -1,10 +1,9 @@
 """Shared fixtures: one real Dask LocalCluster for the session, the tiny run and the reference run
 (util.py has their flags), the command line in-process or as a process, and a headless browser.
 
-numba would compile ribs' CMA-ES code in every process that runs a search (3-5 s each), and its
-compiled code's last bits differ from the uncompiled code the script runs by default
-(docs/performance.md): importing qdsearch sets NUMBA_DISABLE_JIT, here as in the script, and the
-processes the tests start inherit it.
+The tests' searches compute the command line's bits: conftest.py sets what it sets
+(`qdsearch.hold_kernels`: numba off, x86-64 CPUs held to AVX2's kernels; docs/performance.md)
+before anything loads numpy, and the processes the tests start inherit it.
 """
 
 import atexit
@@ -19,7 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from qdsearch.search import run
+import qdsearch
+
+qdsearch.hold_kernels()  # before numpy loads (the import below loads it)
+
+from qdsearch.search import run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"

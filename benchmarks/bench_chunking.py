@@ -23,10 +23,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import qdsearch
 from qdsearch import tasks  # noqa: E402
 from qdsearch.config import options, run_config  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
 from qdsearch.search.cluster import dask_client  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def main(env: str = "BipedalWalker-v3", counts: tuple[int, ...] = (1, 2, 3, 4, 8), rounds: int = 3,

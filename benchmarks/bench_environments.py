@@ -30,10 +30,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import qdsearch
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.base import run_files  # noqa: E402
 from qdsearch.config import options, run_config  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def config_of(env_name: str) -> dict:

@@ -35,12 +35,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import qdsearch
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.base import run_files  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
 from qdsearch.config.options import search_defaults, with_task  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
 from qdsearch.tasks import fast_lander  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 CONFIG = run_config.check_run_config(with_task(dict(
     search_defaults(), algorithm="cma_me", seed=1, n_emitters=5, sigma0=1.0, batch_size=30,

@@ -35,8 +35,11 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "lunar_lander.py"
 sys.path.insert(0, str(ROOT))
 
+import qdsearch  # noqa: E402
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def timed(*args: str) -> float:

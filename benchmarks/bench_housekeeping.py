@@ -33,7 +33,10 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import qdsearch
 from qdsearch.search.cluster import QUIET_CLUSTER, QUIET_ENVIRONMENT  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def cpu_seconds(processes: list[psutil.Process]) -> list[float]:

@@ -23,8 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import qdsearch
 from qdsearch import tasks  # noqa: E402
 from qdsearch.tasks.policies import Policy  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 POLICIES = {"linear": Policy(), "mlp 64,64": Policy("mlp", (64, 64)),
             "mlp 128,128": Policy("mlp", (128, 128))}

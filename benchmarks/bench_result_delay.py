@@ -23,8 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import qdsearch
 from qdsearch import tasks  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def timed_chunk(solutions: np.ndarray, seeds: np.ndarray, env_name: str, interval: float) -> float:

@@ -28,9 +28,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import qdsearch  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
 from qdsearch.search import loop  # noqa: E402
 from qdsearch.store import saving  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def timed_saves(run: loop.Run, saves: int, processes: int) -> dict[str, float]:

@@ -13,8 +13,8 @@ from matplotlib.image import imread
 from ribs.archives import GridArchive
 from ribs.schedulers import Scheduler
 
-from qdsearch import cpu_flags
 from qdsearch.base import plots
+from qdsearch.base.kernels import cpu_flags
 from qdsearch.search import run
 from util import (
     TINY,

@@ -82,10 +82,13 @@ sys.path.insert(0, str(ROOT))
 
 from scale_records import OUT, summarise  # noqa: E402
 
+import qdsearch  # noqa: E402
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.base import run_files  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
 from qdsearch.search import engine, experiments, loop  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 VARIANTS = ("log_every", "savers", "chunks", "switch")  # the drive command's options a row may set
 # on a worker: task key -> (start, end, its thread), time.time(); the thread as "pid-ident"

@@ -21,9 +21,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+import qdsearch
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.config import options, run_config  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def record(iterations: int, env_name: str, seed: int) -> tuple[list[np.ndarray], float]:

@@ -70,7 +70,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent  # benchmarks/scale
 sys.path.insert(0, str(HERE.parents[1]))  # the repository: the package
 
+import qdsearch  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,9 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+import qdsearch
 from qdsearch import tasks  # noqa: E402
 from qdsearch.analysis.results import load_run  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+
+qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
 def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = tasks.DEFAULT_ENV,

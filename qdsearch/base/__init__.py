@@ -1,6 +1,7 @@
 """qdsearch.base: what every layer uses, knowing nothing of tasks, searches or the command line.
 
 Map, imports going down the list only:
+- kernels: what the command line sets before numpy and the rest load (`hold_kernels`);
 - flags: the `Flag` entry, the checkers, UsageError;
 - run_files: locks, atomic writes, JSON and pickles (a moved module's pickles found where it is
   now), logs; RunError;

@@ -5,3 +5,7 @@ Map, imports going down the list only:
 - parsing: the words typed, checked before Fire parses them, and the values Fire would misread;
 - app: the commands (COMMANDS), `main` (exit codes, the one-line messages) and `run_as_script`.
 """
+
+from qdsearch.base.kernels import hold_kernels
+
+hold_kernels()  # before numpy, numba, matplotlib or MuJoCo loads: the command line's bits
