@@ -3,7 +3,7 @@ the names it refuses: test_help.py)."""
 
 import pytest
 
-from qdsearch.config import options
+from qdsearch.config import settings
 from util import assert_one_line_error
 
 
@@ -50,10 +50,10 @@ def test_the_readmes_flag_table_says_what_the_flag_table_declares():
     shown = {None: ["none", "drawn", "the task's"], "cma_me": ["`cma_me`"],
              "LunarLander-v3": ["`LunarLander-v3`"]}
     for name, default in rows:
-        assert name in options.SEARCH_FLAGS, name
-        flag = options.SEARCH_FLAGS[name]
+        assert name in settings.SEARCH_FLAGS, name
+        flag = settings.SEARCH_FLAGS[name]
         expected = {"outdir": ["`outputs/<timestamp>_seed<seed>`"],  # the default says where
-                    "grid": [f"{options.DEFAULT_GRID} on a grid"],  # or of what archive
-                    "cells": [f"{options.DEFAULT_CVT_CELLS} in a CVT"]}.get(
+                    "grid": [f"{settings.DEFAULT_GRID} on a grid"],  # or of what archive
+                    "cells": [f"{settings.DEFAULT_CVT_CELLS} in a CVT"]}.get(
             name, shown.get(flag.default, [str(flag.default)]))
         assert default.strip() in expected, (name, default)

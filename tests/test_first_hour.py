@@ -13,7 +13,7 @@ import pytest
 
 from conftest import ROOT
 from qdsearch.analysis import comparison, results
-from qdsearch.config.options import SEARCH_FLAGS
+from qdsearch.config.settings import SEARCH_FLAGS
 from qdsearch.search import experiments
 from util import run_archive, tiny_flags
 

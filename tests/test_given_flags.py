@@ -11,7 +11,7 @@ import fire
 import pytest
 
 from qdsearch.base.flags import Flag, UsageError, takes
-from qdsearch.config import options, run_config
+from qdsearch.config import options, run_config, settings
 from qdsearch.search import experiments, run
 from qdsearch.store import trackers
 from util import assert_one_line_error, folder_state
@@ -55,7 +55,7 @@ ROWS = {
     "track": (TRACKER, {}),
     "fast_env": (False, {}),
 }
-FROM_CONFIG = [flag for flag in options.SEARCH_FLAGS if flag not in run.NOT_FROM_CONFIG]
+FROM_CONFIG = [flag for flag in settings.SEARCH_FLAGS if flag not in run.NOT_FROM_CONFIG]
 SEED = 7  # every file's: a run's seed is in its config
 
 

@@ -9,7 +9,7 @@ from qdsearch import algorithms, tasks
 from qdsearch.base import flags
 from qdsearch.cli import app as ll
 from qdsearch.cli import help as cli_help
-from qdsearch.config import options
+from qdsearch.config import options, settings
 from util import assert_one_line_error
 
 
@@ -30,7 +30,7 @@ def declared(name: str) -> dict[str, str]:
     took (flag_table), and for experiment the search flags it passes on to every run."""
     function = ll.command(name)
     own = inspect.signature(function).parameters
-    passed_on = {flag: options.SEARCH_FLAGS[flag].help for flag in ll.known_flags(function)
+    passed_on = {flag: settings.SEARCH_FLAGS[flag].help for flag in ll.known_flags(function)
                  if flag not in own}
     return {**passed_on, **{flag: entry.help for flag, entry in flags.flag_table(function).items()}}
 
@@ -38,9 +38,9 @@ def declared(name: str) -> dict[str, str]:
 def test_the_tables_are_the_flags_commands_take():
     """What the page test below checks is every table: search takes SEARCH_FLAGS whole, and each
     of CLUSTER_FLAGS and SELECTION_FLAGS is taken by some command."""
-    assert flags.flag_table(ll.command("search")) == options.SEARCH_FLAGS
+    assert flags.flag_table(ll.command("search")) == settings.SEARCH_FLAGS
     taken = {flag for name in ll.COMMANDS for flag in flags.flag_table(ll.command(name))}
-    assert set(options.CLUSTER_FLAGS) | set(options.SELECTION_FLAGS) <= taken
+    assert set(settings.CLUSTER_FLAGS) | set(options.SELECTION_FLAGS) <= taken
 
 
 @pytest.mark.parametrize("name", ll.COMMANDS)
@@ -117,7 +117,7 @@ def test_a_refused_name_is_named_with_the_name_it_likely_meant(run_cli, tmp_path
 @pytest.mark.parametrize("typed, choices, meant", [
     ("sep-cma-mae", algorithms.ALGORITHMS, "sep_cma_mae"), ("CMA_ME", algorithms.ALGORITHMS, "cma_me"),
     ("y_vel", tasks.MEASURES, "impact_y_velocity"), ("hopper-v5", tasks.ENVIRONMENTS, "Hopper-v5"),
-    ("seeds", options.SEARCH_FLAGS, "seed"), ("zzzz", algorithms.ALGORITHMS, None),
+    ("seeds", settings.SEARCH_FLAGS, "seed"), ("zzzz", algorithms.ALGORITHMS, None),
 ])
 def test_nearest_is_the_name_a_typo_meant(typed, choices, meant):
     assert flags.nearest(typed, choices) == meant

@@ -75,5 +75,6 @@ def test_fly_elite_flies_every_elite_to_the_archives_numbers(tmp_path, dask_clus
         assert len(flight.episodes) == len(found.config["env_seed"])
         assert np.mean(flight.episodes["objective"]) == flight.objective
     if flags.get("reset") == "each":  # each elite from resets of its own
-        seeds = [tuple(qdsearch.fly_elite(folder, row).episodes["reset_seed"]) for row in found.archive.index[:4]]
+        seeds = [tuple(qdsearch.fly_elite(folder, row).episodes["reset_seed"])
+                 for row in found.archive.index[:4]]
         assert len(set(seeds)) == 4 and all(seed not in ((3, 5),) for seed in seeds)

@@ -13,6 +13,7 @@ from scipy import stats
 
 from qdsearch import tasks
 from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration, gradients
+from qdsearch.config import settings
 from qdsearch.config.run_config import load_run_config
 from qdsearch.search import experiments, run
 from qdsearch.tasks.policies import LINEAR, POLICIES, Policy, policy_of
@@ -93,9 +94,18 @@ def test_the_start_is_one_stream_of_draws_from_the_runs_seed():
 def test_a_policy_is_read_from_its_runs_config():
     """Runs from before --policy are linear; --hidden belongs to a network only; --start is any
     policy's (runs from before it start as their row does)."""
-    assert policy_of({}) == LINEAR and policy_of({"policy": "linear", "hidden": [8]}) == LINEAR
-    assert policy_of({"policy": "mlp", "hidden": [8, 4]}) == Policy("mlp", (8, 4))
-    assert policy_of({"policy": "linear", "start": "glorot"}) == Policy("linear", (), "glorot")
+    from qdsearch.base.flags import UsageError
+    from qdsearch.config.options import search_defaults
+    from qdsearch.config.run_config import check_run_config
+
+    recorded = {**search_defaults(), "seed": 1, "archive": "grid", "grid": 50}
+    before = {name: value for name, value in recorded.items() if name not in ("policy", "hidden", "start")}
+    assert policy_of(check_run_config(before)) == LINEAR
+    network = check_run_config({**recorded, "policy": "mlp", "hidden": [8, 4]})
+    assert policy_of(network) == Policy("mlp", (8, 4))
+    assert policy_of(check_run_config({**recorded, "start": "glorot"})) == Policy("linear", (), "glorot")
+    with pytest.raises(UsageError, match="--hidden is a flag of --policy mlp"):
+        check_run_config({**recorded, "hidden": [8]})
 
 
 def test_start_gives_either_form_either_start():
@@ -247,7 +257,7 @@ def test_a_budget_in_evaluations_sets_the_most_iterations_within_it():
     from qdsearch.config import options
 
     config = {**options.search_defaults(), **DQD, "iterations": 7}
-    for budget, iterations in [(34, 1), (135, 3), (136, 4), (10**12, options.MAX_ITERATIONS)]:
+    for budget, iterations in [(34, 1), (135, 3), (136, 4), (10**12, settings.MAX_ITERATIONS)]:
         made = options.with_budget({**config, "evaluations": budget})
         assert made == {**config, "evaluations": budget, "iterations": iterations}
         assert type(made["iterations"]) is int

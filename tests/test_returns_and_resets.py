@@ -20,8 +20,9 @@ import pytest
 from qdsearch import algorithms, tasks
 from qdsearch.analysis import comparison
 from qdsearch.base.flags import UsageError, check_flags
-from qdsearch.config import options
+from qdsearch.config import options, settings
 from qdsearch.config.options import search_defaults
+from qdsearch.config.run_config import check_run_config
 from qdsearch.search import experiments, run
 from util import LANDER, assert_one_line_error, run_archive, run_metrics, tiny_flags
 
@@ -50,11 +51,11 @@ def test_a_recorded_offset_is_the_runs_and_the_rest_follows_its_episode():
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), True, "-5", None])
 def test_a_qd_offset_must_be_a_number(value):
     if value is None:  # unset: the task's
-        assert check_flags(options.SEARCH_FLAGS, {"qd_offset": None}) == {"qd_offset": None}
+        assert check_flags(settings.SEARCH_FLAGS, {"qd_offset": None}) == {"qd_offset": None}
         return
     with pytest.raises(UsageError, match=f"^--qd_offset must be a number, got {re.escape(repr(value))}$"):
-        check_flags(options.SEARCH_FLAGS, {"qd_offset": value})
-    assert check_flags(options.SEARCH_FLAGS, {"qd_offset": -3}) == {"qd_offset": -3.0}
+        check_flags(settings.SEARCH_FLAGS, {"qd_offset": value})
+    assert check_flags(settings.SEARCH_FLAGS, {"qd_offset": -3}) == {"qd_offset": -3.0}
 
 
 def test_the_lander_keeps_its_offset_whatever_the_episode():
@@ -135,13 +136,15 @@ def hashed_seed(solution: np.ndarray, run_seed: int, env_seed: int) -> int:
 
 def test_each_solution_gets_its_own_reset_from_the_run_seed_env_seed_and_weights():
     solutions = np.random.default_rng(0).normal(size=(5, 32))
-    config = {"reset": "each", "env_seed": [52, 7], "seed": 11}
+    config = config_of(reset="each", env_seed=[52, 7], seed=11)
     seeds = tasks.reset_seeds(solutions, config)
     assert seeds.tolist() == [[hashed_seed(s, 11, 52), hashed_seed(s, 11, 7)] for s in solutions]
     assert len({int(seed) for seed in seeds.ravel()}) == 10  # all different
-    assert tasks.reset_seeds(solutions, {**config, "reset": "fixed"}).tolist() == [[52, 7]] * 5
+    assert tasks.reset_seeds(solutions, config.replace(reset="fixed")).tolist() == [[52, 7]] * 5
     assert tasks.flown_seeds(solutions, 7, config) == seeds[:, 1].tolist()
-    before = {"env_seed": [52], "seed": 11}  # a run from before --reset
+    recorded = {**config.to_json(), "env_seed": [52]}
+    del recorded["reset"]  # a run from before --reset
+    before = check_run_config(recorded)
     assert tasks.reset_seeds(solutions, before).tolist() == [[52]] * 5
     assert tasks.flown_seeds(solutions, 7, before) == [7] * 5
 

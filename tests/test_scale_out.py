@@ -70,6 +70,8 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
     import json
 
     from conftest import ROOT
+    from qdsearch import tasks
+    from qdsearch.config.run_config import check_run_config
     from qdsearch.store import saving
     from util import read_checkpoint
 
@@ -84,8 +86,9 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
 
     checkpoint = read_checkpoint(tmp_path / "run" / "checkpoint.pkl")
     (tmp_path / "here").mkdir()
+    heat = tasks.returns_of(check_run_config(checkpoint["config"])).heat
     saving.save_outputs(tmp_path / "here", checkpoint["scheduler"].result_archive, checkpoint["metrics"],
-                      checkpoint["config"], checkpoint["iteration"])
+                        checkpoint["config"], checkpoint["iteration"], heat)
     names = ["archive.csv", "heatmap.png", "progress.png",
              f"heatmaps/heatmap_{checkpoint['iteration']:05d}.png"]
     assert all((tmp_path / "run" / name).read_bytes() == (tmp_path / "here" / name).read_bytes()

@@ -12,7 +12,7 @@ import qdsearch
 from qdsearch import algorithms, tasks
 from qdsearch.base import flags
 from qdsearch.base.flags import UsageError
-from qdsearch.config import options
+from qdsearch.config import settings
 from util import LANDER, assert_one_line_error
 
 
@@ -61,10 +61,10 @@ def test_a_name_that_heads_one_choice_is_taken_for_it(run_cli, tmp_path, args, l
 
 
 @pytest.mark.parametrize("typed, choices, meant", [
-    ("cma_mega", algorithms.ALGORITHMS, "cma_mega_es"), ("from", options.SEARCH_FLAGS, "from_archive"),
+    ("cma_mega", algorithms.ALGORITHMS, "cma_mega_es"), ("from", settings.SEARCH_FLAGS, "from_archive"),
     ("max", tasks.MEASURES, "max_tilt"),
     # a head of several choices names none of them: difflib's nearest whole name, as before
-    ("impact", tasks.MEASURES, "impact_x"), ("seeds", options.SEARCH_FLAGS, "seed"),
+    ("impact", tasks.MEASURES, "impact_x"), ("seeds", settings.SEARCH_FLAGS, "seed"),
 ])
 def test_a_head_wins_only_when_it_heads_one_choice(typed, choices, meant):
     assert flags.nearest(typed, choices) == meant
@@ -76,8 +76,8 @@ def test_a_head_wins_only_when_it_heads_one_choice(typed, choices, meant):
     ("hopper-V5", tasks.ENVIRONMENTS, "Hopper-v5"),
     # a tail after any underscore, for a head the user may not know; whole names come first
     ("y_vel", tasks.MEASURES, "impact_y_velocity"), ("Y-VELOCITY", tasks.MEASURES, "impact_y_velocity"),
-    ("x_velocty", tasks.MEASURES, "impact_x_velocity"), ("seed", options.SEARCH_FLAGS, "seed"),
-    ("sed", options.SEARCH_FLAGS, "seed"), ("nothing_near", algorithms.ALGORITHMS, None),
+    ("x_velocty", tasks.MEASURES, "impact_x_velocity"), ("seed", settings.SEARCH_FLAGS, "seed"),
+    ("sed", settings.SEARCH_FLAGS, "seed"), ("nothing_near", algorithms.ALGORITHMS, None),
 ])
 def test_the_nearest_name_is_found_whatever_the_case_dashes_or_head(typed, choices, meant):
     assert flags.nearest(typed, choices) == meant
@@ -85,7 +85,7 @@ def test_the_nearest_name_is_found_whatever_the_case_dashes_or_head(typed, choic
 
 @pytest.mark.parametrize("typed", ["cma_mu", "cma_mega", "sep_cma", "impact_y_vel", "max_tit", "env_sed"])
 def test_a_name_typed_with_dashes_or_capitals_is_taken_as_with_underscores(typed):
-    for choices in (algorithms.ALGORITHMS, options.SEARCH_FLAGS, tasks.MEASURES):
+    for choices in (algorithms.ALGORITHMS, settings.SEARCH_FLAGS, tasks.MEASURES):
         assert flags.nearest(typed.replace("_", "-").upper(), choices) == flags.nearest(typed, choices)
 
 

@@ -30,8 +30,9 @@ from qdsearch.analysis.run_folder import elite_rows, load_run
 from qdsearch.base.flags import UsageError, boolean, positive_int, seed_list, takes, whole_number_up_to
 from qdsearch.base.plots import save_heatmap
 from qdsearch.base.run_files import check_writable, console_log, write_csv, write_json, write_pickle
-from qdsearch.config.options import CLUSTER_FLAGS, check_rollouts, checked
+from qdsearch.config.options import check_rollouts, checked
 from qdsearch.config.run_config import RunConfig
+from qdsearch.config.settings import CLUSTER_FLAGS
 from qdsearch.search.cluster import dask_client, scheduler_of
 from qdsearch.search.engine import averaged, gather_with_progress, per_terrain, submit_flights
 from qdsearch.search.experiment_folder import read_experiment

@@ -23,8 +23,9 @@ from qdsearch.algorithms import cvt_positions, kind_of, task_of
 from qdsearch.analysis.run_folder import elite_rows, load_run, shown_terrain
 from qdsearch.base.flags import takes
 from qdsearch.base.run_files import atomic_write, check_writable, console_log
-from qdsearch.config.options import CLUSTER_FLAGS, TERRAIN_FLAGS, checked
+from qdsearch.config.options import TERRAIN_FLAGS, checked
 from qdsearch.config.run_config import RunConfig
+from qdsearch.config.settings import CLUSTER_FLAGS
 from qdsearch.search.cluster import dask_client, scheduler_of
 from qdsearch.search.engine import gather_with_progress, worker_env
 from qdsearch.store.metrics import load_metrics

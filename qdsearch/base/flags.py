@@ -14,8 +14,9 @@ Map:
   `clipped` cuts a library's message, `one_line` keeps a message on one line;
 - `nearest` and `did_you_mean`: how every refusal of a name (a task, an algorithm, a measure,
   a tracker, a command, a flag) ends, with the name the user most likely meant;
-- `Flag`, `check_flags` (values through their entries' checks), `takes` (the decorator) and
-  `flag_table` (the flags a command took from the tables);
+- `Flag`, `flag` (a settings class's field that is a flag) and `flags_of` (a class's flags as a
+  command's table), `check_flags` (values through their entries' checks), `takes` (the
+  decorator) and `flag_table` (the flags a command took from the tables);
 - `summary`: a docstring's first line (the tables' rows describe themselves by it).
 
 The command line (qdsearch.cli) renders --help and parses the text typed from these entries.
@@ -190,12 +191,6 @@ def one_line(text: str) -> str:
                    ("Cc", "Zl", "Zp") else char for char in text)
 
 
-def setting(config: Any, name: str) -> Any:
-    """A flag's value in a run's config, a RunConfig or a dict (None: not recorded, as in runs from
-    before the flag)."""
-    return config.get(name) if isinstance(config, dict) else getattr(config, name, None)
-
-
 def shown(value: Any, limit: int = 80) -> str:
     """A value as an error message quotes it: its repr, cut to `limit` characters, on one line."""
     text = repr(value)
@@ -236,6 +231,19 @@ class Flag:
     label: int = 0  # >0: a value other than the default names a run's setting, at this place
     before: Any = None  # what runs recorded before the flag existed ran with (None: the default)
     text: bool = False  # the command line hands its check the text as typed (not Fire's literal)
+
+
+def flag(default: Any, help: str, check: Check | None = None, **parts: Any) -> Any:
+    """A field of a settings class that is a flag: its Flag entry (default, --help line, check,
+    part in experiments) in the field's metadata. The field has no default of its own: a config
+    is made from values that were all given and checked."""
+    return dataclasses.field(metadata={"flag": Flag(default, help, check, **parts)})
+
+
+def flags_of(*sections: type) -> dict[str, Flag]:
+    """The flags of settings classes, in their fields' order: a command's table."""
+    return {field.name: field.metadata["flag"] for section in sections
+            for field in dataclasses.fields(section) if "flag" in field.metadata}
 
 
 def check_flags(table: dict[str, Flag], values: dict[str, Any]) -> dict[str, Any]:

@@ -22,7 +22,8 @@ from qdsearch.base.run_files import RunError, fault_text
 from qdsearch.base.stopping import STOP, Stopped
 from qdsearch.cli.help import help_page
 from qdsearch.cli.parsing import as_typed, known_flags, reject_unknown_flags, text_flags, typed_flags
-from qdsearch.config.options import SEARCH_FLAGS, refuse_unused_row_flags
+from qdsearch.config.options import refuse_unused_row_flags
+from qdsearch.config.settings import SEARCH_FLAGS
 
 if multiprocessing.parent_process() is not None:
     # A local worker or saver process (multiprocessing starts them from the command line's main

@@ -11,7 +11,7 @@ import inspect
 from typing import Callable
 
 from qdsearch.base.flags import UsageError, did_you_mean, flag_table, shown
-from qdsearch.config.options import SEARCH_FLAGS
+from qdsearch.config.settings import SEARCH_FLAGS
 
 
 def known_flags(function: Callable) -> list[str]:

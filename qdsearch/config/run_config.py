@@ -1,12 +1,11 @@
-"""A run's configuration: the typed RunConfig made from the flag tables, the one `upgrade` of old
-folders, and config.json, the checkpoint and the archive read back, checked against the flags,
-each other and the archive. Nothing here unpickles a file that is not signed with the user's key
-(signing.py): the results commands read the archive as data (archive_data.py).
+"""A run's configuration: the typed RunConfig (settings.py) made from flags or a record, the one
+`upgrade` of old folders, and config.json, the checkpoint and the archive read back, checked
+against the flags, each other and the archive. Nothing here unpickles a file that is not signed
+with the user's key (signing.py): the results commands read the archive as data (archive_data.py).
 
 Map:
-- `RunConfig` (a frozen dataclass: a field per search flag, typed by what its check returns, and
-  RECORDS, what a run notes about itself), `upgrade`, `check_run_config` (every value checked:
-  the one way a RunConfig is made), `write_config`;
+- `upgrade`, `check_run_config` (every value checked: the one way a RunConfig, settings.py's, is
+  made from flags or a record), `write_config`;
 - CHECKPOINT_FORMAT; `load_checkpoint` (signed, or trusted: resume --trust);
 - `load_run_config`, `load_checked_config` (what the results commands read: config.json checked
   against archive.npz's config), `load_run_state` (what resume reads), `check_same_config`,
@@ -17,7 +16,6 @@ Map:
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import io
 import os
@@ -27,12 +25,10 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, archive_shape, kind_of
-from qdsearch.base.flags import Flag, UsageError, check_flags, seed_number, shown
+from qdsearch.base.flags import UsageError, check_flags, seed_number, shown
 from qdsearch.base.run_files import read_regular, read_run_json, write_json
 from qdsearch.base.signing import read_signed_pickle
 from qdsearch.config.options import (
-    CLUSTER_FLAGS,
-    SEARCH_FLAGS,
     before_the_flags,
     check_sizes,
     legacy_offset,
@@ -40,49 +36,9 @@ from qdsearch.config.options import (
     with_offset,
     with_task,
 )
+from qdsearch.config.settings import CLUSTER_FLAGS, RECORDS, SEARCH_FLAGS, RunConfig, RunRecords
 from qdsearch.store.archive_data import archive_from_csv, empty_archive, read_archive_data, recorded_config
 from qdsearch.store.metrics import check_metrics
-
-# What a run's config.json notes about the run besides its flags: each field's type, and what a
-# run that did not note it holds.
-RECORDS: dict[str, tuple[str, type, Any]] = {  # field: its annotation, the JSON type it holds, unset
-    "created": ("str | None", str, None),  # when it was started
-    "command": ("list[str]", list, []),  # the command line that started it
-    "versions": ("dict[str, str]", dict, {}),  # the libraries it ran with
-    "experiment": ("str | None", str, None),  # the experiment folder it is a run of
-    "resumed": ("list[dict]", list, []),  # each resumption: when, from and to which iteration, workers
-}
-
-
-def flag_type(flag: Flag) -> str:
-    """A flag's type in a run's config: what its check returns (no check: a path or an address;
-    a flag without a default may be unset: --grid of a CVT run)."""
-    if flag.check is None:
-        return "str | None"
-    kind = flag.check.__annotations__.get("return", "Any")
-    return f"{kind} | None" if flag.default is None else kind
-
-
-class Settings:
-    """What a RunConfig does besides holding its fields."""
-
-    def to_json(self) -> dict[str, Any]:
-        """The config as config.json and the checkpoint hold it: a plain dict, flags first."""
-        return {field.name: copy.deepcopy(getattr(self, field.name)) for field in dataclasses.fields(self)}
-
-    def replace(self, **changes: Any) -> RunConfig:
-        return dataclasses.replace(self, **changes)
-
-
-# A run's settings, read everywhere as config.<flag>: one field per flag of SEARCH_FLAGS (so a new
-# flag is a field at once), then RECORDS. Made only by check_run_config, so every value is checked.
-RunConfig = dataclasses.make_dataclass(
-    "RunConfig",
-    [*((name, flag_type(flag)) for name, flag in SEARCH_FLAGS.items()),
-     *((name, kind, dataclasses.field(default_factory=lambda value=value: copy.deepcopy(value)))
-       for name, (kind, _, value) in RECORDS.items())],
-    bases=(Settings,), frozen=True)
-RunConfig.__module__ = __name__  # (make_dataclass takes `module` from Python 3.12 on)
 
 
 def upgrade(recorded: dict) -> dict:
@@ -269,9 +225,9 @@ def check_run_config(recorded: Any) -> RunConfig:
     config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
     if config["archive"] is None or config[size := ARCHIVES[config["archive"]]["size"]] is None:
         raise UsageError(f"--{'archive' if config['archive'] is None else size} is null")
-    for name, (kind, holds, _) in RECORDS.items():
-        if config.get(name) is not None and not isinstance(config[name], holds):
-            raise UsageError(f"{name} is {shown(config[name])}, not a {kind}")
+    for field in dataclasses.fields(RunRecords):
+        if config.get(field.name) is not None and not isinstance(config[field.name], RECORDS[field.name]):
+            raise UsageError(f"{field.name} is {shown(config[field.name])}, not a {field.type}")
     config = with_offset(with_task(config))
     seed_number("seed", config["seed"])
     check_sizes(config)

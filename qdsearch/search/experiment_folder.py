@@ -17,8 +17,9 @@ from pathlib import Path
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.base.flags import UsageError, check_flags, shown
 from qdsearch.base.run_files import read_run_json
-from qdsearch.config.options import SEARCH_FLAGS, checked, ignores, own_flags, search_defaults, with_task
+from qdsearch.config.options import checked, ignores, own_flags, search_defaults, with_task
 from qdsearch.config.run_config import upgrade
+from qdsearch.config.settings import SEARCH_FLAGS
 from qdsearch.search.parts import merge_part_states, part_of
 
 EXPERIMENT_FORMAT = "lunar_lander.experiment/1"

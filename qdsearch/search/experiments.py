@@ -59,11 +59,7 @@ from qdsearch.base.run_files import (
 )
 from qdsearch.base.signing import adopt
 from qdsearch.config.options import (
-    BUDGETS,
-    CLUSTER_FLAGS,
-    POLICY_FLAGS,
     RESUME_FLAGS,
-    SEARCH_FLAGS,
     check_memory,
     check_sizes,
     checked,
@@ -77,6 +73,7 @@ from qdsearch.config.options import (
     with_task,
 )
 from qdsearch.config.run_config import check_run_config, load_run_state, upgrade, write_config
+from qdsearch.config.settings import BUDGETS, CLUSTER_FLAGS, POLICY_FLAGS, SEARCH_FLAGS
 from qdsearch.search.cluster import scheduler_of
 from qdsearch.search.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting, shortened
 from qdsearch.search.loop import Driver, Run

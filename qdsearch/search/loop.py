@@ -45,7 +45,7 @@ from qdsearch.search.engine import ClusterShare, averaged, evaluate_batch, per_t
 from qdsearch.store.metrics import describe_progress, iteration_metrics
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
-from qdsearch.tasks import episode_of, reset_seeds
+from qdsearch.tasks import episode_of, reset_seeds, returns_of
 from qdsearch.tasks.policies import policy_of
 
 
@@ -211,7 +211,7 @@ class Run:
         write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(checkpoint))
         self.saved = checkpoint["iteration"]
         savers.write_outputs(self.dir, checkpoint["scheduler"].result_archive, checkpoint["metrics"],
-                             checkpoint["config"], checkpoint["iteration"])
+                             checkpoint["config"], checkpoint["iteration"], returns_of(self.config).heat)
         with savers.one_at_a_time:
             self.tracking.save(checkpoint["metrics"])
 

@@ -33,17 +33,9 @@ from qdsearch.base.run_files import (
 )
 from qdsearch.base.signing import adopt, read_signed_pickle
 from qdsearch.base.stopping import Stopped
-from qdsearch.config.options import (
-    BUDGETS,
-    CLUSTER_FLAGS,
-    RESUME_FLAGS,
-    SEARCH_FLAGS,
-    check_memory,
-    checked,
-    resumed_budget,
-    with_task,
-)
+from qdsearch.config.options import RESUME_FLAGS, check_memory, checked, resumed_budget, with_task
 from qdsearch.config.run_config import RunConfig, check_run_config, load_archive, load_run_state, write_config
+from qdsearch.config.settings import BUDGETS, CLUSTER_FLAGS, SEARCH_FLAGS
 from qdsearch.search.cluster import SchedulerLost, dask_client, scheduler_of
 from qdsearch.search.loop import OneRun, Run
 from qdsearch.tasks import check_spaces

@@ -28,14 +28,15 @@ from qdsearch.base import compact_pickle
 from qdsearch.base.plots import save_heatmap, save_progress_plot
 from qdsearch.base.run_files import atomic_write, write_csv, write_json, write_pickle
 from qdsearch.store.archive_data import write_archive_data
-from qdsearch.tasks import MEASURES, returns_of
+from qdsearch.tasks import MEASURES
 
 # At most this many saver processes a driver: two keep up with the saves of the largest
 # experiments docs/performance.md#saves predicts (benchmarks/bench_saves.py measures a save).
 SAVER_PROCESSES = 2
 
 
-def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
+def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int,
+                 heat: tuple[float, float]) -> None:
     """The run folder's files besides the checkpoint: metrics, the archive (archive.npz for the
     results commands, which never unpickle, and with --archive_pkl a pickle for pyribs' users),
     its CSV, and unless --pictures is false the heatmaps and the progress plot. At a full Lunar
@@ -49,15 +50,16 @@ def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iter
         write_pickle(run_dir / "archive.pkl", archive)
     write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
     if config["pictures"]:
-        save_pictures(run_dir, archive, metrics, config, iteration)
+        save_pictures(run_dir, archive, metrics, config, iteration, heat)
 
 
-def save_pictures(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int) -> None:
-    """The heatmap (a snapshot in heatmaps/, and heatmap.png) and the progress plot."""
+def save_pictures(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int,
+                  heat: tuple[float, float]) -> None:
+    """The heatmap (a snapshot in heatmaps/, and heatmap.png, its colours over the `heat` range of
+    objectives: tasks.Returns.heat) and the progress plot."""
     title = f"{config['algorithm']} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
-    save_heatmap(archive, [MEASURES[m] for m in config["measures"]], snapshot, title,
-                 returns_of(config).heat)
+    save_heatmap(archive, [MEASURES[m] for m in config["measures"]], snapshot, title, heat)
     atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
     save_progress_plot(metrics, run_dir / "progress.png")
 

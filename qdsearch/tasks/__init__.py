@@ -41,7 +41,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.base.flags import UsageError, setting
+from qdsearch.base.flags import UsageError
 from qdsearch.tasks.family import Environment, Family, Measure, OnStep, Returns, require_drawing
 from qdsearch.tasks.family import renderer_missing as renderer_missing  # results.py's video imports it here
 from qdsearch.tasks.policies import LINEAR, Policy
@@ -111,15 +111,14 @@ TASKS_OWN = Episode()
 
 
 def episode_of(config: Any) -> Episode:
-    """A run's episode rules, from its config (a RunConfig or a dict); runs from before the flags
-    flew the task's own."""
-    return Episode(setting(config, "episode_length"), setting(config, "terminate_when_unhealthy"))
+    """A run's episode rules, from its config (a RunConfig); runs from before the flags flew the
+    task's own (None: the task's)."""
+    return Episode(config.episode_length, config.terminate_when_unhealthy)
 
 
 def returns_of(config: Any) -> Returns:
     """A run's range of objectives (its QD offset as recorded, the rest for its episode's length)."""
-    return ENVIRONMENTS[setting(config, "env") or DEFAULT_ENV].returns(
-        episode_of(config).length, setting(config, "qd_offset"))
+    return ENVIRONMENTS[config.env].returns(episode_of(config).length, config.qd_offset)
 
 
 def fixed_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np.ndarray:
@@ -146,8 +145,8 @@ RESETS = {"fixed": fixed_resets, "each": own_resets}
 def reset_seeds(solutions: np.ndarray, config: Any, env_seeds: list[int] | None = None) -> np.ndarray:
     """The reset seeds of each solution's episodes in a run: a row per solution, a column per env
     seed (its --env_seed, or `env_seeds`; runs from before --reset flew fixed ones)."""
-    seeds = list(setting(config, "env_seed")) if env_seeds is None else env_seeds
-    return RESETS[setting(config, "reset") or "fixed"](solutions, seeds, setting(config, "seed"))
+    seeds = list(config.env_seed) if env_seeds is None else env_seeds
+    return RESETS[config.reset](solutions, seeds, config.seed)
 
 
 def flown_seeds(solutions: np.ndarray, env_seed: int, config: Any) -> list[int]:

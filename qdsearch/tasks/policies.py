@@ -22,8 +22,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from qdsearch.base.flags import setting
-
 Shape = tuple[int, int]  # (actions, observations), from the task's spaces
 
 
@@ -156,6 +154,5 @@ LINEAR = Policy()
 def policy_of(config: Any) -> Policy:
     """A run's policy, from its config (a RunConfig or a dict): --policy, --hidden if its row uses
     it, and --start. Runs from before --policy are linear, from before --start the row's own."""
-    kind = setting(config, "policy") or "linear"
-    hidden = tuple(setting(config, "hidden") or ()) if "hidden" in POLICIES[kind].flags else ()
-    return Policy(kind, hidden, setting(config, "start") or "")
+    hidden = tuple(config.hidden or ()) if "hidden" in POLICIES[config.policy].flags else ()
+    return Policy(config.policy, hidden, config.start or "")
