@@ -90,8 +90,8 @@ def main(iterations: int = 10, workers: int = 2, envs: str = ",".join(tasks.ENVI
     with cluster, Client(cluster) as client:
         for env_name in envs:
             nothing = np.zeros((1, tasks.ENVIRONMENTS[env_name].solution_dim))
-            client.gather(client.map(engine.fly_chunk, [nothing] * workers, [[52]] * workers, [()] * workers,
-                                     [True] * workers, [env_name] * workers, pure=False))  # warm
+            warm = engine.Chunk(nothing, np.array([52]), (), env_name)
+            client.gather(client.map(engine.fly_chunk, [warm] * workers, pure=False))  # warm
             serial, engined = serial_search(env_name, iterations), engine_search(env_name, iterations, client)
             rows.append({
                 "env": env_name, "iterations": iterations, "episodes": serial["episodes"],

@@ -131,9 +131,8 @@ def local_client(workers: int):
     client = Client(cluster)
     client.wait_for_workers(workers)
     # Warm-up, untimed: every worker imports the product and gymnasium once.
-    client.gather(client.map(engine.fly_chunk, [np.zeros((1, 32))] * workers, env_seeds=[52],
-                             measures=tasks.TUTORIAL_MEASURES, fast_env=True, env_name=CONFIG.env,
-                             pure=False))
+    warm = engine.Chunk(np.zeros((1, 32)), np.array([52]), tuple(tasks.TUTORIAL_MEASURES), CONFIG.env)
+    client.gather(client.map(engine.fly_chunk, [warm] * workers, pure=False))
     return cluster, client
 
 

@@ -34,7 +34,7 @@ def timed_chunk(solutions: np.ndarray, seeds: np.ndarray, env_name: str, interva
     """Runs on the worker: with this switch interval, fly the chunk as the engine does; the wall
     time it ended."""
     sys.setswitchinterval(interval)
-    engine.fly_chunk(solutions, seeds, (), True, env_name)
+    engine.fly_chunk(engine.Chunk(solutions, seeds, (), env_name))
     return time.time()
 
 

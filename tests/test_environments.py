@@ -60,8 +60,8 @@ def test_an_episode_is_the_same_wherever_it_is_flown(env_name, dask_client):
     rendering = tasks.make_env(False, "rgb_array", env_name=env_name)
     rendering.reset(seed=0)
     rendering.render()  # a frame drawn before the episode changes nothing
-    remote = dask_client.submit(engine.fly_chunk, solutions, np.full(len(solutions), 3), task.measures,
-                                True, env_name, pure=False).result()
+    remote = dask_client.submit(engine.fly_chunk, engine.Chunk(solutions, np.full(len(solutions), 3),
+                                                               task.measures, env_name), pure=False).result()
     assert fresh == reused
     assert tasks.rollout(solutions[0], 3, rendering, env_name=env_name) == fresh[0]
     assert remote.tolist() == [list(row) for row in fresh]

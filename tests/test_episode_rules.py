@@ -31,8 +31,8 @@ def hand_flown(solution, length: int | None) -> tuple[float, int]:
 
 def chunk_objective(length: int | None, fast: bool = True) -> float:
     """The objective a worker's chunk gives HOVER_W under these rules (the chunk's env reused)."""
-    rows = engine.fly_chunk(np.array([HOVER_W]), np.array([TERRAIN]), (), fast, LANDER,
-                            episode=tasks.Episode(length))
+    rows = engine.fly_chunk(engine.Chunk(np.array([HOVER_W]), np.array([TERRAIN]), (), LANDER,
+                                         episode=tasks.Episode(length), fast_env=fast))
     return float(rows[0, 0])
 
 

@@ -97,7 +97,7 @@ def test_worker_chunk_matches_single_rollouts():
     env = gym.make("LunarLander-v3")
     expected = [tasks.rollout(s, int(seed), env, ("fuel",), env_name=LANDER)
                 for s, seed in zip(solutions, seeds)]
-    flown = engine.fly_chunk(solutions, seeds, ("fuel",), True, LANDER)
+    flown = engine.fly_chunk(engine.Chunk(solutions, seeds, ("fuel",), LANDER))
     assert flown.tolist() == [list(row) for row in expected]
 
 
@@ -169,7 +169,7 @@ def test_a_worker_of_several_threads_flies_as_a_worker_of_one():
     from dask.distributed import Client
 
     solutions = np.random.default_rng(0).normal(0, 1, (150, tasks.ENVIRONMENTS[LANDER].solution_dim))
-    serial = engine.fly_chunk(solutions, np.full(150, 52), (), True, LANDER)
+    serial = engine.fly_chunk(engine.Chunk(solutions, np.full(150, 52), (), LANDER))
     with local_cluster(1, threads=4) as cluster, Client(cluster) as client:
         futures = engine.submit_flights(client, solutions, [52], (), True, env_name=LANDER)
         assert len(futures) == 8  # 2 chunks for each of the 4 threads, flown at once

@@ -117,9 +117,10 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
 
 def simulated_chunk(lengths: list[int], step_s: float):
     """The stand-in for qdsearch.search.engine.fly_chunk on the simulated workers."""
-    def fly_chunk(solutions, env_seeds, measures, fast_env, env_name):
+    def fly_chunk(chunk):
         from distributed.worker import thread_state
 
+        solutions, measures = chunk.solutions, chunk.measures
         start = time.time()
         steps = [lengths[zlib.crc32(np.asarray(s).tobytes()) % len(lengths)] for s in solutions]
         time.sleep(sum(steps) * step_s)

@@ -1,8 +1,8 @@
 """The evaluation engine: batches of rollouts on a Dask cluster.
 
 Map:
-- on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a chunk of
-  (solution, terrain) rollouts);
+- on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a `Chunk`: one
+  task's (solution, reset seed) rollouts, and what they fly as);
 - in the driver: `submit_flights` (the chunks, as many as `chunk_count` says from
   `chunks_per_worker`, MIN_CHUNK and MAX_CHUNK, the rollouts dealt out to them by
   `chunk_pairs`; batches flown first come, first served: FIFO_TIMEOUT), `per_terrain` and
@@ -14,6 +14,7 @@ Map:
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from typing import Any
@@ -39,19 +40,31 @@ def worker_env(env_name: str, fast: bool = True, episode: Episode = TASKS_OWN) -
     return _WORKER_ENVS[key]
 
 
-def fly_chunk(solutions: np.ndarray, env_seeds: np.ndarray, measures: tuple[str, ...],
-              fast_env: bool, env_name: str, policy: Policy = LINEAR,
-              episode: Episode = TASKS_OWN) -> np.ndarray:
-    """Runs on a worker: fly solutions[i] as `policy` on terrain env_seeds[i], by the `episode`
-    rules; rows of (objective, *measures).
+@dataclasses.dataclass(frozen=True)
+class Chunk:
+    """One task's work on a worker: rollout i flies solutions[i] as `policy` from reset seed
+    env_seeds[i], by the `episode` rules, in the task `env_name` (its streamlined copy where it
+    has one and `fast_env`), and is scored by its objective and `measures`."""
+
+    solutions: np.ndarray  # a row per rollout
+    env_seeds: np.ndarray  # a reset seed per rollout
+    measures: tuple[str, ...]
+    env_name: str
+    policy: Policy = LINEAR
+    episode: Episode = TASKS_OWN
+    fast_env: bool = True
+
+
+def fly_chunk(chunk: Chunk) -> np.ndarray:
+    """Runs on a worker: the chunk's rollouts, rows of (objective, *measures).
 
     A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
     small next to the rollouts, and the environment is kept between tasks (worker_env).
     """
-    env = worker_env(env_name, fast_env, episode)
-    rows = [rollout(solution, int(seed), env, measures, env_name=env_name, policy=policy)
-            for solution, seed in zip(solutions, env_seeds)]
-    return np.array(rows).reshape(-1, 1 + len(measures))
+    env = worker_env(chunk.env_name, chunk.fast_env, chunk.episode)
+    rows = [rollout(solution, int(seed), env, chunk.measures, env_name=chunk.env_name, policy=chunk.policy)
+            for solution, seed in zip(chunk.solutions, chunk.env_seeds)]
+    return np.array(rows).reshape(-1, 1 + len(chunk.measures))
 
 
 # Two chunks per worker; three where several runs in flight each have two workers or more: it paid
@@ -107,11 +120,9 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int] | np.ndar
     seeds = np.broadcast_to(terrains, (len(solutions), terrains.shape[-1])).reshape(-1)
     pairs, per_solution = len(seeds), terrains.shape[-1]
     chunks = chunk_pairs(pairs, chunk_count(pairs, workers, sharing))
-    return client.map(fly_chunk, [solutions[chunk // per_solution] for chunk in chunks],
-                      [seeds[chunk] for chunk in chunks], [tuple(measures)] * len(chunks),
-                      [fast_env] * len(chunks), [env_name] * len(chunks), [policy] * len(chunks),
-                      [episode] * len(chunks), pure=False, retries=3,
-                      fifo_timeout=FIFO_TIMEOUT)
+    work = [Chunk(solutions[dealt // per_solution], seeds[dealt], tuple(measures), env_name, policy, episode,
+                  fast_env) for dealt in chunks]
+    return client.map(fly_chunk, work, pure=False, retries=3, fifo_timeout=FIFO_TIMEOUT)
 
 
 def chunk_pairs(pairs: int, count: int) -> list[np.ndarray]:
