@@ -135,3 +135,27 @@ def test_a_docstrings_args_are_read_by_indent_not_by_colons():
     assert cli_help.documented_arguments(command.__doc__) == {
         "run_dir": "A folder: any.",
         "part": "I/K: part I of K (a SLURM job array: docs/clusters.md), run again: it continues."}
+
+
+def test_a_runs_config_is_a_class_in_the_source_every_field_typed_and_on_the_help_page():
+    """RunConfig is the settings classes written in config/settings.py (no make_dataclass): a field
+    per flag, typed as its check returns (None where it may be unset), then the records; search's
+    --help lists every flag field."""
+    import dataclasses
+    import re
+
+    from conftest import ROOT
+
+    source = (ROOT / "qdsearch" / "config" / "settings.py").read_text()
+    fields = dataclasses.fields(settings.RunConfig)
+    assert [field.name for field in fields] == [*settings.SEARCH_FLAGS, *settings.RECORDS]
+    for field in fields:
+        assert re.search(rf"^    {field.name}: {re.escape(field.type)} = ", source, re.M), field.name
+    for name, entry in settings.SEARCH_FLAGS.items():
+        returned = entry.check.__annotations__["return"] if entry.check else "str"
+        typed = f"{returned} | None" if entry.default is None or entry.check is None else returned
+        assert fields[list(settings.SEARCH_FLAGS).index(name)].type == typed, name
+    package = "".join(path.read_text() for path in (ROOT / "qdsearch").rglob("*.py"))
+    assert "make_dataclass" not in package and "def setting(" not in package
+    page = ll.help_text("search", ll.command("search"))
+    assert all(f"--{name}=" in page for name in settings.SEARCH_FLAGS)

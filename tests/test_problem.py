@@ -11,6 +11,7 @@ from qdsearch import tasks
 from qdsearch.config import options, run_config
 from qdsearch.search import engine
 from qdsearch.tasks import lander
+from qdsearch.tasks.policies import Policy
 from util import LANDER, LANDER_W, local_cluster
 
 
@@ -99,6 +100,18 @@ def test_worker_chunk_matches_single_rollouts():
                 for s, seed in zip(solutions, seeds)]
     flown = engine.fly_chunk(engine.Chunk(solutions, seeds, ("fuel",), LANDER))
     assert flown.tolist() == [list(row) for row in expected]
+
+
+def test_a_chunk_flies_its_policy_by_its_episodes_rules():
+    """A chunk's policy (a network) and episode (30 steps) are the ones its rollouts fly."""
+    network, short = Policy("mlp", (4,)), tasks.Episode(30)
+    solutions = RNG.normal(size=(3, network.size(tasks.ENVIRONMENTS[LANDER].shape)))
+    env = tasks.plain_env(LANDER, episode=short)
+    expected = [tasks.rollout(s, 52, env, ("flight_time",), env_name=LANDER, policy=network)
+                for s in solutions]
+    chunk = engine.Chunk(solutions, np.full(3, 52), ("flight_time",), LANDER, network, short)
+    assert engine.fly_chunk(chunk).tolist() == [list(row) for row in expected]
+    assert all(row[1] <= 30 for row in expected)  # none flew past its 30 steps
 
 
 @pytest.mark.parametrize("terrains", [[52], [52, 7, 3]])

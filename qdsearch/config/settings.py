@@ -536,7 +536,7 @@ class RunConfig(RunRecords, ClusterSettings, OutputSettings, AlgorithmSettings, 
 
 
 def unchecked(values: dict[str, Any]) -> RunConfig:
-    """The RunConfig of values being checked (a flag not among them: None): the checks of what
-    flags make together (options.py) read a config as its typed fields before it is whole."""
-    return RunConfig(**{name: values.get(name) for name in SEARCH_FLAGS},
-                     **{name: values[name] for name in RECORDS if values.get(name) is not None})
+    """The RunConfig of values being checked (a flag not among them: None; no records): the checks
+    of what flags make together (options.py) read a config as its typed fields before it is
+    whole."""
+    return RunConfig(**{name: values.get(name) for name in SEARCH_FLAGS})
