@@ -22,7 +22,10 @@ import qdsearch
 
 qdsearch.hold_kernels()  # before numpy loads (the import below loads it)
 
+from qdsearch.base.flags import name_settings_as  # noqa: E402
 from qdsearch.search import run  # noqa: E402
+
+name_settings_as("--{}")  # the tests read the messages as the command line words them
 
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"

@@ -6,6 +6,7 @@ line (qdsearch.cli) is the top layer: no other imports it or Fire, and the packa
 the script."""
 
 import ast
+import re
 from pathlib import Path
 
 from conftest import ROOT
@@ -112,3 +113,46 @@ def test_the_import_check_sees_a_lazy_import_inside_a_function(tmp_path):
     path = tmp_path / "lazy.py"
     path.write_text("def f():\n    from qdsearch.search import run\n    import lunar_lander\n")
     assert imported_modules(path) >= {"qdsearch.search.run", "lunar_lander"}
+
+
+# The layers whose messages name a setting only through base.flags.named (the command line words
+# it as --name, a Python caller reads the keyword); the layers above still write some as --name.
+NAMING_LAYERS = ("base", "tasks", "algorithms", "store")
+
+
+def message_texts(path: Path) -> list[tuple[int, str]]:
+    """Each string a module may show (line, text): every literal but docstrings and the help a
+    table declares (a `help=`/`summary=` keyword, a Flag entry)."""
+    tree = ast.parse(path.read_text())
+    skipped = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef)) and ast.get_docstring(node):
+            skipped.add(id(node.body[0].value))
+        if isinstance(node, ast.keyword) and node.arg in ("help", "summary"):
+            skipped |= {id(inner) for inner in ast.walk(node.value)}
+        if isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("Flag", "flag"):
+            skipped |= {id(inner) for inner in ast.walk(node)}
+    texts = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr) and id(node) not in skipped:  # an f-string: {} for each value
+            skipped |= {id(part) for part in node.values}
+            texts.append((node.lineno, "".join(part.value if isinstance(part, ast.Constant) else "{}"
+                                               for part in node.values)))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in skipped:
+            texts.append((node.lineno, node.value))
+    return texts
+
+
+def test_the_lower_layers_name_no_flag_in_their_messages():
+    for layer in NAMING_LAYERS:
+        for path in (PACKAGE / layer).glob("*.py"):
+            flagged = [(line, text) for line, text in message_texts(path) if re.search(r"--[a-z{]", text)]
+            assert not flagged, (path, flagged)
+
+
+def test_the_check_sees_a_flag_in_a_message(tmp_path):
+    """The check itself: a flag written into a message is found, a docstring's and a help's not."""
+    path = tmp_path / "m.py"
+    path.write_text('"""Uses --env."""\nx = Flag(1, "--grid cells")\ndef f(name):\n'
+                    '    raise UsageError(f"--{name} is bad; see --env")\n')
+    assert [text for _, text in message_texts(path)] == ["--{} is bad; see --env"]

@@ -13,6 +13,7 @@ import pytest
 
 import qdsearch
 from conftest import ROOT
+from qdsearch import tasks
 from qdsearch.base import kernels
 from qdsearch.search import run
 from util import tiny_flags
@@ -78,3 +79,23 @@ def test_fly_elite_flies_every_elite_to_the_archives_numbers(tmp_path, dask_clus
         seeds = [tuple(qdsearch.fly_elite(folder, row).episodes["reset_seed"])
                  for row in found.archive.index[:4]]
         assert len(set(seeds)) == 4 and all(seed not in ((3, 5),) for seed in seeds)
+
+
+def test_a_python_caller_reads_each_setting_by_its_keyword_and_the_command_line_by_its_flag(monkeypatch):
+    """The messages name a setting through flags.named: the keyword to a Python caller (the
+    package's own wording), the flag once the command line words them (as conftest.py does)."""
+    from qdsearch.base import flags
+    from qdsearch.tasks import check_episode
+
+    monkeypatch.setitem(flags.NAMING, "style", "{}")  # a notebook's process: the command line never ran
+    with pytest.raises(flags.UsageError) as python:
+        flags.positive_int("workers", 0)
+    assert str(python.value) == "workers must be a positive whole number, got 0"
+    with pytest.raises(flags.UsageError, match=r"^terminate_when_unhealthy: env LunarLander-v3 has no"):
+        check_episode("LunarLander-v3", tasks.Episode(None, True))
+    flags.name_settings_as("--{}")
+    with pytest.raises(flags.UsageError, match="^--workers must be a positive whole number, got 0$"):
+        flags.positive_int("workers", 0)
+    show = "import qdsearch.base.flags as f; print(f.named('env'))"
+    assert settings_after(show)["printed"] == ["env"]
+    assert settings_after("import qdsearch.cli; " + show)["printed"] == ["--env"]

@@ -104,7 +104,7 @@ def test_a_changed_or_unsigned_pickle_is_loaded_only_if_trusted(key, tmp_path, c
         with pytest.raises(UsageError) as caught:
             signing.read_signed_pickle(path, "a checkpoint")
         assert str(caught.value) == (f"{path}: {problem}; not loaded, as a pickle may run any code it holds; "
-                                     f"{signing.TRUST} ({key})")
+                                     f"{signing.trust_hint()} ({key})")
         assert signing.read_signed_pickle(path, "a checkpoint", trust=True) == [1, 3]
         signing.adopt(path)
         assert capsys.readouterr().out == f"{path}: trusted (--trust), and signed with your key\n"

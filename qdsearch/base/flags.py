@@ -38,7 +38,23 @@ import numpy as np
 
 
 class UsageError(Exception):
-    """Bad input from the user: reported as one line on stderr, exit code 2."""
+    """Bad input from the user: reported as one line (the command line: on stderr, exit code 2).
+    Its words name each setting through `named`."""
+
+
+# How a message names a setting: as the keyword a Python caller passes (env), unless whoever
+# reports the messages words them otherwise (the command line: --env, `name_settings_as`).
+NAMING = {"style": "{}"}
+
+
+def named(setting: str) -> str:
+    """A setting as a message names it: `env` to a Python caller, `--env` on the command line."""
+    return NAMING["style"].format(setting)
+
+
+def name_settings_as(style: str) -> None:
+    """Word every later message's settings by `style` ("--{}": as flags)."""
+    NAMING["style"] = style
 
 
 Check = Callable[[str, Any], Any]
@@ -46,7 +62,7 @@ Check = Callable[[str, Any], Any]
 
 def positive_int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise UsageError(f"--{name} must be a positive whole number, got {shown(value)}")
+        raise UsageError(f"{named(name)} must be a positive whole number, got {shown(value)}")
     return value
 
 
@@ -55,7 +71,7 @@ def whole_number_up_to(most: int) -> Check:
     is allocated or written)."""
     def check(name: str, value: Any) -> int:
         if positive_int(name, value) > most:
-            raise UsageError(f"--{name} must be at most {most:,}, got {shown(value)}")
+            raise UsageError(f"{named(name)} must be at most {most:,}, got {shown(value)}")
         return value
     return check
 
@@ -67,20 +83,20 @@ MAX_SEEDS = 10_000  # seeds in one list or range (terrains to fly every policy o
 def seed_number(name: str, value: Any) -> int:
     """One seed: a whole number from 0 to MAX_SEED."""
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
-        raise UsageError(f"--{name} must be a whole number from 0 to {MAX_SEED}, got {shown(value)}")
+        raise UsageError(f"{named(name)} must be a whole number from 0 to {MAX_SEED}, got {shown(value)}")
     return value
 
 
 def positive_float(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
-        raise UsageError(f"--{name} must be a positive number, got {shown(value)}")
+        raise UsageError(f"{named(name)} must be a positive number, got {shown(value)}")
     return float(value)
 
 
 def finite_number(name: str, value: Any) -> float:
     """Any real number, as a float (a QD offset)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise UsageError(f"--{name} must be a number, got {shown(value)}")
+        raise UsageError(f"{named(name)} must be a number, got {shown(value)}")
     return float(value)
 
 
@@ -88,14 +104,14 @@ def number_up_to(most: float) -> Check:
     """A check for a positive number of at most `most`."""
     def check(name: str, value: Any) -> float:
         if positive_float(name, value) > most:
-            raise UsageError(f"--{name} must be at most {most:g}, got {shown(value)}")
+            raise UsageError(f"{named(name)} must be at most {most:g}, got {shown(value)}")
         return float(value)
     return check
 
 
 def fraction(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
-        raise UsageError(f"--{name} must be a number in (0, 1], got {shown(value)}")
+        raise UsageError(f"{named(name)} must be a number in (0, 1], got {shown(value)}")
     return float(value)
 
 
@@ -106,14 +122,14 @@ def boolean(name: str, value: Any) -> bool:
         return bool(value)
     if str(value).lower() in words:
         return words[str(value).lower()]
-    raise UsageError(f"--{name} must be true or false, got {shown(value)}")
+    raise UsageError(f"{named(name)} must be true or false, got {shown(value)}")
 
 
 def one_of(choices: dict) -> Check:
     """A check that the value is a key of `choices` (a table such as ALGORITHMS)."""
     def check(name: str, value: Any) -> str:
         if not isinstance(value, str) or value not in choices:
-            raise UsageError(f"--{name} {shown(value)} is unknown; {did_you_mean(value, choices)}")
+            raise UsageError(f"{named(name)} {shown(value)} is unknown; {did_you_mean(value, choices)}")
         return value
     return check
 
@@ -174,13 +190,14 @@ def seed_list(name: str, value: Any) -> list[int]:
         match = re.fullmatch(r"\s*(\d{1,20})\s*(?:-\s*(\d{1,20})\s*)?", part)
         first, last = (int(match[1]), int(match[2] or match[1])) if match else (0, -1)
         if isinstance(value, bool) or not match or last < first or last > MAX_SEED:
-            raise UsageError(f"--{name} takes seeds from 0 to {MAX_SEED} such as 52, 0-19, 3,5,8 or "
+            raise UsageError(f"{named(name)} takes seeds from 0 to {MAX_SEED} such as 52, 0-19, 3,5,8 or "
                              f"0-4,10; got {shown(value)}")
         bounds.append((first, last))
     if not bounds:
-        raise UsageError(f"--{name} takes at least one seed, such as 52, 0-19 or 3,5,8; got {shown(value)}")
+        raise UsageError(f"{named(name)} takes at least one seed, such as 52, 0-19 or 3,5,8; got "
+                         f"{shown(value)}")
     if (count := sum(last - first + 1 for first, last in bounds)) > MAX_SEEDS:
-        raise UsageError(f"--{name} lists {count:,} seeds; at most {MAX_SEEDS:,}")
+        raise UsageError(f"{named(name)} lists {count:,} seeds; at most {MAX_SEEDS:,}")
     return list(dict.fromkeys(seed for first, last in bounds for seed in range(first, last + 1)))
 
 
@@ -209,10 +226,10 @@ def distinct_names(table: dict, noun: str, most: int) -> Check:
     def check(name: str, value: Any) -> list[str]:
         names = listed(value) if isinstance(value, (str, tuple, list)) else []
         if unknown := [n for n in names if n and n not in table]:
-            raise UsageError(f"--{name} {shown(unknown[0])} is not one of the {noun}; "
+            raise UsageError(f"{named(name)} {shown(unknown[0])} is not one of the {noun}; "
                              + did_you_mean(unknown[0], table))
         if "" in names or not 1 <= len(names) <= most or len(set(names)) != len(names):
-            raise UsageError(f"--{name} takes 1 to {most} different {noun} of {', '.join(table)}; "
+            raise UsageError(f"{named(name)} takes 1 to {most} different {noun} of {', '.join(table)}; "
                              f"got {shown(value)}")
         return names
     return check

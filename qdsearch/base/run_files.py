@@ -33,7 +33,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable, Iterator
 
-from qdsearch.base.flags import UsageError
+from qdsearch.base.flags import UsageError, named
 
 
 class RunError(Exception):
@@ -89,13 +89,13 @@ def new_folder(outdir: str | None, name: str) -> Iterator[Path]:
                        if not p.exists())
     else:
         run_dir = Path(outdir)
-    taken = UsageError(f"{run_dir} already exists and is not empty; choose another --outdir "
+    taken = UsageError(f"{run_dir} already exists and is not empty; choose another {named('outdir')} "
                        f"(to continue a run there: python lunar_lander.py resume {run_dir})")
     if run_dir.is_symlink() and not run_dir.exists():
         raise UsageError(f"{run_dir} is a symbolic link to {os.readlink(run_dir)}, which does not "
-                         f"exist; choose another --outdir")
+                         f"exist; choose another {named('outdir')}")
     if run_dir.exists() and not run_dir.is_dir():
-        raise UsageError(f"{run_dir} exists and is not a folder; choose another --outdir")
+        raise UsageError(f"{run_dir} exists and is not a folder; choose another {named('outdir')}")
     if holds_files(run_dir):
         raise taken
     check_parent_folder(run_dir)

@@ -29,13 +29,15 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from qdsearch.base.flags import UsageError
+from qdsearch.base.flags import UsageError, named
 from qdsearch.base.run_files import atomic_write, check_regular, read_regular, unpickle
 
 KEY_VARIABLE = "QDSEARCH_KEY"  # a key file's path, in place of the user's config folder's
 MAGIC = b"qdsearch-signed-pickle/1 hmac-sha256\n"  # a pickle never starts so (protocol 2+: 0x80)
 DIGITS = 64  # the signature's hex digits (and the key file's)
-TRUST = "if you trust where it came from, resume with --trust, which signs it with your key"
+def trust_hint() -> str:
+    """What a refused checkpoint's message ends with."""
+    return f"if you trust where it came from, resume with {named('trust')}, which signs it with your key"
 
 
 def key_path() -> Path:
@@ -87,7 +89,7 @@ def read_key(path: Path) -> bytes:
         raise UsageError(f"{path}: not a readable signing key ({error})") from None
     if len(key) * 2 != DIGITS:
         raise UsageError(f"{path}: not a signing key ({DIGITS} hex digits); delete it to have a new "
-                         f"one made (the checkpoints it signed then need resume --trust)")
+                         f"one made (the checkpoints it signed then need resume {named('trust')})")
     return key
 
 
@@ -122,7 +124,7 @@ def read_signed_pickle(path: Path, what: str, trust: bool = False) -> Any:
     payload, problem = check_signature(read_regular(path, "checkpoint.pkl"))
     if problem and not trust:
         raise UsageError(f"{path}: {problem}; not loaded, as a pickle may run any code it holds; "
-                         f"{TRUST} ({key_path()})")
+                         f"{trust_hint()} ({key_path()})")
     return unpickle(payload, path, what)
 
 
@@ -134,4 +136,4 @@ def adopt(path: Path) -> None:
     payload, problem = check_signature(read_regular(path, "checkpoint.pkl"))
     if problem:
         write_signed(path, payload)
-        print(f"{path}: trusted (--trust), and signed with your key")
+        print(f"{path}: trusted ({named('trust')}), and signed with your key")

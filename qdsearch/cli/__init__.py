@@ -9,3 +9,7 @@ Map, imports going down the list only:
 from qdsearch.base.kernels import hold_kernels
 
 hold_kernels()  # before numpy, numba, matplotlib or MuJoCo loads: the command line's bits
+
+from qdsearch.base.flags import name_settings_as  # noqa: E402 (it loads numpy)
+
+name_settings_as("--{}")  # the messages name each setting as its flag

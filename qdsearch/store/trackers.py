@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from qdsearch.base.flags import UsageError, clipped, did_you_mean, shown
+from qdsearch.base.flags import UsageError, clipped, did_you_mean, named, shown
 from qdsearch.base.run_files import RunError, fault_text, write_json
 
 SCALARS = ("qd_score", "coverage", "num_elites", "best_objective", "mean_objective", "evaluations")
@@ -262,12 +262,13 @@ def check_tracks(name: str, value: Any) -> list[str]:
         return []
     names = [n.strip() for n in value.split(",")] if isinstance(value, str) else value
     if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
-        raise UsageError(f"--{name} must name trackers ({', '.join(TRACKERS)}), got {shown(value)}")
+        raise UsageError(f"{named(name)} must name trackers ({', '.join(TRACKERS)}), got {shown(value)}")
     for tracker in names:
         if tracker not in TRACKERS:
-            raise UsageError(f"--{name} {shown(tracker)} is not a tracker; {did_you_mean(tracker, TRACKERS)}")
+            raise UsageError(f"{named(name)} {shown(tracker)} is not a tracker; "
+                             f"{did_you_mean(tracker, TRACKERS)}")
         if not installed(TRACKERS[tracker].module):
-            raise UsageError(f"--{name} {tracker} needs the {TRACKERS[tracker].package} package: "
+            raise UsageError(f"{named(name)} {tracker} needs the {TRACKERS[tracker].package} package: "
                              f"pip install -r requirements-trackers.txt")
     return list(dict.fromkeys(names))
 

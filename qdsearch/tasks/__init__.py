@@ -41,7 +41,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.base.flags import UsageError
+from qdsearch.base.flags import UsageError, named
 from qdsearch.tasks.family import Environment, Family, Measure, OnStep, Returns, require_drawing
 from qdsearch.tasks.family import renderer_missing as renderer_missing  # results.py's video imports it here
 from qdsearch.tasks.policies import LINEAR, Policy
@@ -72,12 +72,12 @@ def register_family(module_name: str) -> None:
     known = {**MEASURES, **measures}
     for name, task in tasks.items():
         if wrong := [m for m in task.measures if m not in known or task.family not in known[m].families]:
-            raise ValueError(f"{module_name}: --env {name}'s default measures {', '.join(wrong)} "
+            raise ValueError(f"{module_name}: {named('env')} {name}'s default measures {', '.join(wrong)} "
                              f"are not measures of its family {task.family.name}")
     ENVIRONMENTS.update(tasks)
     MEASURES.update(measures)
-    named = [task.family for task in tasks.values()] + [f for m in measures.values() for f in m.families]
-    FAMILIES.extend(dict.fromkeys(family for family in named if family not in FAMILIES))
+    declared = [task.family for task in tasks.values()] + [f for m in measures.values() for f in m.families]
+    FAMILIES.extend(dict.fromkeys(family for family in declared if family not in FAMILIES))
 
 
 for _module in FAMILY_MODULES:
@@ -169,8 +169,8 @@ def check_episode(env_name: str, episode: Episode) -> None:
     """Refuse rules the task can't follow: a fall that ends an episode needs a task that falls."""
     if episode.terminate_when_unhealthy is not None and not has_unhealthy_state(env_name):
         able = [name for name in ENVIRONMENTS if has_unhealthy_state(name)]
-        raise UsageError(f"--terminate_when_unhealthy: --env {env_name} has no unhealthy state; "
-                         f"the tasks that do: {', '.join(able)}")
+        raise UsageError(f"{named('terminate_when_unhealthy')}: {named('env')} {env_name} has no unhealthy "
+                         f"state; the tasks that do: {', '.join(able)}")
 
 
 def make_env(fast: bool = True, render_mode: str | None = None, *, env_name: str,
@@ -193,7 +193,8 @@ def plain_env(env_name: str, render_mode: str | None = None, episode: Episode = 
         env = task.make(render_mode, env_name, **episode.kwargs())
     if render_mode is not None and render_mode not in env.metadata.get("render_modes", ()):
         env.close()
-        raise UsageError(f"--env {env_name} cannot be drawn: {task.gym_id} renders no {render_mode} frames")
+        raise UsageError(f"{named('env')} {env_name} cannot be drawn: {task.gym_id} renders no "
+                         f"{render_mode} frames")
     return env
 
 
@@ -212,8 +213,8 @@ def check_spaces(env_name: str) -> None:
     choice = isinstance(act, gym.spaces.Discrete) and int(act.start) == 0
     box = vector(act) and bool(np.all(act.low >= -1.0)) and bool(np.all(act.high <= 1.0))
     if not (vector(obs) and (choice or box)):
-        raise UsageError(f"--env {env_name}: the policies (an argmax or a tanh of their outputs) can't serve "
-                         f"{task.gym_id}'s observations {obs} and actions {act}")
+        raise UsageError(f"{named('env')} {env_name}: the policies (an argmax or a tanh of their outputs) "
+                         f"can't serve {task.gym_id}'s observations {obs} and actions {act}")
 
 
 def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,

@@ -34,7 +34,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
-from qdsearch.base.flags import UsageError, one_line
+from qdsearch.base.flags import UsageError, named, one_line
 from qdsearch.base.run_files import RunError
 from qdsearch.tasks.policies import LINEAR, Policy
 
@@ -101,7 +101,7 @@ def require_one_world(family: Family, reset: str, command: str) -> None:
     """Refuse, in one line, one picture of elites each flown from its own terrain (--reset each
     of a family whose seed makes its ground): it has no one ground to draw them on."""
     if reset == "each" and family.seed_shapes_world:
-        raise UsageError(f"{command}: each elite of this --reset each run flew its own "
+        raise UsageError(f"{command}: each elite of this {named('reset')} each run flew its own "
                          f"{family.seed_noun}, which one picture can't draw; the video command "
                          f"shows each elite as it was flown")
 
@@ -156,7 +156,7 @@ class Environment:
             self.family.prepare()
             return gym.make(self.gym_id, render_mode=render_mode, **{**self.kwargs, **rules})
         except gym.error.DependencyNotInstalled as error:
-            raise UsageError(f"--env {name or self.gym_id} needs a package that is not installed "
+            raise UsageError(f"{named('env')} {name or self.gym_id} needs a package that is not installed "
                              f"({one_line(str(error))[:200]}): pip install -r requirements.txt") from None
         except (ImportError, AttributeError, RuntimeError) as error:
             if not os.environ.get("MUJOCO_GL") or "mujoco" in sys.modules:  # not MuJoCo's import failing
