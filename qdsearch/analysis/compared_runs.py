@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from qdsearch.base.flags import UsageError, shown, whole_number_up_to
+from qdsearch.base.flags import UsageError, named, shown, whole_number_up_to
 from qdsearch.base.run_files import check_present, read_run_json
 from qdsearch.config.run_config import RunConfig, load_checked_config
 from qdsearch.search.experiment_folder import read_experiment, unfinished_note
@@ -93,12 +93,13 @@ def cut_at(runs: list[list[dict]], paths: list[Path], budget: Any,
         return runs, [False] * len(runs)
     budget = whole_number_up_to(10**12)("at_evaluations", budget)
     if corrected:
-        raise UsageError("--at_evaluations and --corrected: corrected figures are of a run's end")
+        raise UsageError(f"{named('at_evaluations')} and {named('corrected')}: corrected figures are of a "
+                         "run's end")
     kept = []
     for path, metrics in zip(paths, runs):
         first = next((row for row in metrics if row["iteration"] > 0), metrics[-1])
         if first["evaluations"] > budget:
             raise UsageError(f"{path}: its first iteration flew {first['evaluations']:,} evaluations, "
-                             f"more than --at_evaluations {budget:,}")
+                             f"more than {named('at_evaluations')} {budget:,}")
         kept.append([row for row in metrics if row["evaluations"] <= budget])
     return kept, [len(k) < len(m) for k, m in zip(kept, runs)]

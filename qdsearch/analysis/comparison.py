@@ -52,7 +52,7 @@ from qdsearch.analysis.stats import (
     iqm_interval,
     mean_interval,
 )
-from qdsearch.base.flags import UsageError, boolean, shown
+from qdsearch.base.flags import UsageError, boolean, named, shown
 from qdsearch.base.plots import save_metric_panels
 from qdsearch.base.run_files import atomic_write, check_parent_folder, read_regular, write_csv
 from qdsearch.config.run_config import RunConfig, saved_archive
@@ -102,7 +102,7 @@ def comparison_outputs(out: str | None, overwrite: bool, home: Path | None = Non
     """The files of a comparison, all named after the PNG: by default new files in `home` (the
     one experiment compared: compare.png, compare_2.png, ...) or under outputs/; never an
     existing file unless --overwrite."""
-    def named(png: Path) -> dict[str, Path]:
+    def files_of(png: Path) -> dict[str, Path]:
         return {"png": png, "csv": png.with_suffix(".csv"), "md": png.with_suffix(".md"),
                 "settings": png.with_name(f"{png.stem}_settings.csv"),
                 "tests": png.with_name(f"{png.stem}_tests.csv"),
@@ -113,14 +113,14 @@ def comparison_outputs(out: str | None, overwrite: bool, home: Path | None = Non
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         first = home / "compare" if home is not None else Path("outputs") / f"compare_{stamp}"
         candidates = [Path(f"{first}{suffix}.png") for suffix in ["", *(f"_{i}" for i in range(2, 1000))]]
-        files = next(named(p) for p in candidates if not any(f.exists() for f in named(p).values()))
+        files = next(files_of(p) for p in candidates if not any(f.exists() for f in files_of(p).values()))
     else:
-        files = named(Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png"))
+        files = files_of(Path(out) if Path(out).suffix.lower() == ".png" else Path(f"{out}.png"))
     check_parent_folder(files["png"])
     existing = [str(p) for p in files.values() if p.exists()]
     if existing and not overwrite:
-        raise UsageError(f"{' and '.join(existing)} already exist(s); choose another --out "
-                         f"or pass --overwrite")
+        raise UsageError(f"{' and '.join(existing)} already exist(s); choose another {named('out')} "
+                         f"or pass {named('overwrite')}")
     return files
 
 
@@ -502,7 +502,7 @@ def check_baseline(baseline: Any, settings: list[str]) -> str | None:
     by_algorithm = [setting for setting in settings if setting.split(" ")[0] == str(baseline)]
     if len(by_algorithm) == 1:
         return by_algorithm[0]
-    raise UsageError(f"--baseline {shown(baseline)} is not a setting of these runs; they are: "
+    raise UsageError(f"{named('baseline')} {shown(baseline)} is not a setting of these runs; they are: "
                      + ", ".join(repr(setting) for setting in settings))
 
 
@@ -569,7 +569,7 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
     print(format_table(table.drop(columns=["task", "setting"])))  # the run's label names them
     if (table.groupby("task")["evaluations"].nunique() > 1).any():
         print("note: the runs of a task end at different numbers of evaluations; compare them at an "
-              "equal budget with --at_evaluations N")
+              f"equal budget with {named('at_evaluations')} N")
     used = values_used(fixes)
     if not grouped:  # else the report says it
         print(used)

@@ -27,7 +27,7 @@ import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, task_of
 from qdsearch.analysis.run_folder import elite_rows, load_run
-from qdsearch.base.flags import UsageError, boolean, positive_int, seed_list, takes, whole_number_up_to
+from qdsearch.base.flags import UsageError, boolean, named, positive_int, seed_list, takes, whole_number_up_to
 from qdsearch.base.plots import save_heatmap
 from qdsearch.base.run_files import check_writable, console_log, write_csv, write_json, write_pickle
 from qdsearch.config.options import check_rollouts, checked
@@ -163,7 +163,7 @@ def archive_metrics(archive: Any, metrics: list[dict], run: Path) -> dict:
 def corrected_seeds(config: RunConfig, env_seeds: Any, repeats: Any) -> list[int]:
     """The seeds a corrected archive is flown on: --env_seeds, or --repeats new ones."""
     if env_seeds is not None and repeats is not None:
-        raise UsageError("give --env_seeds or --repeats, not both")
+        raise UsageError(f"give {named('env_seeds')} or {named('repeats')}, not both")
     if env_seeds is not None:
         return seed_list("env_seeds", env_seeds)
     return new_seeds(config, whole_number_up_to(MAX_REPEATS)(
@@ -217,9 +217,10 @@ def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: 
     archive, config = load_run(run)
     own = archive_metrics(archive, load_metrics(run), run) if corrected else None  # read after it
     if not corrected and repeats is not None:
-        raise UsageError("--repeats is for --corrected (the robustness table takes --env_seeds)")
+        raise UsageError(f"{named('repeats')} is for {named('corrected')} (the robustness table takes "
+                         f"{named('env_seeds')})")
     if corrected and top is not None:
-        raise UsageError("--top is for the robustness table: a corrected archive flies every elite")
+        raise UsageError(f"{named('top')} is for the robustness table: a corrected archive flies every elite")
     seeds = (corrected_seeds(config, env_seeds, repeats) if corrected
              else seed_list("env_seeds", ROBUSTNESS_SEEDS if env_seeds is None else env_seeds))
     checked("workers", flags["workers"])

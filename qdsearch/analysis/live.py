@@ -17,7 +17,7 @@ import io
 import os
 from pathlib import Path
 
-from qdsearch.base.flags import UsageError, positive_int
+from qdsearch.base.flags import UsageError, named, positive_int
 from qdsearch.base.run_files import check_present, read_regular
 from qdsearch.base.stopping import STOP
 from qdsearch.config.run_config import RunConfig, load_checked_config
@@ -138,7 +138,7 @@ def watch(run_dir: str, port: int = 5006, host: str = "127.0.0.1") -> None:
     check_present(path, WATCHED)  # one that is there but no readable file: refused, not shown empty
     port = positive_int("port", port)
     if port > 65535:
-        raise UsageError(f"--port must be at most 65535, got {port}")
+        raise UsageError(f"{named('port')} must be at most 65535, got {port}")
     try:
         server = Server({"/": Application(FunctionHandler(live_document(path, config)))}, port=port,
                         address=str(host), allow_websocket_origin=[f"{host}:{port}", f"localhost:{port}"])

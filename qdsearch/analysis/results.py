@@ -28,7 +28,7 @@ import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, kind_of
 from qdsearch.analysis.run_folder import elite_rows, load_run, shown_terrain
-from qdsearch.base.flags import UsageError, check_flags, positive_int, shown, takes
+from qdsearch.base.flags import UsageError, check_flags, named, positive_int, shown, takes
 from qdsearch.base.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
 from qdsearch.base.stopping import STOP
 from qdsearch.config.options import SELECTION_FLAGS, TERRAIN_FLAGS
@@ -72,7 +72,7 @@ def parse_cells(cells: Any, measures: list[str]) -> list[tuple[float, ...]]:
     if not (isinstance(points, (tuple, list)) and points and all(
             isinstance(p, (tuple, list)) and len(p) == size and all(map(is_number, p)) for p in points)):
         example = "(" + ", ".join(f"{sum(MEASURES[m].range) / 2:g}" for m in measures) + ")"
-        raise UsageError(f"--cells takes points of ({', '.join(measures)}) such as "
+        raise UsageError(f"{named('cells')} takes points of ({', '.join(measures)}) such as "
                          f'"[{example}]", got {shown(cells)}')
     return [tuple(float(v) for v in point) for point in points]
 
@@ -83,7 +83,7 @@ def parse_indices(index: Any, archive) -> list[int]:
     cells = int(archive.cells)
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < cells:
-            raise UsageError(f"--index takes cell indices from 0 to {cells - 1} (see the elites "
+            raise UsageError(f"{named('index')} takes cell indices from 0 to {cells - 1} (see the elites "
                              f"command's cell_index), got {shown(index)}")
     return values
 
@@ -134,7 +134,7 @@ def elite_of_cell(archive, point: tuple[float, ...], measures: list[str], neares
     empty = f"the cell of {point_text(point)} (index {archive.index_of_single(point)}) is empty"
     if not nearest:
         raise UsageError(f"{empty}; the nearest occupied cell holds {describe_elite(near, measures)}; "
-                         f"add --nearest to use it")
+                         f"add {named('nearest')} to use it")
     print(f"{empty}; using the nearest occupied cell: {describe_elite(near, measures)}")
     return {**near, "name": f"{name}_nearest{near['index']}"}
 
@@ -146,7 +146,8 @@ def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None
     checked = check_flags(SELECTION_FLAGS, {"best": best, "top": top, "nearest": nearest})
     best, top, nearest, measures = checked["best"], checked["top"], checked["nearest"], list(measures)
     if cells is None and not best and top is None and index is None:
-        raise UsageError("choose elites with --cells, --best, --top or --index")
+        raise UsageError(f"choose elites with {named('cells')}, {named('best')}, {named('top')} or "
+                         f"{named('index')}")
     rows, chosen = elite_rows(archive), []
     if cells is not None:
         chosen += [elite_of_cell(archive, point, measures, nearest)
@@ -339,7 +340,7 @@ def elites(run_dir: str, min_objective: float | None = None, top: int | None = N
     """
     archive, config = load_run(run_dir)
     if min_objective is not None and not is_number(min_objective):
-        raise UsageError(f"--min_objective must be a number, got {shown(min_objective)}")
+        raise UsageError(f"{named('min_objective')} must be a number, got {shown(min_objective)}")
     table = elite_table(archive, config.measures, min_objective,
                         None if top is None else positive_int("top", top))
     path = Path(str(run_dir)) / "elites.csv"

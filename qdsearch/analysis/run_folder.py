@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.base.flags import UsageError, check_flags
+from qdsearch.base.flags import UsageError, check_flags, named
 from qdsearch.config.options import TERRAIN_FLAGS
 from qdsearch.config.run_config import RunConfig, archive_source, load_archive, load_checked_config
 from qdsearch.tasks import ENVIRONMENTS
@@ -65,7 +65,7 @@ def shown_terrain(config: RunConfig, env_seed: Any) -> int:
     terrain = check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
     if terrain not in config.env_seed:
         terrains, noun = ",".join(map(str, config.env_seed)), ENVIRONMENTS[config.env].family.seed_noun
-        raise UsageError(f"--env_seed {terrain} is not a {noun} of this run (it was flown on "
+        raise UsageError(f"{named('env_seed')} {terrain} is not a {noun} of this run (it was flown on "
                          f"{terrains}); to fly its elites on other {noun}s, use: "
                          f"python lunar_lander.py evaluate RUN --env_seeds {terrain}")
     return terrain

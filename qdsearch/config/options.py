@@ -28,6 +28,7 @@ from qdsearch.base.flags import (
     Flag,
     UsageError,
     boolean,
+    named,
     positive_int,
     seed_number,
 )
@@ -77,16 +78,16 @@ def refuse_unused_row_flags(algorithms: list[str], given: list[str], policies: l
     be recorded and silently change nothing. So are two budgets: --evaluations sets the
     iterations."""
     if set(BUDGETS) <= set(given):
-        raise UsageError("--iterations and --evaluations are two budgets; give one")
-    for table, rows, one, several in ((ALGORITHMS, algorithms, "--algorithm", "--algorithms"),
-                                      (POLICIES, policies, "--policy", "--policy")):
-        named = list(dict.fromkeys(row for row in rows if row in table))  # others: refused later
+        raise UsageError(f"{named('iterations')} and {named('evaluations')} are two budgets; give one")
+    for table, rows, one, several in ((ALGORITHMS, algorithms, named("algorithm"), named("algorithms")),
+                                      (POLICIES, policies, named("policy"), named("policy"))):
+        chosen = list(dict.fromkeys(row for row in rows if row in table))  # others: refused later
         for typed in given:
             users = [name for name, row in table.items() if typed in row.flags]
-            if named and users and not set(named) & set(users):
-                who = (f"{one} {named[0]} does not" if len(named) == 1
-                       else f"none of {several} {', '.join(named)}")
-                raise UsageError(f"--{typed} is a flag of {', '.join(users)} only; {who} use it")
+            if chosen and users and not set(chosen) & set(users):
+                who = (f"{one} {chosen[0]} does not" if len(chosen) == 1
+                       else f"none of {several} {', '.join(chosen)}")
+                raise UsageError(f"{named(typed)} is a flag of {', '.join(users)} only; {who} use it")
 
 
 def check_sizes(config: dict) -> None:
@@ -94,7 +95,7 @@ def check_sizes(config: dict) -> None:
     asked per iteration (a DQD row's gradient batch too) and the rollouts they are flown in."""
     solutions, made_by = solutions_per_iteration(config)
     if config["archive"] == "grid" and (cells := config["grid"] ** len(config["measures"])) > MAX_CELLS:
-        raise UsageError(f"--grid {config['grid']} with {len(config['measures'])} measures makes "
+        raise UsageError(f"{named('grid')} {config['grid']} with {len(config['measures'])} measures makes "
                          f"{cells:,} cells; at most {MAX_CELLS:,}")
     if solutions > MAX_SOLUTIONS:
         raise UsageError(f"{made_by} asks {solutions:,} solutions per iteration; at most {MAX_SOLUTIONS:,}")
@@ -106,10 +107,11 @@ def solutions_per_iteration(config: dict) -> tuple[int, str]:
     batch_size, or a DQD row's emitters each with its point and gradient samples if more, so
     that a refusal names the flag to lower."""
     n_emitters, batch = config["n_emitters"], config["batch_size"]
-    made = {f"--n_emitters {n_emitters} x --batch_size {batch}": n_emitters * batch}
+    made = {f"{named('n_emitters')} {n_emitters} x {named('batch_size')} {batch}": n_emitters * batch}
     if ALGORITHMS[config["algorithm"]].dqd:
         samples = config["es_samples"]
-        made[f"--n_emitters {n_emitters} x (1 + --es_samples {samples})"] = n_emitters * (1 + samples)
+        gradients = f"{named('n_emitters')} {n_emitters} x (1 + {named('es_samples')} {samples})"
+        made[gradients] = n_emitters * (1 + samples)
     made_by = max(made, key=made.get)  # the first of equals: the batch
     return made[made_by], made_by
 
@@ -169,24 +171,28 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
     task = ENVIRONMENTS[env]
     measures = list(task.measures if config.get("measures") is None else config["measures"])
     if wrong := [name for name in measures if task.family not in MEASURES[name].families]:
-        raise UsageError(f"--measures {wrong[0]} is not a measure of --env {env}; its measures: "
+        raise UsageError(f"{named('measures')} {wrong[0]} is not a measure of {named('env')} {env}; its "
+                         "measures: "
                          + ", ".join(family_measures(task.family)))
     archive, grid, cells = config.get("archive") or task.archive, config.get("grid"), config.get("cells")
     if archive == "grid":
         if cells is not None:
-            raise UsageError("--cells is for --archive cvt; a grid archive has --grid cells along "
+            raise UsageError(f"{named('cells')} is for {named('archive')} cvt; a grid archive has "
+                             f"{named('grid')} cells along "
                              "each measure")
         if len(measures) > MAX_GRID_MEASURES:
-            raise UsageError(f"--measures: {len(measures)} measures on a grid archive; a grid takes "
-                             f"at most {MAX_GRID_MEASURES} (its cells grow as --grid^measures): use "
-                             f"--archive cvt")
+            raise UsageError(f"{named('measures')}: {len(measures)} measures on a grid archive; a grid takes "
+                             f"at most {MAX_GRID_MEASURES} (its cells grow as {named('grid')}^measures): use "
+                             f"{named('archive')} cvt")
         grid = DEFAULT_GRID if grid is None else grid
     else:
         if grid is not None:
-            raise UsageError("--grid is for --archive grid; a CVT archive has --cells centroids")
+            raise UsageError(f"{named('grid')} is for {named('archive')} grid; a CVT archive has "
+                             f"{named('cells')} centroids")
         cells = DEFAULT_CVT_CELLS if cells is None else cells
         if cells < 2 ** len(measures):
-            raise UsageError(f"--cells {cells} is too few for {len(measures)} measures: a CVT archive "
+            raise UsageError(f"{named('cells')} {cells} is too few for {len(measures)} measures: a CVT "
+                             "archive "
                              f"needs at least 2^{len(measures)} = {2 ** len(measures)} cells")
     config = {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
     check_episode(env, episode_of(unchecked(config)))
@@ -215,7 +221,8 @@ def with_policy(config: dict[str, Any]) -> dict[str, Any]:
     kind, hidden = config.get("policy") or "linear", config.get("hidden")
     if "hidden" not in POLICIES[kind].flags:
         if hidden is not None:
-            raise UsageError(f"--hidden is a flag of --policy mlp; --policy {kind} has no hidden layers")
+            raise UsageError(f"{named('hidden')} is a flag of {named('policy')} mlp; {named('policy')} "
+                             f"{kind} has no hidden layers")
         return config
     return {**config, "hidden": list(DEFAULT_HIDDEN if hidden is None else hidden)}
 
@@ -231,7 +238,7 @@ def resumed_budget(config: dict[str, Any], iterations: int | None, evaluations: 
     """A run's iterations and evaluations once resumed to `iterations` or `evaluations` (one of
     them, or neither: its own): a budget in iterations past its own drops its evaluations."""
     if iterations is not None and evaluations is not None:
-        raise UsageError("--iterations and --evaluations are two budgets; give one")
+        raise UsageError(f"{named('iterations')} and {named('evaluations')} are two budgets; give one")
     if evaluations is not None:
         return with_budget({**config, "evaluations": checked("evaluations", evaluations)})
     if iterations is None:
@@ -248,8 +255,8 @@ def with_budget(config: dict[str, Any]) -> dict[str, Any]:
         return config  # flags common to its algorithms: each run's config has its own)
     per_iteration = evaluations_per_iteration(unchecked(config))
     if config["evaluations"] < per_iteration:
-        raise UsageError(f"--evaluations {config['evaluations']:,} is less than one iteration of "
-                         f"--algorithm {config['algorithm']}, which flies {per_iteration:,}")
+        raise UsageError(f"{named('evaluations')} {config['evaluations']:,} is less than one iteration of "
+                         f"{named('algorithm')} {config['algorithm']}, which flies {per_iteration:,}")
     return {**config, "iterations": min(config["evaluations"] // per_iteration, MAX_ITERATIONS)}
 
 
@@ -266,10 +273,11 @@ def check_memory(config: dict[str, Any]) -> None:
     if (needed := needs(config["algorithm"])) <= room:
         return
     fits = [name for name in ALGORITHMS if needs(name) <= room]
-    raise UsageError(f"--algorithm {config['algorithm']} would hold ~{needed / 1e9:,.1f} GB for "
+    raise UsageError(f"{named('algorithm')} {config['algorithm']} would hold ~{needed / 1e9:,.1f} GB for "
                      f"{weights:,} weights ({config['n_emitters']} emitters), more than "
                      f"{MEMORY_SHARE:.0%} of this machine's {room / MEMORY_SHARE / 1e9:.1f} GB; rows "
-                     f"that fit: {', '.join(fits) or 'none'} (or fewer emitters, a smaller --hidden)")
+                     f"that fit: {', '.join(fits) or 'none'} (or fewer emitters, a smaller "
+                     f"{named('hidden')})")
 
 
 MEMORY_SHARE = 0.5  # of the machine's memory a run's driver may plan to hold

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, archive_shape, kind_of
-from qdsearch.base.flags import UsageError, check_flags, seed_number, shown
+from qdsearch.base.flags import UsageError, check_flags, named, seed_number, shown
 from qdsearch.base.run_files import read_regular, read_run_json, write_json
 from qdsearch.base.signing import read_signed_pickle
 from qdsearch.config.options import (
@@ -131,7 +131,7 @@ def check_same_config(recorded: RunConfig, checkpointed: RunConfig, run_dir: Pat
         said, ran = getattr(recorded, name), getattr(checkpointed, name)
         if name not in MAY_DIFFER and name not in CLUSTER_FLAGS and said != ran:
             raise UsageError(
-                f"{run_dir / 'config.json'} says --{name} {shown(said)} but the run's "
+                f"{run_dir / 'config.json'} says {named(name)} {shown(said)} but the run's "
                 f"{source} ran with {shown(ran)}: a run goes on with the settings "
                 f"it started with; undo the edit, or start a new run with the flags you want")
 
@@ -142,10 +142,11 @@ def check_archive(archive: Any, path: Path, config: RunConfig) -> None:
     kind = kind_of(archive)
     if kind != config.archive:
         raise UsageError(f"{path}: holds a {type(archive).__name__}, not the "
-                         f"{ARCHIVES[config.archive]['class']} of the run's --archive {config.archive}")
+                         f"{ARCHIVES[config.archive]['class']} of the run's {named('archive')} "
+                         f"{config.archive}")
     shape = archive_shape(config)
     if archive.solution_dim != shape["solution_dim"]:
-        raise UsageError(f"{path}: its solutions have {archive.solution_dim} weights, but --env "
+        raise UsageError(f"{path}: its solutions have {archive.solution_dim} weights, but {named('env')} "
                          f"{config.env}'s policy has {shape['solution_dim']}: an archive of another "
                          f"task's run")
     lower, upper = zip(*shape["ranges"])
@@ -154,9 +155,10 @@ def check_archive(archive: Any, path: Path, config: RunConfig) -> None:
     expected = ((config.grid,) * len(config.measures) if kind == "grid" else config.cells,
                 np.round(lower, 9).tolist(), np.round(upper, 9).tolist())
     if found != expected:
-        size = f"--grid {config.grid}" if kind == "grid" else f"--cells {config.cells}"
+        size = f"{named('grid')} {config.grid}" if kind == "grid" else f"{named('cells')} {config.cells}"
         raise UsageError(f"{path}: archive of another shape (cells, lower and upper bounds {found}; "
-                         f"the run's --measures {','.join(config.measures)} and {size} need {expected})")
+                         f"the run's {named('measures')} {','.join(config.measures)} and {size} need "
+                         f"{expected})")
 
 
 def rewrite_hint(folder: Path, stem: str) -> str:
@@ -219,12 +221,12 @@ def check_run_config(recorded: Any) -> RunConfig:
     config = upgrade(recorded)
     for name, flag in SEARCH_FLAGS.items():
         if config[name] is None and flag.default is not None:  # a check passes None: refuse it here
-            raise UsageError(f"--{name} is null")
+            raise UsageError(f"{named(name)} is null")
         if flag.check is None and not isinstance(config[name], (str, type(None))):
-            raise UsageError(f"--{name} is {shown(config[name])}, not a path or an address")
+            raise UsageError(f"{named(name)} is {shown(config[name])}, not a path or an address")
     config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
     if config["archive"] is None or config[size := ARCHIVES[config["archive"]]["size"]] is None:
-        raise UsageError(f"--{'archive' if config['archive'] is None else size} is null")
+        raise UsageError(f"{named('archive' if config['archive'] is None else size)} is null")
     for field in dataclasses.fields(RunRecords):
         if config.get(field.name) is not None and not isinstance(config[field.name], RECORDS[field.name]):
             raise UsageError(f"{field.name} is {shown(config[field.name])}, not a {field.type}")

@@ -37,6 +37,7 @@ from qdsearch.base.flags import (
     flag,
     flags_of,
     fraction,
+    named,
     number_up_to,
     one_of,
     positive_float,
@@ -94,7 +95,8 @@ def layer_widths(name: str, value: Any) -> list[int]:
         widths = []
     if (isinstance(value, bool) or not 1 <= len(widths) <= MAX_LAYERS
             or not all(1 <= width <= MAX_UNITS for width in widths)):
-        raise UsageError(f"--{name} takes 1 to {MAX_LAYERS} layer sizes from 1 to {MAX_UNITS:,}, such as "
+        raise UsageError(f"{named(name)} takes 1 to {MAX_LAYERS} layer sizes from 1 to {MAX_UNITS:,}, such "
+                         "as "
                          f"128,128; got {shown(value)}")
     return widths
 
@@ -102,7 +104,7 @@ def layer_widths(name: str, value: Any) -> list[int]:
 def even_samples(name: str, value: Any) -> int:
     """Mirrored samples come in pairs: an even count, 2 at least."""
     if whole_number_up_to(MAX_ES_SAMPLES)(name, value) % 2 or value < 2:
-        raise UsageError(f"--{name} must be even (mirrored pairs) and at least 2, got {shown(value)}")
+        raise UsageError(f"{named(name)} must be even (mirrored pairs) and at least 2, got {shown(value)}")
     return value
 
 
@@ -117,7 +119,7 @@ def seed_nouns() -> str:
     titles: dict[str, list[str]] = {}
     for family in FAMILIES:
         titles.setdefault(family.seed_noun, []).append(family.title)
-    return "; ".join(f"the {noun} for {', '.join(named)}" for noun, named in titles.items())
+    return "; ".join(f"the {noun} for {', '.join(titled)}" for noun, titled in titles.items())
 
 
 # A run's settings, each flag declared once, here, as a typed field of the class of its concern:

@@ -31,7 +31,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from qdsearch.base.flags import UsageError, clipped, positive_float, shown
+from qdsearch.base.flags import UsageError, clipped, named, positive_float, shown
 from qdsearch.base.run_files import RunError, fault_text
 from qdsearch.base.stopping import STOP
 
@@ -63,7 +63,7 @@ def scheduler_of(cluster: dict[str, Any]) -> str | None:
     """
     address, path = cluster.get("scheduler_address"), cluster.get("scheduler_file")
     if address is not None and path is not None:
-        raise UsageError("give --scheduler_address or --scheduler_file, not both")
+        raise UsageError(f"give {named('scheduler_address')} or {named('scheduler_file')}, not both")
     timeout = positive_float("scheduler_timeout", cluster.get("scheduler_timeout"))
     if path is not None:
         address = read_scheduler_file(path, timeout)
@@ -72,7 +72,7 @@ def scheduler_of(cluster: dict[str, Any]) -> str | None:
             check_local_memory(cluster["workers"])
         return None
     if not isinstance(address, str):
-        raise UsageError(f"--scheduler_address must be an address such as tcp://HOST:PORT, got "
+        raise UsageError(f"{named('scheduler_address')} must be an address such as tcp://HOST:PORT, got "
                          f"{clipped(address)}")
     handshake = min(timeout, HANDSHAKE_TIMEOUT)
     identity = check_scheduler_reachable(address, path, handshake)
@@ -88,13 +88,13 @@ UNFINISHED_FILE_WAIT = 2.0
 SAY_FILE_WAIT_AFTER = 1.0
 
 
-def read_scheduler_file(named: Any, timeout: float) -> str:
+def read_scheduler_file(given: Any, timeout: float) -> str:
     """The scheduler's address in a scheduler file, waiting up to `timeout` seconds for the file
     to appear (`wait_for_file`), and a moment more (UNFINISHED_FILE_WAIT, or `timeout` if
     shorter) for a file still being written."""
-    if not str(named).strip():
-        raise UsageError("--scheduler_file is empty: name the file the scheduler writes")
-    path = Path(str(named))
+    if not str(given).strip():
+        raise UsageError(f"{named('scheduler_file')} is empty: name the file the scheduler writes")
+    path = Path(str(given))
     wait_for_file(path, timeout)
     give_up = time.monotonic() + min(timeout, UNFINISHED_FILE_WAIT)
     while True:
@@ -122,10 +122,10 @@ def wait_for_file(path: Path, timeout: float) -> None:
         waited = time.monotonic() - start
         if waited > timeout:
             raise UsageError(f"{path}: no scheduler file appeared in {timeout:g} s (is the "
-                             f"scheduler running? --scheduler_timeout waits longer)")
+                             f"scheduler running? {named('scheduler_timeout')} waits longer)")
         if not said and waited >= SAY_FILE_WAIT_AFTER:
             print(f"waiting for the scheduler file {path} to appear (up to {timeout:g} s, "
-                  f"--scheduler_timeout)", file=sys.stderr, flush=True)
+                  f"{named('scheduler_timeout')})", file=sys.stderr, flush=True)
             said = True
         time.sleep(0.2)
 
@@ -139,14 +139,14 @@ def check_scheduler_reachable(address: str, scheduler_file: Any = None,
 
     from distributed.comm import get_address_host_port
 
-    named = f" (named by {scheduler_file}: a file left by a scheduler that has ended?)" if (
+    source = f" (named by {scheduler_file}: a file left by a scheduler that has ended?)" if (
         scheduler_file is not None) else ""
     try:
         host, port = get_address_host_port(address)
         with STOP.interruptible():
             socket.create_connection((host, port), timeout=handshake).close()
     except (OSError, ValueError) as error:
-        raise UsageError(f"cannot reach the Dask scheduler at {clipped(address)}{named}: "
+        raise UsageError(f"cannot reach the Dask scheduler at {clipped(address)}{source}: "
                          f"{clipped(fault_text(error))}") from None
     return scheduler_identity(address, handshake)
 
@@ -207,7 +207,7 @@ def wait_for_workers(address: str, identity: dict, timeout: float,
     if identity["n_workers"]:
         return
     print(f"waiting for workers at {clipped(address)}: none has joined yet (up to {timeout:g} s, "
-          f"--worker_timeout)", file=sys.stderr, flush=True)
+          f"{named('worker_timeout')})", file=sys.stderr, flush=True)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         STOP.check()
@@ -216,7 +216,7 @@ def wait_for_workers(address: str, identity: dict, timeout: float,
         if scheduler_identity(address, handshake)["n_workers"]:
             return
     raise UsageError(f"no worker joined the Dask scheduler at {clipped(address)} in {timeout:g} s; "
-                     f"start some (dask worker --scheduler-file FILE), or --worker_timeout waits "
+                     f"start some (dask worker --scheduler-file FILE), or {named('worker_timeout')} waits "
                      f"longer")
 
 
@@ -259,7 +259,7 @@ def dask_client(workers: int, scheduler_address: str | None, log: logging.Logger
         return
     if os.environ.get("DASK_SCHEDULER_ADDRESS"):
         log.info("note: DASK_SCHEDULER_ADDRESS is set, but this command starts a cluster of its own; "
-                 "to join that scheduler, pass --scheduler_address (or --scheduler_file)")
+                 f"to join that scheduler, pass {named('scheduler_address')} (or {named('scheduler_file')})")
     # A busy port 8787 (another run's dashboard) is fine: Dask picks another and we print it.
     warnings.filterwarnings("ignore", message="Port 8787 is already in use")
     # The imports are over before the search starts: ribs' CMA-ES rebuilds its thread-pool
@@ -287,7 +287,7 @@ def check_local_memory(workers: int) -> None:
 
     need, free = workers * WORKER_MEMORY, psutil.virtual_memory().available
     if need > free:
-        raise UsageError(f"--workers {workers} would need about {need / 1e9:.1f} GB "
+        raise UsageError(f"{named('workers')} {workers} would need about {need / 1e9:.1f} GB "
                          f"({WORKER_MEMORY / 1e6:.0f} MB per worker process), but {free / 1e9:.1f} GB "
                          f"is free; give fewer")
 

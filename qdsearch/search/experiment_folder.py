@@ -115,8 +115,13 @@ def unfinished_note(folder: Path, plan: dict) -> str | None:
     absent = [entry for _, entry in unfinished if not (folder / entry["name"] / "metrics.json").is_file()]
     named = ", ".join(f"{entry['name']} ({entry['state']})" for _, entry in unfinished[:6])
     parts = sorted({part_of(plan, index) for index, _ in unfinished} - {None})
-    finish = (" and ".join(f"python lunar_lander.py resume {folder} --part {part}/{plan['parts']}"
-                           for part in parts) if parts else f"python lunar_lander.py resume {folder}")
+    finish = (" and ".join(resume_command(folder, part, plan["parts"]) for part in parts) if parts
+              else resume_command(folder))
     return (f"note: {folder}: {len(unfinished)} of {len(plan['runs'])} runs of its plan are not done: "
             f"{named}{', ...' if len(unfinished) > 6 else ''}; {len(absent)} of them have no metrics "
             f"and are left out, the others are compared as far as they got; finish with: {finish}")
+
+
+def resume_command(folder: Path, part: int | None = None, parts: int | None = None) -> str:
+    """The command that continues an experiment, or one part of it (`part` of `parts`)."""
+    return f"python lunar_lander.py resume {folder}" + ("" if part is None else f" --part {part}/{parts}")

@@ -38,6 +38,7 @@ from qdsearch.base.flags import (
     check_flags,
     did_you_mean,
     listed,
+    named,
     one_of,
     positive_int,
     seed_list,
@@ -75,7 +76,13 @@ from qdsearch.config.options import (
 from qdsearch.config.run_config import check_run_config, load_run_state, upgrade, write_config
 from qdsearch.config.settings import BUDGETS, CLUSTER_FLAGS, POLICY_FLAGS, SEARCH_FLAGS
 from qdsearch.search.cluster import scheduler_of
-from qdsearch.search.experiment_folder import EXPERIMENT_FORMAT, read_experiment, run_setting, shortened
+from qdsearch.search.experiment_folder import (
+    EXPERIMENT_FORMAT,
+    read_experiment,
+    resume_command,
+    run_setting,
+    shortened,
+)
 from qdsearch.search.loop import Driver, Run
 from qdsearch.search.parts import (
     claim_plan,
@@ -162,11 +169,12 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
 
     if split is not None:
         if outdir is None:
-            raise UsageError("--part needs --outdir: every part of an experiment names the same folder")
+            raise UsageError(f"{named('part')} needs {named('outdir')}: every part of an experiment names "
+                             "the same folder")
         folder = Path(str(outdir))
         check_parent_folder(folder)
         if folder.exists() and not folder.is_dir():
-            raise UsageError(f"{folder} exists and is not a folder; choose another --outdir")
+            raise UsageError(f"{folder} exists and is not a folder; choose another {named('outdir')}")
         folder.mkdir(parents=True, exist_ok=True)
         claim_plan(folder, plan_of(split[1]))
         if plan_text is not None and not (folder / "plan.toml").exists():  # the first part's copy
@@ -199,10 +207,10 @@ def rows_runs(grids: list[tuple[dict, dict, list[int]]]) -> list[dict]:
     for row, (axes, common, seeds) in enumerate(grids, 1):
         made = grid_runs(axes, common, seeds)
         if twice := {entry["setting"] for entry in made} & {entry["setting"] for entry in runs}:
-            raise UsageError(f"--plan: row {row} makes the setting {min(twice)!r} that an earlier "
+            raise UsageError(f"{named('plan')}: row {row} makes the setting {min(twice)!r} that an earlier "
                              f"row makes too")
         runs += made
-    return named(runs)
+    return with_folder_names(runs)
 
 
 def with_plan(planned: dict[str, Any], flags: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
@@ -222,15 +230,15 @@ def read_plan(path: Path) -> tuple[str, dict[str, Any]]:
         text = read_regular(path, "plan").decode()
         planned = tomllib.loads(text)
     except UsageError as error:
-        raise UsageError(f"--plan {error}") from None
+        raise UsageError(f"{named('plan')} {error}") from None
     except UnicodeDecodeError as error:
-        raise UsageError(f"--plan {path}: cannot read it ({fault_text(error)})") from None
+        raise UsageError(f"{named('plan')} {path}: cannot read it ({fault_text(error)})") from None
     except tomllib.TOMLDecodeError as error:
-        raise UsageError(f"--plan {path}: not TOML ({error})") from None
+        raise UsageError(f"{named('plan')} {path}: not TOML ({error})") from None
     check_plan_flags(path, planned, [*EXPERIMENT_OWN, *passed_on(), ROWS], "")
     rows = planned.get(ROWS, [{}])
     if not (isinstance(rows, list) and rows and all(isinstance(row, dict) for row in rows)):
-        raise UsageError(f"--plan {path}: {ROWS} must be [[{ROWS}]] tables, each a grid's flags")
+        raise UsageError(f"{named('plan')} {path}: {ROWS} must be [[{ROWS}]] tables, each a grid's flags")
     for i, row in enumerate(rows, 1):
         check_plan_flags(path, row, ["algorithms", *passed_on()], f"[[{ROWS}]] {i}: ")
     return text, planned
@@ -240,16 +248,17 @@ def check_plan_flags(path: Path, flags: dict[str, Any], known: list[str], where:
     """Every name of a plan's table is a flag it may hold, with a value or a list of values."""
     for name, value in flags.items():
         if name not in known:
-            raise UsageError(f"--plan {path}: {where}{shown(name)} is not a flag of experiment"
+            raise UsageError(f"{named('plan')} {path}: {where}{shown(name)} is not a flag of experiment"
                              f"{' a row may set' if where else ''}; {did_you_mean(name, known)}")
         if isinstance(value, dict) or (name != ROWS and isinstance(value, list)
                                        and any(isinstance(v, dict) for v in value)):
-            raise UsageError(f"--plan {path}: {where}{name} is a table; give a value or a list of values")
+            raise UsageError(f"{named('plan')} {path}: {where}{name} is a table; give a value or a list of "
+                             "values")
 
 
 experiment.__doc__ = experiment.__doc__.format(
-    passed_on=", ".join(f"--{name}" for name in passed_on()),
-    sweeps=", ".join(f"--{name}" for name, flag in SEARCH_FLAGS.items() if flag.sweep))
+    passed_on=", ".join(f"{named(name)}" for name in passed_on()),
+    sweeps=", ".join(f"{named(name)}" for name, flag in SEARCH_FLAGS.items() if flag.sweep))
 experiment = takes(CLUSTER_FLAGS)(experiment)
 
 
@@ -260,20 +269,23 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
     --learning_rate) must be of an algorithm of the grid: of `own_flags` (a plan's row's), or of
     every flag given."""
     if given := sorted(set(search_flags) - set(passed_on()) & set(SEARCH_FLAGS)):
-        raise UsageError(f"--{given[0]} is set by the experiment for each run; use --algorithms, "
-                         f"--seeds, --outdir, --workers and --scheduler_address (or --scheduler_file) "
+        raise UsageError(f"{named(given[0])} is set by the experiment for each run; use "
+                         f"{named('algorithms')}, "
+                         f"{named('seeds')}, {named('outdir')}, {named('workers')} and "
+                         f"{named('scheduler_address')} (or {named('scheduler_file')}) "
                          f"of experiment")
     if unknown := sorted(set(search_flags) - set(search_defaults())):
-        raise UsageError(f"unknown flag --{unknown[0]}; {did_you_mean(unknown[0], passed_on(), '--')}")
+        raise UsageError(f"unknown flag {named(unknown[0])}; "
+                         f"{did_you_mean(unknown[0], passed_on(), named(''))}")
     names = listed(algorithms)
     if not names:
-        raise UsageError("--algorithms is empty: the grid has no run")
+        raise UsageError(f"{named('algorithms')} is empty: the grid has no run")
     axes = {"algorithm": [one_of(ALGORITHMS)("algorithms", name) for name in names]}
     common = {name: search_defaults()[name] for name in passed_on()}
     for name, value in search_flags.items():
         if SEARCH_FLAGS[name].sweep and isinstance(value, (list, tuple)):
             if not value:
-                raise UsageError(f"--{name} is an empty list: the grid has no run")
+                raise UsageError(f"{named(name)} is an empty list: the grid has no run")
             axes[name] = [check_flags(SEARCH_FLAGS, {name: v})[name] for v in value]
         else:
             common[name] = value
@@ -295,10 +307,10 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
 
 def experiment_runs(axes: dict, common: dict, seeds: list[int]) -> list[dict]:
     """One entry per (setting, seed): its folder name, setting label, config and state."""
-    return named(grid_runs(axes, common, seeds))
+    return with_folder_names(grid_runs(axes, common, seeds))
 
 
-def named(runs: list[dict]) -> list[dict]:
+def with_folder_names(runs: list[dict]) -> list[dict]:
     """The runs with their settings' labels shortened to what tells the settings apart
     (experiment_folder.shortened), and each its folder name: its setting's label and seed."""
     short = shortened([entry["setting"] for entry in runs])
@@ -327,8 +339,7 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
     """The cluster and the log of an experiment (or of one part of it), shut down however it
     ends (run.session: a stop or a fault is one line that says how to continue)."""
     where = folder if part is None else part_folder(folder, part, plan["parts"])
-    again = f"python lunar_lander.py resume {folder}" + (
-        "" if part is None else f" --part {part}/{plan['parts']}")
+    again = resume_command(folder, part, plan.get("parts"))
     owned = len(runs_of_part(plan, part))
     opening = (f"Experiment folder: {folder}: {len(plan['runs'])} runs "
                f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
@@ -410,10 +421,9 @@ class Experiment(Driver):
             others = "" if len(failed) == len(runs) else "; the others finished"
             where = self.folder / ("experiment.json" if self.part is None else
                                    part_folder(self.folder, self.part, self.plan["parts"]) / "state.json")
-            again = "" if self.part is None else f" --part {self.part}/{self.plan['parts']}"
+            again = resume_command(self.folder, self.part, self.plan.get("parts"))
             raise RunsFailed(f"{which}: their causes are in {where}{others}. "
-                             f"Mend the cause and retry them with: python lunar_lander.py resume "
-                             f"{self.folder}{again}")
+                             f"Mend the cause and retry them with: {again}")
 
     def open(self, entry: dict) -> Run:
         """A run's folder (made on first use), locked, and its run from checkpoint or config."""
@@ -498,17 +508,17 @@ def resume(run_dir: str, part: str | None = None, **flags: Any) -> None:
         return resume_experiment(path, flags["iterations"], flags["workers"], flags, split,
                                  flags["evaluations"])
     if part is not None:
-        raise UsageError(f"--part is for an experiment folder; {path} is a run")
+        raise UsageError(f"{named('part')} is for an experiment folder; {path} is a run")
     return resume_run(run_dir, **flags)
 
 
 def check_split(plan: dict, folder: Path, split: tuple[int, int] | None, iterations: int | None) -> None:
     """--part names a part of the experiment's own split; a split plan, written once, is fixed."""
     if split is not None and plan.get("parts") != split[1]:
-        raise UsageError(f"--part {split[0]}/{split[1]}: {folder} is " + (
+        raise UsageError(f"{named('part')} {split[0]}/{split[1]}: {folder} is " + (
             f"split in {plan['parts']} parts" if plan.get("parts") else "not split in parts"))
     if plan.get("parts") and iterations is not None:
-        raise UsageError(f"the plan of {folder}, split in parts, is fixed: --iterations cannot "
+        raise UsageError(f"the plan of {folder}, split in parts, is fixed: {named('iterations')} cannot "
                          f"extend it; start a new experiment")
 
 
@@ -541,7 +551,8 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
         for entry in plan["runs"] if iterations is not None or evaluations is not None else []:
             budget = resumed_budget(upgrade(entry["config"]), iterations, evaluations)
             if budget["iterations"] < entry["config"]["iterations"]:
-                given = f"--evaluations {evaluations:,}" if evaluations else f"--iterations {iterations:,}"
+                given = (f"{named('evaluations')} {evaluations:,}" if evaluations
+                         else f"{named('iterations')} {iterations:,}")
                 raise UsageError(f"{entry['name']} of {folder} goes to iteration "
                                  f"{entry['config']['iterations']:,}; {given} would end it sooner")
             if budget["iterations"] > entry["config"]["iterations"]:
@@ -550,7 +561,7 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
         which = f"part {split[0]} of {split[1]} of {folder}" if split else str(folder)
         if all(entry["state"] == "done" for entry in mine):
             print(f"nothing to do: all {len(mine)} runs of {which} are done (iteration "
-                  f"{planned})" + ("" if plan.get("parts") else "; --iterations N extends them"))
+                  f"{planned})" + ("" if plan.get("parts") else f"; {named('iterations')} N extends them"))
             return
         resumed = {"at": datetime.datetime.now().isoformat(), "iterations": iterations, "workers": workers}
         if not plan.get("parts"):

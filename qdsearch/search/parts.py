@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from qdsearch.base.flags import UsageError, shown
+from qdsearch.base.flags import UsageError, named, shown
 from qdsearch.base.run_files import read_run_json, write_json
 
 MAX_PARTS = 10_000
@@ -39,10 +39,11 @@ def parse_part(value: Any) -> tuple[int, int]:
     """--part I/K: part I of K, 1 <= I <= K."""
     match = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", str(value))
     if isinstance(value, bool) or not match:
-        raise UsageError(f"--part must be I/K (part I of K), e.g. 3/15; got {shown(value)}")
+        raise UsageError(f"{named('part')} must be I/K (part I of K), e.g. 3/15; got {shown(value)}")
     part, parts = int(match[1]), int(match[2])
     if not 1 <= part <= parts <= MAX_PARTS:
-        raise UsageError(f"--part {part}/{parts}: I must be from 1 to K, and K at most {MAX_PARTS:,}")
+        raise UsageError(f"{named('part')} {part}/{parts}: I must be from 1 to K, and K at most "
+                         f"{MAX_PARTS:,}")
     return part, parts
 
 
@@ -90,7 +91,7 @@ def claim_plan(folder: Path, plan: dict) -> None:
         same = False
     if not same:
         raise UsageError(f"{folder} holds another experiment (another plan than these flags make); "
-                         f"give every part the same flags, or choose another --outdir")
+                         f"give every part the same flags, or choose another {named('outdir')}")
 
 
 def write_part_state(folder: Path, plan: dict, part: int) -> None:

@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Collection, Iterator
 
-from qdsearch.base.flags import UsageError, boolean, check_flags, takes
+from qdsearch.base.flags import UsageError, boolean, check_flags, named, takes
 from qdsearch.base.run_files import (
     RunError,
     fault_text,
@@ -130,13 +130,14 @@ def recorded_settings(path: Path) -> dict[str, Any]:
         runs: list[str] = []
         with contextlib.suppress(OSError):  # (a run to name is a help, not a need)
             runs = sorted(run.name for run in folder.iterdir() if (run / "config.json").is_file())
-        example = f" (such as --config {folder / runs[0]})" if runs else ""
-        raise UsageError(f"--config {path}: an experiment's file, not a run's: give one of its runs, "
-                         f"--config {folder}/RUN_NAME{example}")
+        example = f" (such as {named('config')} {folder / runs[0]})" if runs else ""
+        raise UsageError(f"{named('config')} {path}: an experiment's file, not a run's: give one of its "
+                         "runs, "
+                         f"{named('config')} {folder}/RUN_NAME{example}")
     try:
         return check_run_config(read_run_json(folder, name)).to_json()
     except UsageError as error:
-        raise UsageError(f"--config {path}: {error}") from None
+        raise UsageError(f"{named('config')} {path}: {error}") from None
 
 
 def typed_setting(typed: dict[str, str | None], flag: str) -> str:
@@ -176,7 +177,8 @@ def resume_run(run_dir: str, **flags: Any) -> None:
         done = checkpoint["iteration"] if checkpoint else 0
         if iterations < done:
             raise UsageError(f"{path} is already at iteration {done}; "
-                             f"--{'evaluations' if flags['evaluations'] else 'iterations'} must reach that")
+                             f"{named('evaluations' if flags['evaluations'] else 'iterations')} must reach "
+                             "that")
         seed_archive = load_archive(Path(config.from_archive), config) if (
             checkpoint is None and config.from_archive) else None
         config = config.replace(iterations=max(iterations, config.iterations),
@@ -230,7 +232,7 @@ def session(log_path: Path, opening: str, workers: int, scheduler_address: str |
         except passing:
             raise
         except (RunError, OSError) as error:
-            elsewhere = " --scheduler_file NEW_FILE" if isinstance(error, SchedulerLost) else ""
+            elsewhere = f" {named('scheduler_file')} NEW_FILE" if isinstance(error, SchedulerLost) else ""
             raise RunError(f"{fault_text(error)}; {state(elsewhere)}") from None
 
 
