@@ -164,3 +164,15 @@ def test_the_check_sees_a_flag_in_a_message(tmp_path):
                     '    raise UsageError(f"--{name} is bad; see --env")\n'
                     'y = f"python lunar_lander.py resume X --part 1/2"\n')
     assert [text for _, text in message_texts(path)] == ["--{} is bad; see --env"]
+
+
+def test_the_installed_command_runs_what_the_script_runs():
+    """pyproject.toml's entry point `lunar-lander` is the function lunar_lander.py calls."""
+    import importlib
+    import tomllib
+
+    target = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]["lunar-lander"]
+    module, _, function = target.partition(":")
+    script = (ROOT / "lunar_lander.py").read_text()
+    assert f"from {module} import {function}" in script and f"    {function}()" in script
+    assert callable(getattr(importlib.import_module(module), function))
