@@ -159,3 +159,12 @@ def test_a_runs_config_is_a_class_in_the_source_every_field_typed_and_on_the_hel
     assert "make_dataclass" not in package and "def setting(" not in package
     page = ll.help_text("search", ll.command("search"))
     assert all(f"--{name}=" in page for name in settings.SEARCH_FLAGS)
+
+
+def test_top_is_declared_once_for_every_command_that_picks_the_best_elites():
+    """video, trajectories, elites and evaluate take --top from one entry (options.TOP): one
+    default, one check; each page says what the K best are for there."""
+    tops = {name: flags.flag_table(ll.command(name))["top"] for name in ("video", "trajectories", "elites",
+                                                                         "evaluate")}
+    assert all(entry.check is options.TOP.check and entry.default is None for entry in tops.values())
+    assert tops["video"] is options.TOP and "Robustness only" in tops["evaluate"].help

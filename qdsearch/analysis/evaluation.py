@@ -30,7 +30,7 @@ from qdsearch.analysis.run_folder import elite_rows, load_run
 from qdsearch.base.flags import UsageError, boolean, named, positive_int, seed_list, takes, whole_number_up_to
 from qdsearch.base.plots import save_heatmap
 from qdsearch.base.run_files import check_writable, console_log, write_csv, write_json, write_pickle
-from qdsearch.config.options import check_rollouts, checked
+from qdsearch.config.options import EVALUATE_FLAGS, check_rollouts, checked
 from qdsearch.config.run_config import RunConfig
 from qdsearch.config.settings import CLUSTER_FLAGS
 from qdsearch.search.cluster import dask_client, scheduler_of
@@ -170,9 +170,9 @@ def corrected_seeds(config: RunConfig, env_seeds: Any, repeats: Any) -> list[int
         "repeats", DEFAULT_REPEATS if repeats is None else repeats))
 
 
-@takes(CLUSTER_FLAGS)
-def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, corrected: Any = False,
-             repeats: int | None = None, **flags: Any) -> None:
+@takes(EVALUATE_FLAGS, CLUSTER_FLAGS)
+def evaluate(run_dir: str, env_seeds: Any = None, corrected: Any = False, repeats: int | None = None,
+             **flags: Any) -> None:
     """Fly the run's elites again (on Dask): on other terrains, or (--corrected) on new seeds. Of
     an experiment folder, every run's, on one cluster.
 
@@ -193,11 +193,10 @@ def evaluate(run_dir: str, env_seeds: Any = None, top: int | None = None, correc
         env_seeds: Env seeds (a lander's or walker's terrains, a robot's reset seeds) to fly on:
             a range 0-19, a list 3,5,8, or both 0-4,10 (default: 0-19;
             with --corrected, the first --repeats seeds the run did not search on).
-        top: Robustness only: the K elites with the highest objectives (default: all).
         corrected: Build the corrected archive instead of the robustness table.
         repeats: With --corrected: new seeds to fly every elite on (default 10).
     """
-    path, corrected = Path(str(run_dir)), boolean("corrected", corrected)
+    path, corrected, top = Path(str(run_dir)), boolean("corrected", corrected), flags["top"]
     if not (path / "experiment.json").is_file():
         return evaluate_run(path, env_seeds, top, corrected, repeats, flags)
     runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]

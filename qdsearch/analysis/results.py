@@ -28,10 +28,10 @@ import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, kind_of
 from qdsearch.analysis.run_folder import elite_rows, load_run, shown_terrain
-from qdsearch.base.flags import UsageError, check_flags, named, positive_int, shown, takes
+from qdsearch.base.flags import UsageError, check_flags, named, shown, takes
 from qdsearch.base.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
 from qdsearch.base.stopping import STOP
-from qdsearch.config.options import SELECTION_FLAGS, TERRAIN_FLAGS
+from qdsearch.config.options import ELITES_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS
 from qdsearch.config.run_config import RunConfig
 from qdsearch.search.engine import averaged, per_terrain
 from qdsearch.tasks import (
@@ -329,20 +329,16 @@ def elite_table(archive, measures: list[str], min_objective: float | None = None
     return table.rename(columns=columns)[list(columns.values())].reset_index(drop=True)
 
 
-def elites(run_dir: str, min_objective: float | None = None, top: int | None = None) -> None:
+@takes(ELITES_FLAGS)
+def elites(run_dir: str, **flags: Any) -> None:
     """Print the run's elites sorted by objective, and write them to RUN_DIR/elites.csv.
 
     Args:
         run_dir: A run folder written by this script.
-        min_objective: Only elites scoring at least this; the last line counts those at the
-            task's solved return (LunarLander-v3's 200: good landings; BipedalWalker-v3's 300).
-        top: Only the K best of those.
     """
     archive, config = load_run(run_dir)
-    if min_objective is not None and not is_number(min_objective):
-        raise UsageError(f"{named('min_objective')} must be a number, got {shown(min_objective)}")
-    table = elite_table(archive, config.measures, min_objective,
-                        None if top is None else positive_int("top", top))
+    chosen = check_flags(ELITES_FLAGS, flags)
+    table = elite_table(archive, config.measures, chosen["min_objective"], chosen["top"])
     path = Path(str(run_dir)) / "elites.csv"
     write_csv(path, table)
     print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")

@@ -28,6 +28,7 @@ from qdsearch.base.flags import (
     Flag,
     UsageError,
     boolean,
+    finite_number,
     named,
     positive_int,
     seed_number,
@@ -140,16 +141,32 @@ RESUME_FLAGS: dict[str, Flag] = {
                          "pickle may run any code it holds, so only for one you trust.", boolean),
 }
 
+# The best elites, by objective: declared once for every command that picks them (video,
+# trajectories, elites, evaluate).
+TOP = Flag(None, "The K elites with the highest objectives.", positive_int)
+
 # Which elites a results command shows (video, trajectories), and on which terrain (explore too).
 SELECTION_FLAGS: dict[str, Flag] = {
     "cells": Flag(None, 'Points in the run\'s measures "[(m1, m2), ...]": the elite of each '
                         "point's cell (archive.retrieve_single); for the tutorial's impact x and "
                         'impact y-velocity, e.g. "[(-0.4, -0.1), (0.6, -0.1), (0.0, -0.1)]".'),
     "best": Flag(False, "The elite with the highest objective.", boolean),
-    "top": Flag(None, "The K elites with the highest objectives.", positive_int),
+    "top": TOP,
     "index": Flag(None, "Archive cell indices (the cell_index column of the elites command)."),
     "nearest": Flag(False, "For an empty cell, use the nearest occupied cell instead of "
                            "stopping.", boolean),
+}
+# elites: which elites its table lists.
+ELITES_FLAGS: dict[str, Flag] = {
+    "min_objective": Flag(None, "Only elites scoring at least this; the last line counts those at "
+                                "the task's solved return (LunarLander-v3's 200: good landings; "
+                                "BipedalWalker-v3's 300).", finite_number),
+    "top": dataclasses.replace(TOP, help="Only the K best of those."),
+}
+# evaluate: which elites its robustness table flies.
+EVALUATE_FLAGS: dict[str, Flag] = {
+    "top": dataclasses.replace(TOP, help="Robustness only: the K elites with the highest objectives "
+                                         "(default: all)."),
 }
 TERRAIN_FLAGS: dict[str, Flag] = {
     "env_seed": Flag(None, f"The env seed to fly on ({seed_nouns()}), one of the run's; default: "
