@@ -132,3 +132,12 @@ def test_elites_counts_the_landers_good_landings(run_cli, tiny_run, tmp_path):
     good = int((archive["objective"] >= tasks.ENVIRONMENTS[LANDER].solved).sum())
     assert result.stdout.splitlines()[-1] == (f"3 of {len(archive)} elites ({good} score 200 or more: "
                                               f"good landings); written to {run_dir / 'elites.csv'}")
+
+
+def test_the_command_that_continues_an_experiment_is_the_one_to_type():
+    from pathlib import Path
+
+    from qdsearch.search.experiment_folder import resume_command
+
+    assert resume_command(Path("outputs/exp")) == "python lunar_lander.py resume outputs/exp"
+    assert resume_command(Path("outputs/exp"), 2, 5) == "python lunar_lander.py resume outputs/exp --part 2/5"

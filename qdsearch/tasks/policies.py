@@ -152,7 +152,7 @@ LINEAR = Policy()
 
 
 def policy_of(config: Any) -> Policy:
-    """A run's policy, from its config (a RunConfig or a dict): --policy, --hidden if its row uses
-    it, and --start. Runs from before --policy are linear, from before --start the row's own."""
-    hidden = tuple(config.hidden or ()) if "hidden" in POLICIES[config.policy].flags else ()
-    return Policy(config.policy, hidden, config.start or "")
+    """A run's policy, from its checked config (a RunConfig: only a policy with hidden layers has
+    --hidden, options.with_policy): --policy, --hidden and --start. Runs from before --policy are
+    linear, from before --start the row's own."""
+    return Policy(config.policy, tuple(config.hidden or ()), config.start or "")
