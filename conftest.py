@@ -22,12 +22,9 @@ import qdsearch
 
 qdsearch.hold_kernels()  # before numpy loads (the import below loads it)
 
-from qdsearch.base import flags  # noqa: E402
-from qdsearch.search import run  # noqa: E402
-
-# The tests read the messages as the command line words them (cli: name_settings_as("--{}")); set
-# here as data, not by the call, which mutmut's forced-fail run would make fail before any test.
-flags.NAMING["style"] = "--{}"
+# The tests read the messages as the command line words them: loading qdsearch.cli sets NAMING's
+# style to --{} (as data, not by a call, which mutmut's forced-fail run would make fail).
+from qdsearch.cli import commands  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
 SCRIPT = ROOT / "lunar_lander.py"
@@ -120,7 +117,7 @@ def tiny_run(tmp_path_factory, dask_cluster):
     from util import tiny_flags
 
     run_dir = tmp_path_factory.mktemp("tiny") / "run"
-    run.search(**tiny_flags(dask_cluster, pictures=True), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, pictures=True), outdir=str(run_dir))
     return run_dir
 
 
@@ -131,7 +128,7 @@ def reference(tmp_path_factory, dask_cluster):
     from util import REFERENCE_ITERATIONS, tiny_flags
 
     run_dir = tmp_path_factory.mktemp("reference") / "run"
-    run.search(**tiny_flags(dask_cluster, iterations=REFERENCE_ITERATIONS,
+    commands.search(**tiny_flags(dask_cluster, iterations=REFERENCE_ITERATIONS,
                            log_every=REFERENCE_ITERATIONS), outdir=str(run_dir))
     return run_dir
 

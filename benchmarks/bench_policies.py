@@ -40,7 +40,7 @@ def time_policy(env_name: str, policy: Policy, episodes: int, rounds: int, lengt
     env = tasks.make_env(env_name=env_name, episode=tasks.Episode(length, falls))
     solution = (policy.start(task.shape, 1) if policy.kind != "linear"  # the linear start is zeros
                 else np.random.default_rng(1).normal(0.0, 0.1, policy.size(task.shape)))
-    act, observations = task.policy(solution, policy), []
+    act, observations = policy.act(solution, task.shape, task.continuous), []
     tasks.fly(solution, 0, env, on_step=lambda action, obs: observations.append(obs), env_name=env_name,
               policy=policy)
     flown, acting = [], []

@@ -26,9 +26,8 @@ from ribs.emitters.rankers import (
 from ribs.schedulers import BanditScheduler, Scheduler
 
 from qdsearch import algorithms, tasks
-from qdsearch.analysis import results
+from qdsearch.cli import commands
 from qdsearch.config import options, run_config
-from qdsearch.search import experiments, run
 from util import (
     archive_table,
     assert_one_line_error,
@@ -111,7 +110,7 @@ class TinyRuns(dict):
         self.root, self.cluster = root, cluster
 
     def __missing__(self, algorithm: str):
-        run.search(**algorithm_flags(self.cluster, algorithm, pictures=True),
+        commands.search(**algorithm_flags(self.cluster, algorithm, pictures=True),
                    outdir=str(self.root / algorithm))
         self[algorithm] = self.root / algorithm
         return self[algorithm]
@@ -249,8 +248,8 @@ def test_cma_mae_saves_and_measures_its_result_archive(tiny_runs):
 def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path, dask_cluster, tiny_runs,
                                                                        algorithm, one_worker_cluster):
     run_dir = tmp_path / "run"
-    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
-    experiments.resume(str(run_dir), iterations=2, scheduler_address=one_worker_cluster.scheduler_address)
+    commands.search(**algorithm_flags(dask_cluster, algorithm, iterations=1), outdir=str(run_dir))
+    commands.resume(str(run_dir), iterations=2, scheduler_address=one_worker_cluster.scheduler_address)
 
     reference = tiny_runs[algorithm]
     assert run_archive(run_dir).equals(run_archive(reference))
@@ -266,7 +265,7 @@ def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path
 def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algorithm):
     source = tiny_runs["cma_me"] / "archive.npz"
     run_dir = tmp_path / "warm"
-    run.search(**algorithm_flags(dask_cluster, algorithm, iterations=1),
+    commands.search(**algorithm_flags(dask_cluster, algorithm, iterations=1),
               outdir=str(run_dir), from_archive=str(source))
 
     elites = len(saved_archive(tiny_runs["cma_me"]))
@@ -285,8 +284,8 @@ def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorith
     shutil.copytree(tiny_runs[algorithm], run_dir)
     best = saved_archive(run_dir).best_elite
 
-    results.video(str(run_dir), best=True)
-    results.elites(str(run_dir), top=3)
+    commands.video(str(run_dir), best=True)
+    commands.elites(str(run_dir), top=3)
 
     with open(run_dir / "videos" / "index.csv") as file:
         [row] = list(csv.DictReader(file))

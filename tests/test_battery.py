@@ -14,9 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from qdsearch.analysis import evaluation
+from qdsearch.cli import commands
 from qdsearch.config import options
-from qdsearch.search import experiments, run
+from qdsearch.search import experiments
 from qdsearch.search.parts import runs_of_part
 from util import assert_one_line_error, folder_state, saved_archive, tiny_flags
 
@@ -57,7 +57,7 @@ def test_a_rows_own_flag_is_taken_where_a_row_uses_it(run_cli, tmp_path, dask_cl
     assert result.returncode == 0, result.stderr
     recorded = json.loads((tmp_path / "mae" / "config.json").read_text())
     flags = {k: v for k, v in recorded.items() if k in options.search_defaults()}
-    run.search(**{**flags, "algorithm": "cma_me", "outdir": str(tmp_path / "me"),
+    commands.search(**{**flags, "algorithm": "cma_me", "outdir": str(tmp_path / "me"),
                   "scheduler_address": address})
     assert json.loads((tmp_path / "me" / "config.json").read_text())["learning_rate"] == 0.2
     assert experiments.experiment_grid("cma_me,cma_mae", "1", {"learning_rate": [0.1]})[0] == {
@@ -69,7 +69,7 @@ def test_a_rows_own_flag_is_taken_where_a_row_uses_it(run_cli, tmp_path, dask_cl
 @pytest.fixture(scope="module")
 def cvt_run(tmp_path_factory, dask_cluster):
     run_dir = tmp_path_factory.mktemp("cvt") / "run"
-    run.search(**tiny_flags(dask_cluster, archive="cvt", cells=16, iterations=2, log_every=2),
+    commands.search(**tiny_flags(dask_cluster, archive="cvt", cells=16, iterations=2, log_every=2),
                outdir=str(run_dir))
     return run_dir
 
@@ -100,7 +100,7 @@ def test_resume_refuses_an_edited_centroids_file_and_writes_a_deleted_one_again(
 def test_compare_of_a_half_finished_split_experiment_names_the_runs_it_lacks(tmp_path, dask_cluster,
                                                                               run_cli):
     folder = tmp_path / "exp"
-    experiments.experiment(algorithms="cma_me", seeds="1-4", outdir=str(folder), part="1/2",
+    commands.experiment(algorithms="cma_me", seeds="1-4", outdir=str(folder), part="1/2",
                            iterations=2, n_emitters=1, batch_size=4, log_every=2, pictures=False,
                            scheduler_address=dask_cluster.scheduler_address)
     plan = json.loads((folder / "experiment.json").read_text())
@@ -125,7 +125,7 @@ def test_corrected_metrics_pair_the_archive_with_its_own_iteration(tmp_path, tin
     shutil.copytree(tiny_run, run_dir)
     shutil.copy(reference / "metrics.json", run_dir / "metrics.json")
     own = json.loads((tiny_run / "metrics.json").read_text())[-1]
-    evaluation.evaluate(str(run_dir), corrected=True, repeats=1,
+    commands.evaluate(str(run_dir), corrected=True, repeats=1,
                         scheduler_address=dask_cluster.scheduler_address)
     summary = json.loads((run_dir / "corrected.json").read_text())
     assert summary["iteration"] == own["iteration"] == 3 and summary["evaluations"] == own["evaluations"]

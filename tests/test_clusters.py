@@ -13,7 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from dask.distributed import Client
 
-from qdsearch.search import experiments, run
+from qdsearch.cli import commands
+from qdsearch.search import experiments
 from qdsearch.search.engine import ClusterShare
 from util import (
     Result,
@@ -49,7 +50,7 @@ def fly_twins(root, cluster, runs: dict) -> dict:
     at its end: only the end is compared)."""
     flags = {k: v for k, v in runs.items() if k not in ("algorithms", "seeds")}
     for seed in (1, 2):
-        run.search(**tiny_flags(cluster, **flags, seed=seed) | {"log_every": runs["iterations"]},
+        commands.search(**tiny_flags(cluster, **flags, seed=seed) | {"log_every": runs["iterations"]},
                    outdir=str(root / str(seed)))
     return {seed: root / str(seed) for seed in (1, 2)}
 

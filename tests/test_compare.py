@@ -19,8 +19,9 @@ from scipy.stats import bootstrap, mannwhitneyu, trim_mean
 from qdsearch import tasks
 from qdsearch.analysis import comparison, stats
 from qdsearch.base.flags import UsageError
+from qdsearch.cli import commands
 from qdsearch.config import options
-from qdsearch.search import experiments, run
+from qdsearch.search import experiments
 from util import (
     LANDER,
     assert_one_line_error,
@@ -37,7 +38,7 @@ WALKER = "BipedalWalker-v3"
 def two_runs(tmp_path_factory, dask_cluster, tiny_run):
     """The tiny run (cma_me) and its cma_mae twin."""
     mae = tmp_path_factory.mktemp("compare") / "cma_mae"
-    run.search(**tiny_flags(dask_cluster, algorithm="cma_mae"), outdir=str(mae))
+    commands.search(**tiny_flags(dask_cluster, algorithm="cma_mae"), outdir=str(mae))
     return [tiny_run, mae]
 
 
@@ -293,7 +294,7 @@ def walker_run(tmp_path_factory, dask_cluster):
     """A tiny run (1 iteration) of another task: the walker, with the tiny run's setting (and
     its task's own episodes: a setting that names the same flags as the lander's)."""
     folder = tmp_path_factory.mktemp("walker") / "cma_me"
-    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=1, log_every=1, episode_length=None),
+    commands.search(**tiny_flags(dask_cluster, env=WALKER, iterations=1, log_every=1, episode_length=None),
                outdir=str(folder))
     return folder
 

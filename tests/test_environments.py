@@ -14,8 +14,9 @@ import pandas as pd
 import pytest
 
 from qdsearch import tasks
-from qdsearch.analysis import evaluation, explorer, results
-from qdsearch.search import engine, experiments, run
+from qdsearch.analysis import results
+from qdsearch.cli import commands
+from qdsearch.search import engine
 from qdsearch.tasks import family, lander, walker
 from util import (
     assert_one_line_error,
@@ -112,7 +113,7 @@ def task_runs(tmp_path_factory, dask_cluster):
     runs = {}
     for env_name in OTHER_ROWS:
         runs[env_name] = tmp_path_factory.mktemp("tasks") / env_name
-        run.search(**tiny_flags(dask_cluster, env=env_name), outdir=str(runs[env_name]))
+        commands.search(**tiny_flags(dask_cluster, env=env_name), outdir=str(runs[env_name]))
     return runs
 
 
@@ -125,11 +126,11 @@ def test_one_worker_and_a_resumed_run_equal_the_straight_run(env_name, task_runs
     assert config["env"] == env_name and config["measures"] == list(tasks.ENVIRONMENTS[env_name].measures)
     archive = run_archive(straight)
     assert len(archive) > 0 and archive["solution_0"].notna().all()
-    run.search(**tiny_flags(one_worker_cluster, env=env_name), outdir=str(tmp_path / "one"))
+    commands.search(**tiny_flags(one_worker_cluster, env=env_name), outdir=str(tmp_path / "one"))
     assert_same_run(tmp_path / "one", straight)
-    run.search(**tiny_flags(dask_cluster, env=env_name, iterations=1),
+    commands.search(**tiny_flags(dask_cluster, env=env_name, iterations=1),
                outdir=str(tmp_path / "resumed"))
-    experiments.resume(str(tmp_path / "resumed"), iterations=3,
+    commands.resume(str(tmp_path / "resumed"), iterations=3,
                        scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(tmp_path / "resumed", straight)
 
@@ -143,7 +144,7 @@ def experiment_flags(search_flags: dict) -> dict:
 @pytest.mark.parametrize("env_name", OTHER_ROWS)
 def test_an_experiments_run_equals_its_lone_twin(env_name, task_runs, tmp_path, dask_cluster):
     flags = experiment_flags(tiny_flags(dask_cluster, env=env_name))
-    experiments.experiment(algorithms="cma_me", seeds="7", outdir=str(tmp_path / "exp"), **flags)
+    commands.experiment(algorithms="cma_me", seeds="7", outdir=str(tmp_path / "exp"), **flags)
     [entry] = json.loads((tmp_path / "exp" / "experiment.json").read_text())["runs"]
     assert_same_run(tmp_path / "exp" / entry["name"], task_runs[env_name])
 
@@ -152,14 +153,14 @@ def test_an_experiments_run_equals_its_lone_twin(env_name, task_runs, tmp_path, 
 def walker_experiment(tmp_path_factory, dask_cluster):
     folder = tmp_path_factory.mktemp("walkers") / "experiment"
     flags = experiment_flags(tiny_flags(dask_cluster, env=WALKER, iterations=2))
-    experiments.experiment(algorithms=["cma_me", "cma_mae"], seeds="7-8", outdir=str(folder), **flags)
+    commands.experiment(algorithms=["cma_me", "cma_mae"], seeds="7-8", outdir=str(folder), **flags)
     return folder
 
 
 @pytest.mark.slow
 def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experiment, tmp_path,
                                                                dask_cluster, run_cli):
-    run.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8),
+    commands.search(**tiny_flags(dask_cluster, env=WALKER, iterations=2, seed=8),
                outdir=str(tmp_path / "twin"))
     name = "cma_me_seed8"  # its setting's label less what every setting shares
     assert_same_run(walker_experiment / name, tmp_path / "twin")
@@ -179,7 +180,7 @@ def test_a_walker_experiment_equals_its_lone_twins_and_compares(walker_experimen
 def test_a_video_has_a_frame_per_step_and_its_elite_reflies_exactly(env_name, task_runs, tmp_path, capsys):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
-    results.video(str(run_dir), best=True)
+    commands.video(str(run_dir), best=True)
     index = pd.read_csv(run_dir / "videos" / "index.csv")
     assert index["reproduced"].tolist() == [True]
     solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
@@ -197,7 +198,7 @@ def test_elites_of_every_row_are_listed_and_reflown_exactly(env_name, task_runs,
     the elites at the task's solved return in its own words."""
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
-    results.elites(str(run_dir), top=2)
+    commands.elites(str(run_dir), top=2)
     table = pd.read_csv(run_dir / "elites.csv")
     assert list(table.columns) == ["objective", *tasks.ENVIRONMENTS[env_name].measures, "cell_index"]
     archive, config = results.load_run(run_dir)
@@ -215,7 +216,7 @@ def test_elites_of_every_row_are_listed_and_reflown_exactly(env_name, task_runs,
 def test_walker_trajectories_are_its_hull_paths(task_runs, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[WALKER], run_dir)
-    results.trajectories(str(run_dir), top=3)
+    commands.trajectories(str(run_dir), top=3)
     assert (run_dir / "trajectories.png").stat().st_size > 10_000
     chosen = results.select_elites(results.load_run(run_dir)[0], top=3,
                                    measures=list(tasks.TUTORIAL_MEASURES))
@@ -238,7 +239,7 @@ def action_trace(solution: np.ndarray, env: gym.Env, env_name: str) -> list:
 def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, browser):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[env_name], run_dir)
-    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     data, task = page_data(run_dir), tasks.ENVIRONMENTS[env_name]
     scale = np.array(data["pose_scale"])
     poses = np.frombuffer(base64.b64decode(data["poses"]), "<i2").reshape(-1, len(scale)) / scale
@@ -289,7 +290,7 @@ def test_a_seed_that_is_not_the_runs_is_named_as_its_task_names_it(env_name, tas
 def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs[WALKER], run_dir)
-    evaluation.evaluate(str(run_dir), env_seeds="3-4", top=2,
+    commands.evaluate(str(run_dir), env_seeds="3-4", top=2,
                                 scheduler_address=dask_cluster.scheduler_address)
     table = pd.read_csv(run_dir / "robustness.csv")
     env, rows = tiny_env(WALKER), results.elite_rows(results.load_run(run_dir)[0])
@@ -307,7 +308,7 @@ def test_evaluate_says_a_robots_seeds_are_reset_seeds(task_runs, tmp_path, dask_
     """evaluate's lines in the task's words: a robot has reset seeds, not a lander's terrains."""
     run_dir = tmp_path / "run"
     shutil.copytree(task_runs["HalfCheetah-v5"], run_dir)
-    evaluation.evaluate(str(run_dir), env_seeds="52,3", top=1,
+    commands.evaluate(str(run_dir), env_seeds="52,3", top=1,
                         scheduler_address=dask_cluster.scheduler_address)
     out = capsys.readouterr().out
     assert "note: the run searched on reset seed(s) [52] too; they are not new to its elites" in out

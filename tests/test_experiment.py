@@ -14,8 +14,9 @@ from scipy.stats import mannwhitneyu
 from qdsearch import algorithms
 from qdsearch.analysis import comparison, run_folder
 from qdsearch.cli import app as ll
+from qdsearch.cli import commands
 from qdsearch.config import options
-from qdsearch.search import experiments, loop, run
+from qdsearch.search import experiments, loop
 from util import (
     Replacements,
     Result,
@@ -38,7 +39,7 @@ def experiment_dir(tmp_path_factory, dask_cluster):
     """cma_me, map_elites and cma_mae at two learning rates, two seeds each: 8 runs in one go,
     their data alone (an experiment's pictures are the kill -9 test's)."""
     folder = tmp_path_factory.mktemp("experiment") / "exp"
-    experiments.experiment(algorithms="cma_me,map_elites,cma_mae", seeds="1-2", learning_rate=[0.01, 0.5],
+    commands.experiment(algorithms="cma_me,map_elites,cma_mae", seeds="1-2", learning_rate=[0.01, 0.5],
                            outdir=str(folder), scheduler_address=dask_cluster.scheduler_address,
                            pictures=False, **TINY)
     return folder
@@ -72,14 +73,14 @@ def test_the_grid_runs_every_setting_with_every_seed(experiment_dir):
 def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_cluster, which):
     entry = plan_of(experiment_dir)["runs"][which]
     flags = {k: v for k, v in entry["config"].items() if k in options.search_defaults()}
-    run.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
     assert run_archive(experiment_dir / entry["name"]).equals(run_archive(tmp_path / "twin"))
     assert run_metrics(experiment_dir / entry["name"]) == run_metrics(tmp_path / "twin")
 
 
 def test_every_row_runs_and_sweeps_only_its_own_flags(tmp_path, dask_cluster):
     folder = tmp_path / "rows"
-    experiments.experiment(algorithms=list(algorithms.ALGORITHMS), seeds="1-2", iterations=1,
+    commands.experiment(algorithms=list(algorithms.ALGORITHMS), seeds="1-2", iterations=1,
                            novelty_threshold=[0.02, 0.05], bandwidth=[0.1], outdir=str(folder),
                            scheduler_address=dask_cluster.scheduler_address, n_emitters=2, batch_size=6,
                            log_every=1, pictures=False)  # 30 runs: their pictures are not what is checked
@@ -93,11 +94,11 @@ def test_every_row_runs_and_sweeps_only_its_own_flags(tmp_path, dask_cluster):
     assert all(entry["state"] == "done" for entry in runs) and len(runs) == 2 * len(settings)
     entry = next(e for e in runs if e["setting"].startswith("nslc") and "0.05" in e["setting"])
     flags = {k: v for k, v in entry["config"].items() if k in options.search_defaults()}
-    run.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**flags, outdir=str(tmp_path / "twin"), scheduler_address=dask_cluster.scheduler_address)
     assert run_archive(folder / entry["name"]).equals(run_archive(tmp_path / "twin"))
     assert run_metrics(folder / entry["name"]) == run_metrics(tmp_path / "twin")
 
-    comparison.compare(str(folder), out=str(tmp_path / "rows"), baseline="cma_me")
+    commands.compare(str(folder), out=str(tmp_path / "rows"), baseline="cma_me")
     report = (tmp_path / "rows.md").read_text()
     assert "IQM [95% stratified bootstrap interval]" in report
     stats = pd.read_csv(tmp_path / "rows_settings.csv")
@@ -109,7 +110,7 @@ def test_every_row_runs_and_sweeps_only_its_own_flags(tmp_path, dask_cluster):
 
 
 def test_one_run_at_a_time_gives_the_same_runs(experiment_dir, tmp_path, dask_cluster):
-    experiments.experiment(algorithms="cma_mae", seeds="2", learning_rate=[0.5], max_in_flight=1,
+    commands.experiment(algorithms="cma_mae", seeds="2", learning_rate=[0.5], max_in_flight=1,
                            outdir=str(tmp_path / "exp"), scheduler_address=dask_cluster.scheduler_address,
                            **TINY)
     [entry] = plan_of(tmp_path / "exp")["runs"]
@@ -135,13 +136,13 @@ def test_stopped_experiment_resumes_to_the_uninterrupted_result(tmp_path, dask_c
     held = {entry["name"]: checkpoint_iteration(folder / entry["name"]) for entry in plan_of(folder)["runs"]}
     assert all(2 <= iteration <= 8 for iteration in held.values())
 
-    experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
 
     # The resumed drive flew only what the checkpoints lacked: no run started again from 0.
     assert plan_of(folder)["timing"]["iterations"] == sum(8 - iteration for iteration in held.values())
 
     whole = tmp_path / "whole"
-    experiments.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
+    commands.experiment(algorithms="cma_me,map_elites", seeds="1", iterations=8, n_emitters=2,
                   batch_size=6, log_every=2, outdir=str(whole), pictures=False,
                   scheduler_address=dask_cluster.scheduler_address)
     for entry in plan_of(folder)["runs"]:
@@ -250,7 +251,7 @@ def test_a_results_command_given_an_experiment_names_its_runs(run_cli, experimen
 
 
 def test_compare_gives_statistics_per_setting(experiment_dir, tmp_path, capsys):
-    comparison.compare(str(experiment_dir), out=str(tmp_path / "cmp"))
+    commands.compare(str(experiment_dir), out=str(tmp_path / "cmp"))
 
     table = pd.read_csv(tmp_path / "cmp.csv")
     stats = pd.read_csv(tmp_path / "cmp_settings.csv")
@@ -303,7 +304,7 @@ def test_kill_9_of_an_experiment_then_resume(tmp_path, dask_cluster):
     os.killpg(process.pid, signal.SIGKILL)
     process.communicate(timeout=60)
 
-    experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
     assert all(entry["state"] == "done" for entry in plan_of(folder)["runs"])
     for entry in plan_of(folder)["runs"]:
         assert run_metrics(folder / entry["name"])[-1]["iteration"] == 8
@@ -365,7 +366,7 @@ def test_kill_9_while_runs_are_opened_then_resume(tmp_path, dask_cluster):
     runs = plan_of(folder)["runs"]
     assert {entry["state"] for entry in runs} == {"pending"} and 5 <= len(run_folders(folder)) < 120
 
-    experiments.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(folder), scheduler_address=dask_cluster.scheduler_address)
 
     assert all(entry["state"] == "done" for entry in plan_of(folder)["runs"])
     assert all(run_metrics(folder / entry["name"])[-1]["iteration"] == 1 for entry in runs)

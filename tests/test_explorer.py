@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from qdsearch import tasks
-from qdsearch.analysis import evaluation, explorer
 from qdsearch.base import run_files
+from qdsearch.cli import commands
 from qdsearch.store import archive_data
 from qdsearch.tasks import fast_lander, lander
 from util import DATA_BLOCK, LANDER, folder_state, page_data, saved_archive, small_disk
@@ -25,7 +25,7 @@ def explored(tmp_path_factory, dask_cluster, tiny_run):
     """A copy of the tiny run (a few dozen elites) and its explorer page."""
     run_dir = tmp_path_factory.mktemp("explorer") / "run"
     shutil.copytree(tiny_run, run_dir)
-    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     return run_dir
 
 
@@ -162,9 +162,9 @@ def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
         browser, explored, tmp_path, dask_cluster):
     run_dir = tmp_path / "run"
     shutil.copytree(explored, run_dir)
-    evaluation.evaluate(str(run_dir), env_seeds="3,4",
+    commands.evaluate(str(run_dir), env_seeds="3,4",
                                 scheduler_address=dask_cluster.scheduler_address)
-    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     robust = {int(r["cell_index"]): r for r in pd.read_csv(run_dir / "robustness.csv").to_dict("records")}
 
     page = browser.new_page(viewport={"width": 1300, "height": 1000})

@@ -18,7 +18,8 @@ from gymnasium.envs.classic_control.cartpole import CartPoleEnv
 from conftest import ROOT
 from qdsearch import tasks
 from qdsearch.base.flags import UsageError
-from qdsearch.search import loop, run
+from qdsearch.cli import commands
+from qdsearch.search import loop
 from qdsearch.tasks import family
 from util import assert_one_line_error, tiny_flags
 
@@ -78,7 +79,7 @@ def test_a_search_flies_the_docs_toy_family_on_the_clusters_workers(toy_family, 
     assert tasks.family_measures(task.family) == ["cart_x", "balanced_steps"]
     assert (task.shape, task.continuous) == ((2, 4), False)  # CartPole's Discrete(2) of 4 observations
     run_dir = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, env=TOY_ENV), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, env=TOY_ENV), outdir=str(run_dir))
 
     table = pd.read_csv(run_dir / "archive.csv")
     assert len(table) > 1 and len([c for c in table.columns if c.startswith("solution_")]) == 8

@@ -20,7 +20,8 @@ import psutil  # distributed's own dependency
 import pytest
 
 from qdsearch.cli import app as ll
-from qdsearch.search import cluster, run
+from qdsearch.cli import commands
+from qdsearch.search import cluster
 from util import (
     Result,
     assert_one_line_error,
@@ -195,7 +196,7 @@ def test_a_scheduler_without_workers_says_it_waits_and_ends_or_goes_on_when_one_
         assert search.returncode == 0, err
         log = (tmp_path / "run" / "run.log").read_text()
         assert "1 worker(s); no dashboard" in log and ":8787" not in log  # it has none
-        run.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
+        commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
         assert_same_run(tmp_path / "run", tmp_path / "twin")
     finally:
         stop_all(processes)
@@ -235,7 +236,7 @@ def test_a_search_whose_scheduler_dies_says_so_in_one_line_and_resumes_to_its_tw
     finally:
         stop_all(processes)
     assert ll.main(["resume", str(run_dir), "--scheduler_address", dask_cluster.scheduler_address]) == 0
-    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
     assert_same_run(run_dir, tmp_path / "twin")
 
 
@@ -290,7 +291,7 @@ def test_a_worker_killed_while_the_local_cluster_starts_is_started_again_and_the
     assert killed is not None
     assert search.returncode == 0 and "Traceback" not in err, err
     assert "a worker process failed while the local cluster started" in (run_dir / "run.log").read_text()
-    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
     assert_same_run(run_dir, tmp_path / "twin")
 
 
@@ -356,7 +357,8 @@ def test_every_command_refuses_a_config_with_a_wrong_type(run_cli, tiny_run, tmp
 @pytest.fixture(scope="module")
 def walker_run(tmp_path_factory, dask_cluster):
     run_dir = tmp_path_factory.mktemp("walker") / "run"
-    run.search(**tiny_flags(dask_cluster, env="BipedalWalker-v3", iterations=1, batch_size=3, log_every=1),
+    commands.search(**tiny_flags(dask_cluster, env="BipedalWalker-v3", iterations=1, batch_size=3,
+                                 log_every=1),
               outdir=str(run_dir))
     return run_dir
 

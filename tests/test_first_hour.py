@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 
 from conftest import ROOT
-from qdsearch.analysis import comparison, results
+from qdsearch.analysis import comparison
+from qdsearch.cli import commands
 from qdsearch.config.settings import SEARCH_FLAGS
-from qdsearch.search import experiments
 from util import run_archive, tiny_flags
 
 
@@ -24,17 +24,17 @@ def small_experiment(tmp_path_factory, dask_cluster):
     folder = tmp_path_factory.mktemp("first_hour") / "exp"
     flags = {k: v for k, v in tiny_flags(dask_cluster, iterations=2, log_every=2).items()
              if k not in ("seed", "algorithm")}
-    experiments.experiment(algorithms="cma_me", seeds="1-2", outdir=str(folder), **flags)
+    commands.experiment(algorithms="cma_me", seeds="1-2", outdir=str(folder), **flags)
     return folder
 
 
 def test_a_second_video_call_adds_to_the_index(tiny_run, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run, run_dir)
-    results.video(str(run_dir), best=True)
+    commands.video(str(run_dir), best=True)
     first = pd.read_csv(run_dir / "videos" / "index.csv")
-    results.video(str(run_dir), top=2)  # the best again (named as one of the top 2), and the second
-    results.video(str(run_dir), top=2)  # the same videos again: their rows replaced, not repeated
+    commands.video(str(run_dir), top=2)  # the best again (named as one of the top 2), and the second
+    commands.video(str(run_dir), top=2)  # the same videos again: their rows replaced, not repeated
     index = pd.read_csv(run_dir / "videos" / "index.csv")
     best_two = run_archive(run_dir).sort_values(["objective", "index"], ascending=[False, True]).head(2)
     assert index.iloc[0].equals(first.iloc[0]) and len(first) == 1  # the first call's row is kept
@@ -45,8 +45,8 @@ def test_a_second_video_call_adds_to_the_index(tiny_run, tmp_path):
 def test_each_trajectories_drawing_is_kept_and_listed(tiny_run, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run, run_dir)
-    results.trajectories(str(run_dir), best=True)
-    results.trajectories(str(run_dir), top=3)
+    commands.trajectories(str(run_dir), best=True)
+    commands.trajectories(str(run_dir), top=3)
     kept = sorted(p.name for p in (run_dir / "trajectories").glob("*.png"))
     assert kept == ["trajectories_001.png", "trajectories_002.png"]
     assert (run_dir / "trajectories" / kept[1]).read_bytes() == (run_dir / "trajectories.png").read_bytes()

@@ -9,7 +9,7 @@ import pytest
 from ribs.archives import GridArchive
 
 from qdsearch.base import compact_pickle
-from qdsearch.search import run
+from qdsearch.cli import commands
 from util import archive_table, read_checkpoint, run_archive, tiny_flags
 
 WEIGHTS = 20_000
@@ -60,7 +60,7 @@ def test_a_128_128_mlp_run_on_a_32x32_grid_writes_a_folder_in_proportion_to_its_
         tmp_path, dask_cluster, recwarn):
     """(Its batch of 80 networks is 12.5 MB, a graph Dask would warn of on every send: not here.)"""
     folder = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, env="HalfCheetah-v5", policy="mlp", hidden="128,128", grid=32,
+    commands.search(**tiny_flags(dask_cluster, env="HalfCheetah-v5", policy="mlp", hidden="128,128", grid=32,
                             algorithm="map_elites", n_emitters=1, batch_size=80, episode_length=5,
                             iterations=2, log_every=1), outdir=str(folder))
     assert not [w for w in recwarn if "large graph" in str(w.message)]
@@ -79,6 +79,6 @@ def test_a_128_128_mlp_run_on_a_32x32_grid_writes_a_folder_in_proportion_to_its_
     checkpoint = read_checkpoint(folder / "checkpoint.pkl")
     assert archive_table(checkpoint["scheduler"].result_archive).equals(archive)
     asked = tmp_path / "asked"
-    run.search(**tiny_flags(dask_cluster, iterations=1, archive_pkl=True), outdir=str(asked))
+    commands.search(**tiny_flags(dask_cluster, iterations=1, archive_pkl=True), outdir=str(asked))
     with open(asked / "archive.pkl", "rb") as file:
         assert archive_table(pickle.load(file)).equals(run_archive(asked))

@@ -1,18 +1,21 @@
 """Flags given beside a file: `search --config RUN` and `experiment --plan FILE` take the file's
 settings, and a flag typed beside the file wins whatever its value (its default too). The merged
-config is checked where it is computed (run.search_config, experiments.with_plan and
+config is checked where it is computed (run_config.search_config, experiments.with_plan and
 experiment_grid) against what the command alone makes of the same flags, flag by flag; one
 command line each shows the command goes through it."""
 
+import inspect
 import json
 from pathlib import Path
 
 import fire
 import pytest
 
-from qdsearch.base.flags import Flag, UsageError, takes
+from qdsearch.base.flags import Flag, UsageError
+from qdsearch.cli import parsing
+from qdsearch.cli.signatures import takes
 from qdsearch.config import options, run_config, settings
-from qdsearch.search import experiments, run
+from qdsearch.search import experiments
 from qdsearch.store import trackers
 from util import assert_one_line_error, folder_state
 
@@ -20,7 +23,7 @@ DEFAULTS = options.search_defaults()
 TRACKER = next((name for name, kind in trackers.TRACKERS.items() if trackers.installed(kind.module)), None)
 
 # For every flag a file can hold: a valid value other than its default, and the flags it needs
-# beside it to mean something (none of them a flag it takes along: run.FOLLOWS).
+# beside it to mean something (none of them a flag it takes along: run_config.FOLLOWS).
 ROWS = {
     "iterations": (5, {}),
     "evaluations": (300, {}),
@@ -55,7 +58,7 @@ ROWS = {
     "track": (TRACKER, {}),
     "fast_env": (False, {}),
 }
-FROM_CONFIG = [flag for flag in settings.SEARCH_FLAGS if flag not in run.NOT_FROM_CONFIG]
+FROM_CONFIG = [flag for flag in settings.SEARCH_FLAGS if flag not in run_config.NOT_FROM_CONFIG]
 SEED = 7  # every file's: a run's seed is in its config
 
 
@@ -70,6 +73,18 @@ def test_a_command_is_told_the_flags_given_on_the_command_line_as_in_a_call():
     assert typed == command(config="RUN", policy="linear") == (
         ["config", "policy"], {"policy": "linear", "iterations": 300})
     assert fire.Fire(command, command=[]) == command() == ([], {"policy": "linear", "iterations": 300})
+
+
+def test_a_command_with_many_folders_gets_them_by_place_and_its_flags_by_name():
+    """compare's *run_dirs: the folders reach the command as its *args (none: an empty tuple), the
+    table's flags as keywords, each defaulted."""
+    @takes({"out": Flag(None, "a flag"), "overwrite": Flag(False, "another")})
+    def command(first, *folders, **flags):
+        return first, folders, flags
+
+    assert command("a", "b", "c", out="x") == ("a", ("b", "c"), {"out": "x", "overwrite": False})
+    assert command("a") == ("a", (), {"out": None, "overwrite": False})
+    assert inspect.signature(command).parameters["out"].kind is inspect.Parameter.KEYWORD_ONLY
 
 
 def test_a_word_no_argument_takes_is_refused_before_the_command_runs(run_cli, tmp_path):
@@ -101,19 +116,19 @@ def config_file(tmp_path: Path, **settings) -> Path:
     """A run's config.json as a search with these settings records it (nothing flown)."""
     folder = tmp_path / "recorded"
     folder.mkdir(exist_ok=True)
-    config = run.search_config({**DEFAULTS, "seed": SEED, **settings})
+    config = run_config.search_config({**DEFAULTS, "seed": SEED, **settings})
     (folder / "config.json").write_text(json.dumps(config.to_json()))
     return folder / "config.json"
 
 
 def beside(path, **given):
     """The config `search --config path` makes with `given` typed beside it."""
-    return run.search_config({**DEFAULTS, **given}, set(given), path).to_json()
+    return run_config.search_config({**DEFAULTS, **given}, set(given), path).to_json()
 
 
 def alone(**flags):
     """The config search makes of these flags alone (the file's seed)."""
-    return run.search_config({**DEFAULTS, "seed": SEED, **flags}).to_json()
+    return run_config.search_config({**DEFAULTS, "seed": SEED, **flags}).to_json()
 
 
 @pytest.mark.parametrize("flag, recorded, given", list(cases(FROM_CONFIG)),
@@ -148,8 +163,8 @@ def test_the_file_gives_neither_where_the_run_goes_nor_its_cluster(tmp_path):
     path = config_file(tmp_path, **recorded)
     assert {flag: json.loads(path.read_text())[flag] for flag in recorded} == recorded
     merged = beside(path)
-    assert {flag: merged[flag] for flag in run.NOT_FROM_CONFIG} == {
-        flag: DEFAULTS[flag] for flag in run.NOT_FROM_CONFIG}
+    assert {flag: merged[flag] for flag in run_config.NOT_FROM_CONFIG} == {
+        flag: DEFAULTS[flag] for flag in run_config.NOT_FROM_CONFIG}
     mine = {"outdir": str(tmp_path / "mine"), "workers": 1, "scheduler_timeout": 30}
     assert {flag: beside(path, **mine)[flag] for flag in mine} == mine
 
@@ -172,8 +187,8 @@ def test_a_runs_own_row_flags_are_taken_beside_its_config(tmp_path):
     typed = {"config": str(path), "learning_rate": "0.2"}
 
     def check(typed):
-        options.refuse_unused_row_flags([run.typed_setting(typed, "algorithm")], list(typed),
-                                        [run.typed_setting(typed, "policy")])
+        options.refuse_unused_row_flags([parsing.typed_setting(typed, "algorithm")], list(typed),
+                                        [parsing.typed_setting(typed, "policy")])
 
     check(typed)
     assert beside(path, learning_rate=0.2)["learning_rate"] == 0.2
@@ -228,8 +243,8 @@ def test_config_with_flags_beside_it_on_the_command_line(run_cli, tmp_path, dask
                                             "es_samples", "seed")} == {
         "algorithm": "cma_mega_es", "policy": "linear", "hidden": None, "iterations": 1, "evaluations": None,
         "es_samples": 6, "seed": SEED}
-    assert {flag: written[flag] for flag in run.NOT_FROM_CONFIG} == {
-        **{flag: DEFAULTS[flag] for flag in run.NOT_FROM_CONFIG}, "scheduler_address": address,
+    assert {flag: written[flag] for flag in run_config.NOT_FROM_CONFIG} == {
+        **{flag: DEFAULTS[flag] for flag in run_config.NOT_FROM_CONFIG}, "scheduler_address": address,
         "outdir": str(tmp_path / "new")}
     rows = json.loads((tmp_path / "new" / "metrics.json").read_text())
     assert [(row["iteration"], row["evaluations"]) for row in rows] == [(1, 9)]  # flew 6 samples

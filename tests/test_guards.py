@@ -17,8 +17,8 @@ import pandas as pd
 import pytest
 
 from qdsearch import tasks
-from qdsearch.analysis import explorer, results
-from qdsearch.search import experiments, run
+from qdsearch.analysis import results
+from qdsearch.cli import commands
 from qdsearch.tasks import walker
 from util import assert_one_line_error, folder_state, page_data, tiny_flags
 
@@ -65,8 +65,8 @@ def test_the_hardcore_walker_flies_a_course_with_obstacles_the_plain_one_lacks()
 def continuous_explored(tmp_path_factory, dask_cluster) -> Path:
     """A tiny run of the continuous lander and its explorer page."""
     run_dir = tmp_path_factory.mktemp("continuous") / "run"
-    run.search(**tiny_flags(dask_cluster, env=CONTINUOUS), outdir=str(run_dir))
-    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**tiny_flags(dask_cluster, env=CONTINUOUS), outdir=str(run_dir))
+    commands.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     return run_dir
 
 
@@ -208,7 +208,8 @@ TERRAINS = [3, 52]  # a run on two terrains: results show the first unless told
 @pytest.fixture(scope="module")
 def two_terrain_run(tmp_path_factory, dask_cluster) -> Path:
     run_dir = tmp_path_factory.mktemp("terrains") / "run"
-    run.search(**tiny_flags(dask_cluster, iterations=2, log_every=2, env_seed="3,52"), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, iterations=2, log_every=2, env_seed="3,52"),
+                    outdir=str(run_dir))
     assert json.loads((run_dir / "config.json").read_text())["env_seed"] == TERRAINS
     return run_dir
 
@@ -237,7 +238,7 @@ def test_results_show_a_multi_terrain_run_on_its_first_terrain(two_terrain_run, 
 @pytest.fixture(scope="module")
 def one_run_experiment(tmp_path_factory, dask_cluster) -> Path:
     folder = tmp_path_factory.mktemp("guards") / "exp"
-    experiments.experiment(algorithms="cma_me", seeds="1", iterations=2, n_emitters=2, batch_size=6,
+    commands.experiment(algorithms="cma_me", seeds="1", iterations=2, n_emitters=2, batch_size=6,
                            log_every=2, outdir=str(folder), scheduler_address=dask_cluster.scheduler_address)
     return folder
 

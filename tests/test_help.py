@@ -9,7 +9,8 @@ from qdsearch import algorithms, tasks
 from qdsearch.base import flags
 from qdsearch.cli import app as ll
 from qdsearch.cli import help as cli_help
-from qdsearch.config import options, settings
+from qdsearch.cli import signatures
+from qdsearch.config import command_settings, settings
 from util import assert_one_line_error
 
 
@@ -32,15 +33,15 @@ def declared(name: str) -> dict[str, str]:
     own = inspect.signature(function).parameters
     passed_on = {flag: settings.SEARCH_FLAGS[flag].help for flag in ll.known_flags(function)
                  if flag not in own}
-    return {**passed_on, **{flag: entry.help for flag, entry in flags.flag_table(function).items()}}
+    return {**passed_on, **{flag: entry.help for flag, entry in signatures.flag_table(function).items()}}
 
 
 def test_the_tables_are_the_flags_commands_take():
     """What the page test below checks is every table: search takes SEARCH_FLAGS whole, and each
     of CLUSTER_FLAGS and SELECTION_FLAGS is taken by some command."""
-    assert flags.flag_table(ll.command("search")) == settings.SEARCH_FLAGS
-    taken = {flag for name in ll.COMMANDS for flag in flags.flag_table(ll.command(name))}
-    assert set(settings.CLUSTER_FLAGS) | set(options.SELECTION_FLAGS) <= taken
+    assert signatures.flag_table(ll.command("search")) == settings.SEARCH_FLAGS
+    taken = {flag for name in ll.COMMANDS for flag in signatures.flag_table(ll.command(name))}
+    assert set(settings.CLUSTER_FLAGS) | set(command_settings.SELECTION_FLAGS) <= taken
 
 
 @pytest.mark.parametrize("name", ll.COMMANDS)
@@ -162,9 +163,10 @@ def test_a_runs_config_is_a_class_in_the_source_every_field_typed_and_on_the_hel
 
 
 def test_top_is_declared_once_for_every_command_that_picks_the_best_elites():
-    """video, trajectories, elites and evaluate take --top from one entry (options.TOP): one
+    """video, trajectories, elites and evaluate take --top from one entry (command_settings.TOP): one
     default, one check; each page says what the K best are for there."""
-    tops = {name: flags.flag_table(ll.command(name))["top"] for name in ("video", "trajectories", "elites",
+    tops = {name: signatures.flag_table(ll.command(name))["top"] for name in ("video", "trajectories",
+                                                                              "elites",
                                                                          "evaluate")}
-    assert all(entry.check is options.TOP.check and entry.default is None for entry in tops.values())
-    assert tops["video"] is options.TOP and "Robustness only" in tops["evaluate"].help
+    assert all(entry.check is command_settings.TOP.check and entry.default is None for entry in tops.values())
+    assert tops["video"] is command_settings.TOP and "Robustness only" in tops["evaluate"].help

@@ -8,9 +8,8 @@ import shutil
 import pandas as pd
 import pytest
 
-from qdsearch.analysis import explorer
 from qdsearch.cli import app as ll
-from qdsearch.search import experiments
+from qdsearch.cli import commands
 from util import Result, assert_one_line_error, checkpoint_iteration, folder_state
 
 INJECTION = "p</script><img src=x onerror=document.title=1337>"  # a folder p< holding script><img...
@@ -21,7 +20,7 @@ TITLE = "LunarLander-v3 archive explorer"
 def tiny_experiment(tmp_path_factory, dask_cluster):
     """A finished experiment of two tiny runs (cma_me, seeds 1 and 2)."""
     folder = tmp_path_factory.mktemp("hostile") / "exp"
-    experiments.experiment(algorithms="cma_me", seeds="1-2", iterations=2, n_emitters=2, batch_size=6,
+    commands.experiment(algorithms="cma_me", seeds="1-2", iterations=2, n_emitters=2, batch_size=6,
                            log_every=2, outdir=str(folder), scheduler_address=dask_cluster.scheduler_address)
     return folder
 
@@ -36,7 +35,7 @@ def copy_of(run_dir, where):
 def test_a_hostile_run_name_runs_nothing_and_the_page_works(browser, tiny_run, tmp_path, dask_cluster,
                                                            name):
     run_dir = copy_of(tiny_run, tmp_path / name)
-    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     html = (run_dir / "explorer.html").read_text()
     assert "<img src=x" not in html and "<!--<script>" not in html  # written as JSON escapes
 
@@ -56,7 +55,7 @@ def test_a_hostile_run_name_runs_nothing_and_the_page_works(browser, tiny_run, t
 def test_the_page_lets_only_its_own_script_run(browser, tiny_run, tmp_path, dask_cluster):
     """Even markup that got into the page could run nothing: the policy allows one script, by hash."""
     run_dir = copy_of(tiny_run, tmp_path / "run")
-    explorer.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.explore(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     html = (run_dir / "explorer.html").read_text()
     planted = html.replace("</body>", "<img src=x onerror=\"document.title='1337'\">"
                                       "<script>document.title='1338'</script></body>")

@@ -6,6 +6,7 @@ line (qdsearch.cli) is the top layer: no other imports it or Fire, and the packa
 the script."""
 
 import ast
+import inspect
 import re
 from pathlib import Path
 
@@ -137,7 +138,7 @@ def message_texts(path: Path) -> list[tuple[int, str]]:
             skipped.add(id(node.body[0].value))
         if isinstance(node, ast.keyword) and node.arg in ("help", "summary"):
             skipped |= {id(inner) for inner in ast.walk(node.value)}
-        if isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("Flag", "flag"):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("Flag", "flag", "retold"):
             skipped |= {id(inner) for inner in ast.walk(node)}
     texts = []
     for node in ast.walk(tree):
@@ -176,3 +177,46 @@ def test_the_installed_command_runs_what_the_script_runs():
     script = (ROOT / "lunar_lander.py").read_text()
     assert f"from {module} import {function}" in script and f"    {function}()" in script
     assert callable(getattr(importlib.import_module(module), function))
+
+
+def test_the_installed_command_titles_its_pages_by_its_own_name(tmp_path):
+    """Run as the installed `lunar-lander` (the entry point's own file name), --help names that
+    command, not the script; run as the script, the script."""
+    import subprocess
+    import sys
+
+    def page(program: str, *args: str) -> str:
+        code = (f"import sys; sys.argv = [{program!r}, *{list(args)!r}]; "
+                "from qdsearch.cli.app import run_as_script; run_as_script()")
+        done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    installed = page(str(tmp_path / "bin" / "lunar-lander"), "video", "--help")
+    assert "    lunar-lander video - Render an mp4" in installed
+    assert "    lunar-lander video RUN_DIR [--FLAG=VALUE ...]" in installed
+    assert "lunar_lander.py" not in installed
+    main = page(str(tmp_path / "bin" / "lunar-lander"), "--help")
+    assert "    lunar-lander COMMAND --help: a command's own page." in main
+    script = page(str(ROOT / "lunar_lander.py"), "video", "--help")
+    assert "    python lunar_lander.py video RUN_DIR [--FLAG=VALUE ...]" in script
+
+
+def test_the_core_commands_take_typed_settings_never_flags():
+    """Each command's core function takes typed settings (a settings class, a RunConfig, a path),
+    never `**flags`: only the command line makes a signature of flags (cli/signatures.py)."""
+    import dataclasses
+    import typing
+
+    from qdsearch.analysis import comparison, evaluation, explorer, live, results
+    from qdsearch.search import experiments, run
+
+    cores = (run.search, run.resume_run, experiments.resume, experiments.experiment, results.video,
+             results.elites, results.trajectories, evaluation.evaluate, explorer.explore,
+             comparison.compare, live.watch)
+    for function in cores:
+        parameters = inspect.signature(function).parameters.values()
+        assert not any(p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) for p in parameters), function
+        hints = typing.get_type_hints(function)
+        assert any(dataclasses.is_dataclass(hint) for hint in hints.values()), function

@@ -15,7 +15,7 @@ import qdsearch
 from conftest import ROOT
 from qdsearch import tasks
 from qdsearch.base import kernels
-from qdsearch.search import run
+from qdsearch.cli import commands
 from util import tiny_flags
 
 HELD = ("NUMBA_DISABLE_JIT", "MPLBACKEND", "MUJOCO_GL", "OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES")
@@ -63,7 +63,7 @@ def test_hold_kernels_says_which_libraries_loaded_too_early():
                          ids=["lander", "two-resets-each", "hopper-mlp"])
 def test_fly_elite_flies_every_elite_to_the_archives_numbers(tmp_path, dask_cluster, flags):
     folder = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(folder))
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(folder))
     found = qdsearch.read_run(folder)
     names = found.config["measures"]
     assert len(found.archive) > 3 and names
@@ -93,9 +93,11 @@ def test_a_python_caller_reads_each_setting_by_its_keyword_and_the_command_line_
     assert str(python.value) == "workers must be a positive whole number, got 0"
     with pytest.raises(flags.UsageError, match=r"^terminate_when_unhealthy: env LunarLander-v3 has no"):
         check_episode("LunarLander-v3", tasks.Episode(None, True))
-    flags.name_settings_as("--{}")
-    with pytest.raises(flags.UsageError, match="^--workers must be a positive whole number, got 0$"):
+    with pytest.raises(flags.BadValue) as typed:
         flags.positive_int("workers", 0)
+    assert (typed.value.setting, typed.value.value) == ("workers", 0)
+    monkeypatch.setitem(flags.NAMING, "style", "--{}")  # as the command line words it: the error
+    assert str(typed.value) == "--workers must be a positive whole number, got 0"  # raised before
     show = "import qdsearch.base.flags as f; print(f.named('env'))"
     assert settings_after(show)["printed"] == ["env"]
     assert settings_after("import qdsearch.cli; " + show)["printed"] == ["--env"]

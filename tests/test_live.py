@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from qdsearch import tasks
-from qdsearch.search import experiments, run
+from qdsearch.cli import commands
 from util import assert_one_line_error, launch, run_metrics, tiny_flags
 
 pytestmark = pytest.mark.slow  # a server process and a browser
@@ -28,7 +28,7 @@ def page_value(page, expression: str):
 def test_the_live_page_shows_the_runs_files_and_follows_a_resume(tmp_path, dask_cluster, browser):
     """Two pages on one server (two tabs): each follows the resume, whichever refreshes first."""
     run_dir = tmp_path / "<i>run&"  # a hostile name: escaped where the page shows it
-    run.search(**tiny_flags(dask_cluster, iterations=2, log_every=1), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, iterations=2, log_every=1), outdir=str(run_dir))
     port = free_port()
     server = launch("watch", run_dir, port=port)
     try:
@@ -58,7 +58,7 @@ def test_the_live_page_shows_the_runs_files_and_follows_a_resume(tmp_path, dask_
         second.goto(f"http://127.0.0.1:{port}/")
         second.wait_for_function("window.Bokeh && Bokeh.documents.length > 0", timeout=60000)
 
-        experiments.resume(str(run_dir), iterations=5, scheduler_address=dask_cluster.scheduler_address)
+        commands.resume(str(run_dir), iterations=5, scheduler_address=dask_cluster.scheduler_address)
         resumed = "Bokeh.documents[0].get_model_by_name('metrics').data.iteration.length === 5"
         for shown in (page, second):
             shown.wait_for_function(resumed, timeout=30000)

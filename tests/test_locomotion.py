@@ -16,8 +16,8 @@ import pytest
 from conftest import ROOT, SCRIPT
 from qdsearch import tasks
 from qdsearch.analysis import results
+from qdsearch.cli import commands
 from qdsearch.config import run_config
-from qdsearch.search import run
 from qdsearch.tasks import locomotion
 from util import (
     assert_one_line_error,
@@ -118,7 +118,7 @@ def test_ant_omni_leaves_the_forward_reward_out_of_the_objective():
 def cvt_run(tmp_path_factory, dask_cluster):
     """A tiny CVT run of the lander on two measures (the Voronoi heatmap) and its config."""
     run_dir = tmp_path_factory.mktemp("cvt") / "run"
-    run.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=4, pictures=True),
+    commands.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=4, pictures=True),
                outdir=str(run_dir))
     return run_dir
 
@@ -129,10 +129,9 @@ def test_a_cvt_run_keeps_its_centroids_and_resumes_to_its_twin(cvt_run, tmp_path
     assert config.grid is None and np.array_equal(np.load(cvt_run / "centroids.npy"), archive.centroids)
     assert len(archive) > 5
     resumed = tmp_path / "resumed"
-    run.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=2), outdir=str(resumed))
-    from qdsearch.search import experiments
+    commands.search(**tiny_flags(dask_cluster, archive="cvt", cells=40, iterations=2), outdir=str(resumed))
 
-    experiments.resume(str(resumed), iterations=4, scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(resumed), iterations=4, scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(resumed, cvt_run)
     assert np.array_equal(np.load(resumed / "centroids.npy"), archive.centroids)  # seeded: the same
 
@@ -191,7 +190,7 @@ def test_four_feet_on_a_cvt_archive_and_a_grid_of_four(tmp_path, dask_cluster):
 
 
 def _tiny(run_dir, cluster, **flags):
-    run.search(**tiny_flags(cluster, iterations=1, **flags), outdir=str(run_dir))
+    commands.search(**tiny_flags(cluster, iterations=1, **flags), outdir=str(run_dir))
     return run_dir
 
 

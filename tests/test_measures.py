@@ -10,9 +10,8 @@ import pytest
 from matplotlib.image import imread
 
 from qdsearch import tasks
-from qdsearch.analysis import results
 from qdsearch.base.flags import UsageError
-from qdsearch.search import experiments, run
+from qdsearch.cli import commands
 from util import (
     LANDER,
     assert_one_line_error,
@@ -36,7 +35,7 @@ def tiny(dask_cluster, **overrides):
 def fuel_run(tmp_path_factory, dask_cluster):
     """A search in fuel and flight time on five terrains, on a 20x20 grid."""
     run_dir = tmp_path_factory.mktemp("measures") / "fuel"
-    run.search(**tiny(dask_cluster, measures="fuel,flight_time", env_seed="0-4", grid=20),
+    commands.search(**tiny(dask_cluster, measures="fuel,flight_time", env_seed="0-4", grid=20),
               outdir=str(run_dir))
     return run_dir
 
@@ -67,8 +66,8 @@ def test_results_commands_speak_the_runs_measures(fuel_run, capsys):
     archive = saved_archive(fuel_run)
     point = tuple(float(v) for v in archive.data("measures")[0])
 
-    results.video(str(fuel_run), cells=[point], env_seed=3)
-    results.elites(str(fuel_run), top=2)
+    commands.video(str(fuel_run), cells=[point], env_seed=3)
+    commands.elites(str(fuel_run), top=2)
 
     index = pd.read_csv(fuel_run / "videos" / "index.csv")
     [row] = index.to_dict("records")
@@ -84,20 +83,20 @@ def test_results_commands_speak_the_runs_measures(fuel_run, capsys):
 @pytest.mark.parametrize("measures, grid", [("max_tilt", 30), ("impact_x,impact_angle,fuel", 8)])
 def test_one_or_three_measures(tmp_path, dask_cluster, measures, grid):
     run_dir = tmp_path / "run"
-    run.search(**tiny(dask_cluster, measures=measures, grid=grid), outdir=str(run_dir))
+    commands.search(**tiny(dask_cluster, measures=measures, grid=grid), outdir=str(run_dir))
     archive = saved_archive(run_dir)
     assert tuple(archive.dims) == (grid,) * len(measures.split(","))
     assert imread(run_dir / "heatmap.png").std() > 0.05
-    results.trajectories(str(run_dir), best=True)
+    commands.trajectories(str(run_dir), best=True)
     assert (run_dir / "trajectories.png").is_file()
 
 
 def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_cluster):
     """Old config.json and checkpoint: no env, no measures, no grid, env_seed a plain number."""
     flags = tiny(dask_cluster, iterations=3, env_seed=52, pictures=False)
-    run.search(**flags, outdir=str(tmp_path / "whole"))
+    commands.search(**flags, outdir=str(tmp_path / "whole"))
     old = tmp_path / "old"
-    run.search(**{**flags, "iterations": 1}, outdir=str(old))
+    commands.search(**{**flags, "iterations": 1}, outdir=str(old))
     checkpoint = read_checkpoint(old / "checkpoint.pkl")
     for config in (checkpoint["config"], json.loads((old / "config.json").read_text())):
         for key in ("measures", "grid", "env"):
@@ -107,8 +106,8 @@ def test_a_folder_from_before_measures_existed_still_resumes(tmp_path, dask_clus
     (old / "checkpoint.pkl").write_bytes(pickle.dumps(checkpoint))  # unsigned, as then
     (old / "archive.npz").unlink()  # nor was there an archive.npz: archive.csv is read
 
-    results.elites(str(old))  # results commands read it as the tutorial's measures
-    experiments.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address, trust=True)
+    commands.elites(str(old))  # results commands read it as the tutorial's measures
+    commands.resume(str(old), iterations=3, scheduler_address=dask_cluster.scheduler_address, trust=True)
 
     assert run_archive(old).equals(run_archive(tmp_path / "whole"))
     assert run_metrics(old) == run_metrics(tmp_path / "whole")
@@ -134,6 +133,6 @@ def test_bad_measures_grid_and_terrains_are_refused(run_cli, tmp_path, args, fra
 
 def test_cells_must_be_points_of_the_runs_measures(fuel_run):
     with pytest.raises(UsageError, match=r"points of \(fuel, flight_time\)"):
-        results.video(str(fuel_run), cells="[(0.1, -0.1, 3)]")
+        commands.video(str(fuel_run), cells="[(0.1, -0.1, 3)]")
     with pytest.raises(UsageError, match="outside the archive: fuel in"):
-        results.video(str(fuel_run), cells="[(900, 100)]")
+        commands.video(str(fuel_run), cells="[(900, 100)]")

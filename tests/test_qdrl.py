@@ -13,10 +13,10 @@ from scipy import stats
 
 from qdsearch import tasks
 from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration, gradients
-from qdsearch.config import settings
+from qdsearch.cli import commands
+from qdsearch.config import run_config, settings
 from qdsearch.config.run_config import load_run_config
-from qdsearch.search import experiments, run
-from qdsearch.tasks.policies import LINEAR, POLICIES, Policy, policy_of
+from qdsearch.tasks.policies import LINEAR, POLICIES, Policy
 from util import assert_one_line_error, run_archive, run_metrics, saved_archive, tiny_flags
 
 HOPPER = "Hopper-v5"
@@ -51,7 +51,8 @@ def test_the_mlp_acts_as_the_network_computed_by_hand(env_name):
     rng = np.random.default_rng(3)
     for _ in range(20):
         solution, obs = rng.normal(size=policy.size(task.shape)), rng.normal(size=obs_dim)
-        action, out = task.policy(solution, policy)(obs), hand_network(solution, task.shape, hidden, obs)
+        act = policy.act(solution, task.shape, task.continuous)
+        action, out = act(obs), hand_network(solution, task.shape, hidden, obs)
         if task.continuous:
             np.testing.assert_allclose(action, np.tanh(out), rtol=1e-12, atol=1e-15)
         else:
@@ -62,7 +63,8 @@ def test_the_linear_policy_is_the_tutorials():
     task = tasks.ENVIRONMENTS["LunarLander-v3"]
     solution, obs = np.arange(32.0) - 16, np.linspace(-1, 1, 8)
     assert LINEAR.size(task.shape) == 32 and not LINEAR.start(task.shape, 42).any()
-    assert task.policy(solution)(obs) == int(np.argmax(solution.reshape(4, 8) @ obs))
+    act = LINEAR.act(solution, task.shape, task.continuous)
+    assert act(obs) == int(np.argmax(solution.reshape(4, 8) @ obs))
 
 
 def test_the_network_starts_from_a_seeded_glorot_draw():
@@ -100,10 +102,10 @@ def test_a_policy_is_read_from_its_runs_config():
 
     recorded = {**search_defaults(), "seed": 1, "archive": "grid", "grid": 50}
     before = {name: value for name, value in recorded.items() if name not in ("policy", "hidden", "start")}
-    assert policy_of(check_run_config(before)) == LINEAR
-    network = check_run_config({**recorded, "policy": "mlp", "hidden": [8, 4]})
-    assert policy_of(network) == Policy("mlp", (8, 4))
-    assert policy_of(check_run_config({**recorded, "start": "glorot"})) == Policy("linear", (), "glorot")
+    assert check_run_config(before).network == LINEAR
+    mlp = check_run_config({**recorded, "policy": "mlp", "hidden": [8, 4]})
+    assert mlp.network == Policy("mlp", (8, 4))
+    assert check_run_config({**recorded, "start": "glorot"}).network == Policy("linear", (), "glorot")
     with pytest.raises(UsageError, match="--hidden is a flag of --policy mlp"):
         check_run_config({**recorded, "hidden": [8]})
 
@@ -127,7 +129,7 @@ def test_a_runs_emitters_start_where_start_says():
     from qdsearch.algorithms import build_scheduler
     from qdsearch.config.options import search_defaults
 
-    config = run.search_config({**search_defaults(), "seed": 4, "env": HOPPER, "start": "glorot",
+    config = run_config.search_config({**search_defaults(), "seed": 4, "env": HOPPER, "start": "glorot",
                                 "algorithm": "sep_cma_mae", "n_emitters": 2})
     scheduler = build_scheduler(config)
     expected = Policy("linear", (), "glorot").start(tasks.ENVIRONMENTS[HOPPER].shape, 4)
@@ -326,10 +328,10 @@ def dqd_runs(tmp_path_factory, dask_cluster, one_worker_cluster):
     iterations then resumed to 4; their data alone (what they are compared by, what the results
     commands read)."""
     root, flags = tmp_path_factory.mktemp("dqd"), dict(DQD, seed=11)
-    run.search(**tiny_flags(dask_cluster, **flags, iterations=4), outdir=str(root / "two"))
-    run.search(**tiny_flags(one_worker_cluster, **flags, iterations=4), outdir=str(root / "one"))
-    run.search(**tiny_flags(dask_cluster, **flags, iterations=2), outdir=str(root / "resumed"))
-    experiments.resume(str(root / "resumed"), iterations=4, scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**tiny_flags(dask_cluster, **flags, iterations=4), outdir=str(root / "two"))
+    commands.search(**tiny_flags(one_worker_cluster, **flags, iterations=4), outdir=str(root / "one"))
+    commands.search(**tiny_flags(dask_cluster, **flags, iterations=2), outdir=str(root / "resumed"))
+    commands.resume(str(root / "resumed"), iterations=4, scheduler_address=dask_cluster.scheduler_address)
     return root
 
 
@@ -348,7 +350,7 @@ def test_a_dqd_run_is_the_same_on_one_and_two_workers_and_resumed(dqd_runs):
 @pytest.mark.slow  # real MuJoCo searches
 def test_a_dqd_run_of_an_experiment_is_its_lone_twin(dqd_runs, tmp_path, dask_cluster):
     flags = {key: value for key, value in DQD.items() if key != "algorithm"}
-    experiments.experiment(algorithms="cma_mega_es", seeds="11", iterations=4, outdir=str(tmp_path / "exp"),
+    commands.experiment(algorithms="cma_mega_es", seeds="11", iterations=4, outdir=str(tmp_path / "exp"),
                            scheduler_address=dask_cluster.scheduler_address, **flags)
     [run_dir] = [path for path in (tmp_path / "exp").iterdir() if (path / "archive.npz").is_file()]
     assert run_archive(run_dir).equals(run_archive(dqd_runs / "two"))
@@ -380,7 +382,7 @@ def test_elites_of_a_dqd_run_are_their_networks_flown_by_hand(dqd_runs):
 
 @pytest.mark.slow  # real MuJoCo searches
 def test_a_budget_in_evaluations_stops_at_the_last_iteration_within_it(tmp_path, dask_cluster):
-    run.search(**tiny_flags(dask_cluster, **DQD, evaluations=120, seed=2), outdir=str(tmp_path / "run"))
+    commands.search(**tiny_flags(dask_cluster, **DQD, evaluations=120, seed=2), outdir=str(tmp_path / "run"))
     rows, config = run_metrics(tmp_path / "run"), load_run_config(tmp_path / "run")
     assert [row["evaluations"] for row in rows] == [34, 68, 102]  # a fourth would fly 136 > 120
     assert (config.evaluations, config.iterations) == (120, 3)
@@ -390,9 +392,9 @@ def test_a_budget_in_evaluations_stops_at_the_last_iteration_within_it(tmp_path,
 def test_resume_to_a_budget_in_evaluations_equals_a_run_started_with_it(tmp_path, dask_cluster):
     """resume --evaluations 240 of a run of 120: 3 -> 7 iterations of 34, bit for bit a run of 240."""
     short, whole = tmp_path / "short", tmp_path / "whole"
-    run.search(**tiny_flags(dask_cluster, **DQD, evaluations=120, seed=2), outdir=str(short))
-    run.search(**tiny_flags(dask_cluster, **DQD, evaluations=240, seed=2), outdir=str(whole))
-    experiments.resume(str(short), evaluations=240, scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**tiny_flags(dask_cluster, **DQD, evaluations=120, seed=2), outdir=str(short))
+    commands.search(**tiny_flags(dask_cluster, **DQD, evaluations=240, seed=2), outdir=str(whole))
+    commands.resume(str(short), evaluations=240, scheduler_address=dask_cluster.scheduler_address)
     assert run_archive(short).equals(run_archive(whole)) and run_metrics(short) == run_metrics(whole)
     config = load_run_config(short)
     assert (config.evaluations, config.iterations) == (240, 7)

@@ -14,7 +14,7 @@ from qdsearch import tasks
 from qdsearch.analysis import evaluation, results
 from qdsearch.base.flags import UsageError, seed_list
 from qdsearch.cli import app as ll
-from qdsearch.search import run
+from qdsearch.cli import commands
 from qdsearch.tasks import fast_lander, lander
 from util import LANDER, assert_one_line_error, folder_state, saved_archive, tiny_flags
 
@@ -64,7 +64,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
     shortest = int(np.argmin(lengths))
     point = tuple(data["measures"][shortest])
 
-    results.video(str(run_dir), cells=[point])
+    commands.video(str(run_dir), cells=[point])
 
     objective = data["objective"][shortest]
     name = f"cell_x{point[0]:.2f}_v{point[1]:.2f}_obj{objective:.0f}.mp4"
@@ -126,7 +126,7 @@ def test_selection_by_best_top_index_and_cells(archive):
 def test_elite_table_is_archive_data_sorted_and_filtered(run_dir, archive, capsys):
     data = archive.data(return_type="pandas")
     threshold = float(data["objective"].median())
-    results.elites(str(run_dir), min_objective=threshold, top=5)
+    commands.elites(str(run_dir), min_objective=threshold, top=5)
 
     table = read_csv(run_dir / "elites.csv")
     expected = data[data["objective"] >= threshold].nlargest(5, "objective")
@@ -141,7 +141,7 @@ def test_elite_table_is_archive_data_sorted_and_filtered(run_dir, archive, capsy
 
 def test_trajectory_picture_of_the_top_elites(run_dir, archive):
     before = folder_state(run_dir)
-    results.trajectories(str(run_dir), top=3)
+    commands.trajectories(str(run_dir), top=3)
 
     image = imread(run_dir / "trajectories.png")
     assert image.shape[0] > 400 and image.shape[1] > 600 and image.std() > 0.05
@@ -166,7 +166,7 @@ def test_terrain_is_the_envs_ground():
 
 
 def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, dask_cluster, capsys):
-    evaluation.evaluate(str(run_dir), env_seeds="3,4", top=4,
+    commands.evaluate(str(run_dir), env_seeds="3,4", top=4,
                            scheduler_address=dask_cluster.scheduler_address)
 
     table = read_csv(run_dir / "robustness.csv")
@@ -197,8 +197,8 @@ def test_corrected_metrics_of_a_run_searched_on_several_terrains(tmp_path, dask_
     run_dir = tmp_path / "run"
     flags = dict(iterations=2, n_emitters=1, batch_size=4, env_seed="0-2", log_every=2,
                  **({"archive": "cvt", "cells": 16} if kind == "cvt" else {}))
-    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(run_dir))
-    evaluation.evaluate(str(run_dir), corrected=True, repeats=4,
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(run_dir))
+    commands.evaluate(str(run_dir), corrected=True, repeats=4,
                         scheduler_address=dask_cluster.scheduler_address)
 
     summary = json.loads((run_dir / "corrected.json").read_text())
@@ -224,7 +224,7 @@ def test_corrected_metrics_of_a_run_searched_on_several_terrains(tmp_path, dask_
 
 def test_corrected_archive_equals_a_hand_recomputation(run_dir, archive, dask_cluster):
     before = folder_state(run_dir)
-    evaluation.evaluate(str(run_dir), corrected=True, repeats=2,
+    commands.evaluate(str(run_dir), corrected=True, repeats=2,
                         scheduler_address=dask_cluster.scheduler_address)
 
     summary = json.loads((run_dir / "corrected.json").read_text())
@@ -282,22 +282,22 @@ def test_bad_input_is_one_line_and_touches_nothing(run_cli, run_dir, tmp_path, a
 
 
 @pytest.mark.parametrize("command, kwargs, fragment", [
-    (results.video, dict(cells="[(a, b)]"), "--cells"),
-    (results.video, dict(cells=[(0.1, -0.1, 3)]), "--cells"),
-    (results.video, dict(cells=[(0.0, -3.5)]), "outside the archive"),
-    (results.video, {}, "--cells, --best, --top or --index"),
-    (results.video, dict(index=2500), "--index"),
-    (results.trajectories, dict(top=0), "--top"),
-    (results.trajectories, dict(best="maybe"), "--best"),
-    (results.elites, dict(top=-2), "--top"),
-    (results.elites, dict(min_objective="high"), "--min_objective"),
-    (evaluation.evaluate, dict(env_seeds="5-2"), "--env_seeds"),
-    (evaluation.evaluate, dict(workers=0), "--workers"),
-    (evaluation.evaluate, dict(corrected=True, repeats=2, env_seeds="1-2"), "not both"),
-    (evaluation.evaluate, dict(corrected=True, repeats=0), "--repeats"),
-    (evaluation.evaluate, dict(corrected=True, top=3), "--top"),
-    (evaluation.evaluate, dict(repeats=3), "--repeats is for --corrected"),
-    (evaluation.evaluate, dict(corrected="perhaps"), "--corrected"),
+    (commands.video, dict(cells="[(a, b)]"), "--cells"),
+    (commands.video, dict(cells=[(0.1, -0.1, 3)]), "--cells"),
+    (commands.video, dict(cells=[(0.0, -3.5)]), "outside the archive"),
+    (commands.video, {}, "--cells, --best, --top or --index"),
+    (commands.video, dict(index=2500), "--index"),
+    (commands.trajectories, dict(top=0), "--top"),
+    (commands.trajectories, dict(best="maybe"), "--best"),
+    (commands.elites, dict(top=-2), "--top"),
+    (commands.elites, dict(min_objective="high"), "--min_objective"),
+    (commands.evaluate, dict(env_seeds="5-2"), "--env_seeds"),
+    (commands.evaluate, dict(workers=0), "--workers"),
+    (commands.evaluate, dict(corrected=True, repeats=2, env_seeds="1-2"), "not both"),
+    (commands.evaluate, dict(corrected=True, repeats=0), "--repeats"),
+    (commands.evaluate, dict(corrected=True, top=3), "--top"),
+    (commands.evaluate, dict(repeats=3), "--repeats is for --corrected"),
+    (commands.evaluate, dict(corrected="perhaps"), "--corrected"),
 ])
 def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fragment):
     before = folder_state(run_dir)
@@ -308,7 +308,7 @@ def test_bad_flag_values_are_refused_before_writing(run_dir, command, kwargs, fr
 
 def test_commands_and_their_flags_are_registered(tmp_path):
     assert {"video", "elites", "trajectories", "evaluate", "explore"} <= set(ll.COMMANDS)
-    assert ll.command("evaluate") is evaluation.evaluate
+    assert ll.command("evaluate") is commands.evaluate
     with pytest.raises(UsageError, match="--cell;"):
         ll.reject_unknown_flags(ll.command("video"), ["--cell", "[(0, 0)]"])
     (tmp_path / "run").mkdir()

@@ -14,8 +14,8 @@ from ribs.archives import GridArchive
 
 from qdsearch import algorithms, tasks
 from qdsearch.base import signing
+from qdsearch.cli import commands
 from qdsearch.config import run_config
-from qdsearch.search import experiments, run
 from qdsearch.store import archive_data
 from util import (
     LANDER,
@@ -46,8 +46,8 @@ def run_flags(dask_cluster, **overrides):
 @pytest.mark.parametrize("stop_at", [1, 4])
 def test_stopped_then_resumed_equals_uninterrupted(tmp_path, dask_cluster, reference, stop_at):
     run_dir = tmp_path / "run"
-    run.search(**run_flags(dask_cluster, iterations=stop_at), outdir=str(run_dir))
-    experiments.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**run_flags(dask_cluster, iterations=stop_at), outdir=str(run_dir))
+    commands.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
 
     assert_same_run(run_dir, reference)
     config = json.loads((run_dir / "config.json").read_text())
@@ -85,7 +85,7 @@ def test_interrupt_keeps_a_checkpoint_and_resume_completes(tmp_path, dask_cluste
     assert 3 <= checkpoint["iteration"] < ITERATIONS
     assert [r["iteration"] for r in checkpoint["metrics"]] == list(range(1, checkpoint["iteration"] + 1))
 
-    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(run_dir, reference)
 
 
@@ -97,7 +97,7 @@ def test_kill_9_leaves_a_loadable_checkpoint(tmp_path, dask_cluster, reference):
     process.communicate(timeout=60)
 
     assert read_checkpoint(run_dir / "checkpoint.pkl")["iteration"] >= 6
-    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(run_dir, reference)
 
 
@@ -121,7 +121,7 @@ def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, dask_cluster, r
         killer = threading.Thread(target=kill_a_busy_worker, args=(client, stop))
         killer.start()
         try:
-            run.search(**run_flags(dask_cluster), outdir=str(tmp_path / "run"))
+            commands.search(**run_flags(dask_cluster), outdir=str(tmp_path / "run"))
         finally:
             stop.set()
             killer.join()
@@ -133,7 +133,7 @@ def test_a_worker_killed_mid_iteration_changes_nothing(tmp_path, dask_cluster, r
 def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, reference):
     source = saved_archive(reference)
     run_dir = tmp_path / "warm"
-    run.search(**run_flags(dask_cluster, iterations=2, env_seed=7, seed=11),
+    commands.search(**run_flags(dask_cluster, iterations=2, env_seed=7, seed=11),
               outdir=str(run_dir), from_archive=str(reference / "archive.pkl"))
 
     elites = source.data(["solution"])["solution"]
@@ -241,10 +241,10 @@ def test_a_checkpoint_from_before_the_package_had_layers_resumes(tmp_path, dask_
     package had layers that module was qdsearch.compact_pickle. Such a checkpoint resumes, and the
     run ends as the uninterrupted one."""
     run_dir = tmp_path / "run"
-    run.search(**run_flags(dask_cluster, iterations=2), outdir=str(run_dir))
+    commands.search(**run_flags(dask_cluster, iterations=2), outdir=str(run_dir))
     payload = as_before_the_layers(checkpoint_payload(run_dir / "checkpoint.pkl"))
-    assert b"qdsearch.compact_pickle" in payload and b"qdsearch.base" not in payload
+    assert b"qdsearch.compact_pickle" in payload and b"qdsearch.base.compact_pickle" not in payload
     signing.write_signed(run_dir / "checkpoint.pkl", payload)
 
-    experiments.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(run_dir), iterations=ITERATIONS, scheduler_address=dask_cluster.scheduler_address)
     assert_same_run(run_dir, reference)

@@ -18,12 +18,12 @@ import pandas as pd
 import pytest
 
 from qdsearch import algorithms, tasks
-from qdsearch.analysis import comparison
 from qdsearch.base.flags import UsageError, check_flags
-from qdsearch.config import options, settings
+from qdsearch.cli import commands
+from qdsearch.config import options, run_config, settings
 from qdsearch.config.options import search_defaults
 from qdsearch.config.run_config import check_run_config
-from qdsearch.search import experiments, run
+from qdsearch.search import experiments
 from util import LANDER, assert_one_line_error, run_archive, run_metrics, tiny_flags
 
 CHEETAH = "HalfCheetah-v5"
@@ -31,7 +31,7 @@ CHEETAH = "HalfCheetah-v5"
 
 def config_of(**flags):
     """The config search makes of these flags (nothing flown)."""
-    return run.search_config({**search_defaults(), "seed": 3, **flags})
+    return run_config.search_config({**search_defaults(), "seed": 3, **flags})
 
 
 def test_a_robots_offset_is_its_per_step_offset_times_the_episodes_length():
@@ -80,15 +80,15 @@ def test_a_given_offset_is_kept_and_a_run_from_before_keeps_the_old_one(tmp_path
     del old["qd_offset"], old["reset"]
     path = tmp_path / "config.json"
     path.write_text(json.dumps(old))
-    assert run.recorded_settings(path)["qd_offset"] == -4000.0
-    assert run.recorded_settings(path)["reset"] == "fixed"
+    assert run_config.recorded_settings(path)["qd_offset"] == -4000.0
+    assert run_config.recorded_settings(path)["reset"] == "fixed"
     assert options.legacy_offset({}) == {"qd_offset": -600.0}  # from before --env: the lander
     assert options.legacy_offset({"env": "Hopper-v5", "episode_length": 10}) == {"qd_offset": -100.0}
     assert options.legacy_offset({"env": "Pendulum-v1"}) == {}  # refused as an --env later
     flags = {**search_defaults(), "episode_length": 25}
-    assert run.search_config(flags, {"episode_length"}, path).qd_offset == -100.0
+    assert run_config.search_config(flags, {"episode_length"}, path).qd_offset == -100.0
     flags = {**search_defaults(), "episode_length": 25, "qd_offset": -1}
-    assert run.search_config(flags, {"episode_length", "qd_offset"}, path).qd_offset == -1.0
+    assert run_config.search_config(flags, {"episode_length", "qd_offset"}, path).qd_offset == -1.0
 
 
 def test_each_run_of_an_experiment_has_the_offset_of_its_own_episode():
@@ -106,14 +106,15 @@ def test_a_short_halfcheetah_runs_scores_and_report_use_its_own_range(tmp_path, 
     folders = []
     for seed in (1, 2):
         folder = tmp_path / f"run{seed}"
-        run.search(**tiny_flags(dask_cluster, env=CHEETAH, episode_length=20, seed=seed), outdir=str(folder))
+        commands.search(**tiny_flags(dask_cluster, env=CHEETAH, episode_length=20, seed=seed),
+                        outdir=str(folder))
         folders.append(folder)
         table = pd.read_csv(folder / "archive.csv")
         last = run_metrics(folder)[-1]
         assert json.loads((folder / "config.json").read_text())["qd_offset"] == -80.0
         assert math.isclose(last["qd_score"], math.fsum(table["objective"] + 80.0), rel_tol=1e-12)
         assert math.isclose(last["mean_objective"], table["objective"].mean(), rel_tol=1e-12)
-    comparison.compare(*map(str, folders), out=str(tmp_path / "cmp.png"))
+    commands.compare(*map(str, folders), out=str(tmp_path / "cmp.png"))
     report = (tmp_path / "cmp.md").read_text()
     assert "less the offset -80" in report and "returns at least 96" in report
     header = next(line for line in report.splitlines() if line.startswith("| setting"))
@@ -167,15 +168,15 @@ def test_a_reset_each_run_is_the_same_on_one_and_two_workers_and_after_a_resume(
         tmp_path, dask_cluster, one_worker_cluster):
     flags = dict(reset="each", iterations=4, log_every=2)
     straight, alone, resumed = tmp_path / "two", tmp_path / "one", tmp_path / "resumed"
-    run.search(**tiny_flags(dask_cluster, **flags), outdir=str(straight))
-    run.search(**tiny_flags(one_worker_cluster, **flags), outdir=str(alone))
-    run.search(**tiny_flags(dask_cluster, **{**flags, "iterations": 2}), outdir=str(resumed))
-    experiments.resume(str(resumed), iterations=4, scheduler_address=dask_cluster.scheduler_address)
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(straight))
+    commands.search(**tiny_flags(one_worker_cluster, **flags), outdir=str(alone))
+    commands.search(**tiny_flags(dask_cluster, **{**flags, "iterations": 2}), outdir=str(resumed))
+    commands.resume(str(resumed), iterations=4, scheduler_address=dask_cluster.scheduler_address)
     archive = run_archive(straight)
     assert archive.equals(run_archive(alone)) and archive.equals(run_archive(resumed))
     assert run_metrics(straight) == run_metrics(resumed)
     fixed = tmp_path / "fixed"
-    run.search(**tiny_flags(dask_cluster, **{**flags, "reset": "fixed"}), outdir=str(fixed))
+    commands.search(**tiny_flags(dask_cluster, **{**flags, "reset": "fixed"}), outdir=str(fixed))
     assert not archive.equals(run_archive(fixed))
     # every elite's objective is its return from its own reset, flown by hand
     for row in archive.head(6).to_dict("records"):
@@ -186,7 +187,7 @@ def test_a_reset_each_run_is_the_same_on_one_and_two_workers_and_after_a_resume(
 @pytest.mark.slow  # a video is rendered
 def test_the_results_commands_fly_an_elite_from_its_own_reset(tmp_path, dask_cluster, run_cli):
     folder = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, reset="each", iterations=2), outdir=str(folder))
+    commands.search(**tiny_flags(dask_cluster, reset="each", iterations=2), outdir=str(folder))
     result = run_cli("video", folder, "--top", "2")  # (top: by objective)
     assert result.returncode == 0, result.stderr
     index = pd.read_csv(folder / "videos" / "index.csv")

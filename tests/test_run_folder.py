@@ -15,7 +15,7 @@ import pytest
 
 from conftest import ROOT
 from qdsearch.cli import app as ll
-from qdsearch.search import experiments
+from qdsearch.cli import commands
 from util import (
     REFERENCE_ITERATIONS,
     Result,
@@ -63,7 +63,7 @@ def test_full_disk_stops_the_search_with_one_line_and_resume_completes(tmp_path,
         assert json.loads((run_dir / "config.json").read_text())["seed"] == FLAGS["seed"]
 
         subprocess.run(["mount", "-o", "remount,size=64m", str(disk)], check=True)  # room again
-        experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+        commands.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
         assert_same_run(run_dir, reference)
 
 
@@ -99,7 +99,7 @@ def test_killed_before_its_first_checkpoint_resume_starts_from_the_config(tmp_pa
     process.communicate(timeout=60)
     assert not (run_dir / "checkpoint.pkl").exists()  # killed while its cluster was starting
 
-    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
 
     assert_same_run(run_dir, reference)
     config = json.loads((run_dir / "config.json").read_text())

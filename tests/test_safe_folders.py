@@ -18,7 +18,7 @@ import pytest
 from qdsearch.analysis import run_folder
 from qdsearch.base import signing
 from qdsearch.base.flags import UsageError
-from qdsearch.search import experiments, run
+from qdsearch.cli import commands
 from qdsearch.store import archive_data
 from util import (
     REFERENCE_ITERATIONS,
@@ -117,7 +117,7 @@ def test_results_commands_and_warm_starts_never_unpickle(tmp_path, tiny_run, das
 @pytest.fixture(scope="module")
 def cvt_run(tmp_path_factory, dask_cluster):
     run_dir = tmp_path_factory.mktemp("cvt") / "run"
-    run.search(**tiny_flags(dask_cluster, archive="cvt"), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, archive="cvt"), outdir=str(run_dir))
     return run_dir
 
 
@@ -172,7 +172,7 @@ def resume_twice(run_cli, run_dir, cluster, *fragments):
 def test_another_keys_checkpoint_needs_trust(tmp_path, dask_cluster, reference, run_cli, monkeypatch):
     run_dir, own = tmp_path / "run", os.environ["QDSEARCH_KEY"]
     monkeypatch.setenv("QDSEARCH_KEY", str(tmp_path / "theirs" / "key"))
-    run.search(**run_flags(dask_cluster, iterations=4), outdir=str(run_dir))
+    commands.search(**run_flags(dask_cluster, iterations=4), outdir=str(run_dir))
     monkeypatch.setenv("QDSEARCH_KEY", own)
 
     resume_twice(run_cli, run_dir, dask_cluster, "signed with another key")
@@ -193,7 +193,7 @@ def test_a_checkpoint_changed_by_a_byte_is_refused(tmp_path, tiny_run, run_cli):
 def test_an_old_folder_opens_everywhere_and_resumes_with_trust(tmp_path, dask_cluster, reference, run_cli):
     """A folder from before archive.npz and signing: archive.pkl, archive.csv, a plain pickle."""
     run_dir = tmp_path / "run"
-    run.search(**run_flags(dask_cluster, iterations=4, archive_pkl=True), outdir=str(run_dir))
+    commands.search(**run_flags(dask_cluster, iterations=4, archive_pkl=True), outdir=str(run_dir))
     (run_dir / "archive.npz").unlink()
     (run_dir / "checkpoint.pkl").write_bytes(checkpoint_payload(run_dir / "checkpoint.pkl"))
     shutil.copytree(run_dir, tmp_path / "bare")
@@ -213,7 +213,7 @@ def test_experiments_resume_with_their_own_key_and_trust_anothers(tmp_path, dask
     """An experiment's runs resume as ever; an experiment from another key needs --trust."""
     folder, own = tmp_path / "exp", os.environ["QDSEARCH_KEY"]
     monkeypatch.setenv("QDSEARCH_KEY", str(tmp_path / "theirs" / "key"))
-    experiments.experiment(algorithms="cma_me", seeds="1-2", outdir=str(folder), iterations=2, n_emitters=2,
+    commands.experiment(algorithms="cma_me", seeds="1-2", outdir=str(folder), iterations=2, n_emitters=2,
                            batch_size=6, log_every=2, pictures=False,
                            scheduler_address=dask_cluster.scheduler_address)
     monkeypatch.setenv("QDSEARCH_KEY", own)

@@ -77,7 +77,8 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
 
     cluster = request.getfixturevalue("off_loopback_cluster" if workers == "elsewhere" else "dask_cluster")
     flags = {**tiny_flags(cluster, pictures=True), "outdir": str(tmp_path / "run")}
-    code = ("import json, sys; from qdsearch.search import run; run.search(**json.loads(sys.argv[1])); "
+    code = ("import json, sys; from qdsearch.cli import commands; "
+            "commands.search(**json.loads(sys.argv[1])); "
             "print('driver imported matplotlib:', 'matplotlib' in sys.modules)")
     result = subprocess.run([sys.executable, "-c", code, json.dumps(flags)], cwd=ROOT,
                             capture_output=True, text=True, timeout=300)

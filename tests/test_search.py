@@ -15,7 +15,7 @@ from ribs.schedulers import Scheduler
 
 from qdsearch.base import plots
 from qdsearch.base.kernels import cpu_flags
-from qdsearch.search import run
+from qdsearch.cli import commands
 from util import (
     TINY,
     archive_table,
@@ -73,7 +73,7 @@ def test_the_progress_plot_is_drawn_against_evaluations(tmp_path):
 
 def test_tiny_search_writes_a_complete_run_folder(tmp_path, dask_cluster, capsys):
     run_dir = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, log_every=2, pictures=True), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, log_every=2, pictures=True), outdir=str(run_dir))
 
     for name in RUN_FILES:
         assert (run_dir / name).is_file(), name
@@ -155,7 +155,8 @@ def test_a_run_without_pictures_is_the_same_run_with_its_data_alone(tmp_path, ti
     assert len(pd.read_csv(run_dir / "elites.csv")) == 2
 
 
-DRAWING_PROBE = ("import json, sys; from qdsearch.search import run; run.search(**json.loads(sys.argv[1])); "
+DRAWING_PROBE = ("import json, sys; from qdsearch.cli import commands; "
+                 "commands.search(**json.loads(sys.argv[1])); "
                  "print('imported:', *sorted({'matplotlib', 'ribs.visualize'} & set(sys.modules)))")
 
 
@@ -175,12 +176,12 @@ def test_a_search_without_pictures_never_imports_the_drawing(tmp_path):
 
 
 def test_another_seed_gives_another_archive(tmp_path, dask_cluster, tiny_run):
-    run.search(**tiny_flags(dask_cluster, seed=8), outdir=str(tmp_path / "b"))
+    commands.search(**tiny_flags(dask_cluster, seed=8), outdir=str(tmp_path / "b"))
     assert not run_archive(tiny_run).equals(run_archive(tmp_path / "b"))
 
 
 def test_without_a_seed_one_is_drawn_and_recorded(tmp_path, dask_cluster):
-    run.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
+    commands.search(**tiny_flags(dask_cluster, seed=None, iterations=1), outdir=str(tmp_path / "r"))
     config = json.loads((tmp_path / "r" / "config.json").read_text())
     assert isinstance(config["seed"], int) and config["seed"] >= 0
 
@@ -212,7 +213,8 @@ def test_a_seed_gives_one_archive_whatever_kernels_the_cpu_offers(tmp_path, dask
     settings = {"held": AVX2, **({"avx512": AVX512} if "avx512f" in cpu_flags() else {})}
     searches = {name: searching_on_kernels(tmp_path, dask_cluster, monkeypatch, name, **kernels)
                 for name, kernels in settings.items()}
-    run.search(**ON_KERNELS, scheduler_address=dask_cluster.scheduler_address, outdir=str(tmp_path / "plain"))
+    commands.search(**ON_KERNELS, scheduler_address=dask_cluster.scheduler_address,
+                    outdir=str(tmp_path / "plain"))
     archives = {"plain": (tmp_path / "plain" / "archive.csv").read_bytes()}
     for name, (search, folder) in searches.items():
         assert search.wait(timeout=300) == 0, search.communicate()

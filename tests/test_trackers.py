@@ -19,7 +19,8 @@ if missing := [name for name in ("tensorboardX", "wandb", "mlflow") if not impor
     pytest.skip(f"no {', '.join(missing)}: pip install -r requirements-trackers.txt", allow_module_level=True)
 
 from conftest import ROOT, SCRIPT  # noqa: E402
-from qdsearch.search import experiments, run  # noqa: E402
+from qdsearch.cli import commands
+from qdsearch.search import experiments  # noqa: E402
 from qdsearch.store import trackers  # noqa: E402
 from util import (  # noqa: E402
     assert_one_line_error,
@@ -46,8 +47,8 @@ def offline(monkeypatch):
 def tracked(tmp_path_factory, dask_cluster):
     """A tiny search tracked by all three, and its twin tracked by none."""
     root = tmp_path_factory.mktemp("tracked")
-    run.search(**tiny_flags(dask_cluster, **TRACKED, track=ALL), outdir=str(root / "run"))
-    run.search(**tiny_flags(dask_cluster, **TRACKED), outdir=str(root / "plain"))
+    commands.search(**tiny_flags(dask_cluster, **TRACKED, track=ALL), outdir=str(root / "run"))
+    commands.search(**tiny_flags(dask_cluster, **TRACKED), outdir=str(root / "plain"))
     return root / "run", root / "plain"
 
 
@@ -139,7 +140,7 @@ def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_clu
     process.send_signal(signal.SIGTERM)
     out, err = process.communicate(timeout=120)
     assert process.returncode == 130, err
-    experiments.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
+    commands.resume(str(run_dir), scheduler_address=dask_cluster.scheduler_address)
 
     steps = list(range(1, 16))
     assert [e.step for e in tensorboard_of(run_dir).Scalars("qd/qd_score")] == steps
@@ -162,7 +163,7 @@ def test_a_stopped_and_resumed_run_tracks_each_iteration_once(tmp_path, dask_clu
 @pytest.mark.slow  # real tracked searches
 def test_an_experiments_runs_are_grouped_by_it(tmp_path, dask_cluster):
     folder = tmp_path / "exp"
-    experiments.experiment(algorithms="cma_me", seeds="1-2", iterations=2, n_emitters=2, batch_size=6,
+    commands.experiment(algorithms="cma_me", seeds="1-2", iterations=2, n_emitters=2, batch_size=6,
                            log_every=2, track="wandb,mlflow", outdir=str(folder),
                            scheduler_address=dask_cluster.scheduler_address)
     runs = [folder / entry["name"] for entry in experiments.read_experiment(folder)["runs"]]
@@ -181,7 +182,7 @@ def test_a_failing_tracker_is_one_line_and_the_search_goes_on(tmp_path, dask_clu
     for name in trackers.MLFLOW_PATIENCE:  # MLflow's tries as the tracker sets them
         monkeypatch.delenv(name, raising=False)
     run_dir = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, **TRACKED, track="tensorboard,mlflow"), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, **TRACKED, track="tensorboard,mlflow"), outdir=str(run_dir))
     lines = [line for line in (run_dir / "run.log").read_text().splitlines() if "failed (" in line]
     assert len(lines) == 1 and "tracker mlflow failed" in lines[0] and "goes on" in lines[0]
     assert run_archive(run_dir).equals(run_archive(tracked[1]))
@@ -198,7 +199,8 @@ def test_a_store_that_cannot_be_opened_fails_the_tracker_at_once(tmp_path, dask_
     store.mkdir(parents=True)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")
     run_dir = tmp_path / "run"
-    run.search(**tiny_flags(dask_cluster, iterations=2, log_every=1, track="mlflow"), outdir=str(run_dir))
+    commands.search(**tiny_flags(dask_cluster, iterations=2, log_every=1, track="mlflow"),
+                    outdir=str(run_dir))
     log = (run_dir / "run.log").read_text()
     failed = [line for line in log.splitlines() if "tracker mlflow failed" in line]
     assert len(failed) == 1 and f"cannot open its store {store}" in failed[0], log

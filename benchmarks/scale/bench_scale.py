@@ -14,7 +14,7 @@
     python benchmarks/scale/bench_scale.py --workers "[64]" --switch "[None, 0.0005]" \
         --lengths benchmarks/scale/episode_lengths_lander.npz --out outputs/scale_switch.json
 
-A real experiment (`experiments.experiment`: the real driver, real pyribs ask and tell, real run
+A real experiment (`commands.experiment`: the real driver, real pyribs ask and tell, real run
 folders) runs on a real Dask cluster: a `dask scheduler` process of its own, as on an HPC
 cluster, and worker processes with many threads each. Each thread is a simulated worker: its task
 sleeps as long as the real chunk would take and returns made-up objectives and measures (a
@@ -85,8 +85,9 @@ from scale_records import OUT, summarise  # noqa: E402
 import qdsearch  # noqa: E402
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.base import run_files  # noqa: E402
+from qdsearch.cli import commands  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
-from qdsearch.search import engine, experiments, loop  # noqa: E402
+from qdsearch.search import engine, loop  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -257,7 +258,7 @@ def drive(folder: str, scheduler_file: str, simulation: str, runs: int, iteratio
     if chunks is not None:
         engine.CHUNKS_PER_WORKER = engine.CHUNKS_PER_WORKER_FEW_RUNS = chunks
     with Recorder(pool, step_s) as recorder:
-        experiments.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
+        commands.experiment(algorithms="cma_me", seeds=f"1-{runs}", iterations=iterations,
                                log_every=log_every or iterations, outdir=folder, env=env, part=part,
                                scheduler_file=scheduler_file)
     run_files.write_json(Path(record), {"batches": recorder.batches, "tells": recorder.tells,

@@ -25,7 +25,6 @@ import numpy as np
 
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, returns_of
 from qdsearch.tasks.family import Environment
-from qdsearch.tasks.policies import policy_of
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,7 +238,7 @@ def archive_shape(config: Any) -> dict[str, Any]:
     """What every archive of the run shares: the solution size (its policy's weights), the
     measures' ranges, the offset."""
     task = task_of(config)
-    return dict(solution_dim=policy_of(config).size(task.shape),
+    return dict(solution_dim=config.network.size(task.shape),
                 ranges=[MEASURES[name].range for name in config.measures],
                 qd_score_offset=returns_of(config).offset)
 
@@ -348,7 +347,7 @@ def build_scheduler(config: Any, x0: np.ndarray | None = None):
     else:
         result_archive = make(seed=result_seed)
         archive = row.search_archive(config, result_archive, archive_seed)
-    start = policy_of(config).start(task_of(config).shape, config.seed) if x0 is None else x0
+    start = config.network.start(task_of(config).shape, config.seed) if x0 is None else x0
     sampled = result_archive if row.emitters_on_result else archive
     seeds = iter(emitter_seeds)
     emitters = [getattr(ribs_emitters, group.kind)(sampled, x0=start, batch_size=config.batch_size,

@@ -52,9 +52,10 @@ from qdsearch.analysis.stats import (
     iqm_interval,
     mean_interval,
 )
-from qdsearch.base.flags import UsageError, boolean, named, shown
+from qdsearch.base.flags import UsageError, named, shown
 from qdsearch.base.plots import save_metric_panels
 from qdsearch.base.run_files import atomic_write, check_parent_folder, read_regular, write_csv
+from qdsearch.config.command_settings import CompareSettings
 from qdsearch.config.run_config import RunConfig, saved_archive
 from qdsearch.search.experiment_folder import run_setting, shortened
 from qdsearch.tasks import returns_of
@@ -506,45 +507,16 @@ def check_baseline(baseline: Any, settings: list[str]) -> str | None:
                      + ", ".join(repr(setting) for setting in settings))
 
 
-def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, corrected: bool = False,
-            baseline: str | None = None, at_evaluations: int | None = None) -> None:
-    """Compare runs: QD score, coverage and best objective against evaluations on one PNG, the
-    final archives' score distributions on another (OUT_scores.png), and a table of their final
-    values (printed, and written as CSV next to the PNG).
-
-    Runs of one setting (the same algorithm and flags, other seeds; an experiment's runs) are
-    grouped, task by task: the PNG shows their mean with a 95% confidence band, and per setting
-    the number of runs, mean, median and 95% bootstrap interval, and IQM with its stratified
-    bootstrap interval, of QD score, coverage, best objective, solved cells, QD-score AUC and CQD
-    score are printed and written (OUT_settings.csv); between settings, Mann-Whitney U tests on
-    final QD score, QD-score AUC (how soon it got there) and CQD score, Holm-adjusted, with
-    Vargha-Delaney A12 = P(A>B) and its interval (OUT_tests.csv); and both as Markdown (OUT.md).
-    Runs of several tasks are also aggregated per setting on the normalised QD score and coverage
-    (OUT_aggregate.csv). Runs that end at equal evaluations (--evaluations) give an equal-budget
-    comparison; --at_evaluations cuts longer runs to one.
-
-    Args:
-        run_dirs: Run folders or experiment folders written by this script.
-        out: The PNG to write (the other files get the same name); default: a new
-            compare.png in the experiment folder if one alone is compared, else a new
-            outputs/compare_<timestamp>.png.
-        overwrite: Replace those files if they already exist.
-        corrected: Compare each run's corrected metrics and archive (corrected.json and
-            corrected_archive.npz, written by `evaluate RUN --corrected`) instead of its own.
-        baseline: Test only this setting against each other one (its label as the tables show
-            it, or its algorithm if only one setting has it, e.g. cma_me), instead of every pair:
-            with many settings, Holm's adjustment over every pair leaves the tests little power.
-        at_evaluations: Compare each run as of its last iteration within this many evaluations
-            (the metrics' `evaluations`, a DQD row's gradient samples included), so that rows
-            that fly different numbers per iteration meet at one budget. The archive's figures
-            (solved cells, CQD, the score distributions) are only of a run's end: a run cut
-            short leaves them out.
-    """
+def compare(run_dirs: list[Path], settings: CompareSettings) -> None:
+    """Compare the runs in `run_dirs` (run or experiment folders): their curves, score
+    distributions and final values, and per setting their statistics and tests, written where
+    `settings.out` says (the command's --help says what each file holds)."""
+    out, overwrite, corrected = settings.out, settings.overwrite, settings.corrected
+    baseline, at_evaluations = settings.baseline, settings.at_evaluations
     if not run_dirs:
         raise UsageError("compare needs at least one run folder: "
                          "python lunar_lander.py compare RUN_A RUN_B ...")
-    overwrite, corrected = boolean("overwrite", overwrite), boolean("corrected", corrected)
-    paths = expand_folders([Path(str(run_dir)) for run_dir in run_dirs])
+    paths = expand_folders(run_dirs)
     if not paths:
         raise UsageError(f"no run with metrics in {', '.join(map(str, run_dirs))}")
     configs, runs = zip(*(load_run_metrics(path) for path in paths))
@@ -554,7 +526,7 @@ def compare(*run_dirs: str, out: str | None = None, overwrite: bool = False, cor
         check_fresh(fixes, list(runs), paths)
     settings = run_settings(list(configs))
     baseline = check_baseline(baseline, list(dict.fromkeys(settings)))
-    files = comparison_outputs(None if out is None else str(out), overwrite, experiment_home(run_dirs))
+    files = comparison_outputs(None if out is None else str(out), overwrite, experiment_home(tuple(run_dirs)))
     labels = run_labels(paths, list(configs), settings)
     table, objectives = comparison_table(labels, paths, list(configs), runs, settings, fixes, cut)
     several = table["task"].nunique() > 1

@@ -27,19 +27,19 @@ import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, task_of
 from qdsearch.analysis.run_folder import elite_rows, load_run
-from qdsearch.base.flags import UsageError, boolean, named, positive_int, seed_list, takes, whole_number_up_to
+from qdsearch.base.flags import UsageError, named, seed_list, whole_number_up_to
 from qdsearch.base.plots import save_heatmap
 from qdsearch.base.run_files import check_writable, console_log, write_csv, write_json, write_pickle
-from qdsearch.config.options import EVALUATE_FLAGS, check_rollouts, checked
+from qdsearch.config.command_settings import EvaluateSettings
+from qdsearch.config.options import check_rollouts, checked
 from qdsearch.config.run_config import RunConfig
-from qdsearch.config.settings import CLUSTER_FLAGS
+from qdsearch.config.settings import ClusterSettings
 from qdsearch.search.cluster import dask_client, scheduler_of
 from qdsearch.search.engine import averaged, gather_with_progress, per_terrain, submit_flights
 from qdsearch.search.experiment_folder import read_experiment
 from qdsearch.store.archive_data import write_archive_data
 from qdsearch.store.metrics import iteration_metrics, load_metrics
 from qdsearch.tasks import MEASURES, episode_of, returns_of
-from qdsearch.tasks.policies import policy_of
 
 ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default
 DEFAULT_REPEATS = 10  # seeds of a corrected archive (QDax's examples re-evaluate 10 to 100 times)
@@ -56,15 +56,15 @@ def new_seeds(config: RunConfig, count: int) -> list[int]:
 
 
 def fly_elites(solutions: np.ndarray, seeds: list[int], measures: tuple[str, ...], config: RunConfig,
-               flags: dict[str, Any], client: Any = None) -> np.ndarray:
+               cluster: ClusterSettings, client: Any = None) -> np.ndarray:
     """Every solution flown on every seed, on `client` (an experiment's runs share one) or the
-    Dask cluster the flags name (or a local one): (solutions, seeds, 1 + measures), the
+    Dask cluster `cluster` names (or a local one): (solutions, seeds, 1 + measures), the
     objective first."""
     if client is None:
-        with dask_client(checked("workers", flags["workers"]), scheduler_of(flags), console_log()) as own:
-            return fly_elites(solutions, seeds, measures, config, flags, own)
+        with dask_client(checked("workers", cluster.workers), scheduler_of(cluster), console_log()) as own:
+            return fly_elites(solutions, seeds, measures, config, cluster, own)
     futures = submit_flights(client, solutions, seeds, measures, config.fast_env, env_name=config.env,
-                             policy=policy_of(config), episode=episode_of(config))
+                             policy=config.network, episode=episode_of(config))
     return per_terrain(gather_with_progress(client, futures), seeds)
 
 
@@ -170,49 +170,28 @@ def corrected_seeds(config: RunConfig, env_seeds: Any, repeats: Any) -> list[int
         "repeats", DEFAULT_REPEATS if repeats is None else repeats))
 
 
-@takes(EVALUATE_FLAGS, CLUSTER_FLAGS)
-def evaluate(run_dir: str, env_seeds: Any = None, corrected: Any = False, repeats: int | None = None,
-             **flags: Any) -> None:
-    """Fly the run's elites again (on Dask): on other terrains, or (--corrected) on new seeds. Of
-    an experiment folder, every run's, on one cluster.
-
-    Robustness (the default) writes RUN_DIR/robustness.csv (per elite: its objective in the run,
-    i.e. its mean over the run's terrains; mean, min and standard deviation of its objective over
-    the new terrains, share of terrains where it solves the task (a landing >= 200, a walk >=
-    300), and each terrain's objective) and RUN_DIR/robustness_heatmap.png (the archive coloured
-    by the mean objective on the new terrains).
-
-    --corrected builds the corrected archive: every elite flown on --repeats new seeds and
-    inserted by its mean measures and mean objective into an empty archive of the run's cells.
-    Writes corrected.json (its QD score, coverage, cells, best and mean objective, beside the
-    run's), corrected_archive.npz (and .pkl, .csv) and corrected_heatmap.png; `compare
-    --corrected` reads them.
-
-    Args:
-        run_dir: A run folder written by this script, or an experiment folder (each of its runs).
-        env_seeds: Env seeds (a lander's or walker's terrains, a robot's reset seeds) to fly on:
-            a range 0-19, a list 3,5,8, or both 0-4,10 (default: 0-19;
-            with --corrected, the first --repeats seeds the run did not search on).
-        corrected: Build the corrected archive instead of the robustness table.
-        repeats: With --corrected: new seeds to fly every elite on (default 10).
-    """
-    path, corrected, top = Path(str(run_dir)), boolean("corrected", corrected), flags["top"]
+def evaluate(path: Path, settings: EvaluateSettings, cluster: ClusterSettings) -> None:
+    """Fly the elites of the run in `path` again, on the cluster `cluster` names: the robustness
+    table on other terrains, or (settings.corrected) the corrected archive on new seeds; of an
+    experiment folder, every run's, on one cluster."""
     if not (path / "experiment.json").is_file():
-        return evaluate_run(path, env_seeds, top, corrected, repeats, flags)
+        return evaluate_run(path, settings, cluster)
     runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]
     missing = [run.name for run in runs if not (run / "config.json").is_file()]
     if missing:
         raise UsageError(f"{path}: run(s) {', '.join(missing[:5])} not started yet; resume the "
                          f"experiment first (python lunar_lander.py resume {path})")
-    with dask_client(checked("workers", flags["workers"]), scheduler_of(flags), console_log()) as client:
+    with dask_client(checked("workers", cluster.workers), scheduler_of(cluster), console_log()) as client:
         for run in runs:
             print(f"{run.name}:")
-            evaluate_run(run, env_seeds, top, corrected, repeats, flags, client)
+            evaluate_run(run, settings, cluster, client)
 
 
-def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: Any, flags: dict[str, Any],
+def evaluate_run(run: Path, settings: EvaluateSettings, cluster: ClusterSettings,
                  client: Any = None) -> None:
     """evaluate of one run folder, on `client` if given (else a cluster of its own)."""
+    env_seeds, corrected, repeats, top = (settings.env_seeds, settings.corrected, settings.repeats,
+                                          settings.top)
     archive, config = load_run(run)
     own = archive_metrics(archive, load_metrics(run), run) if corrected else None  # read after it
     if not corrected and repeats is not None:
@@ -222,10 +201,10 @@ def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: 
         raise UsageError(f"{named('top')} is for the robustness table: a corrected archive flies every elite")
     seeds = (corrected_seeds(config, env_seeds, repeats) if corrected
              else seed_list("env_seeds", ROBUSTNESS_SEEDS if env_seeds is None else env_seeds))
-    checked("workers", flags["workers"])
+    checked("workers", cluster.workers)
     rows = elite_rows(archive)
     if top is not None:
-        rows = {field: values[:positive_int("top", top)] for field, values in rows.items()}
+        rows = {field: values[:top] for field, values in rows.items()}
     check_rollouts(len(rows["solution"]), len(seeds), "to fly")
     check_writable(run)  # before any elite is flown
     # (a --reset each run flew resets of its own, hashed from its env seeds: none of them is one)
@@ -233,10 +212,10 @@ def evaluate_run(run: Path, env_seeds: Any, top: Any, corrected: bool, repeats: 
         print(f"note: the run searched on {task_of(config).family.seed_noun}(s) {seen} too; they are not "
               f"new to its elites")
     if not corrected:
-        objectives = fly_elites(rows["solution"], seeds, (), config, flags, client)[:, :, 0]
+        objectives = fly_elites(rows["solution"], seeds, (), config, cluster, client)[:, :, 0]
         write_robustness(run, archive, config, rows, seeds, objectives, str(env_seeds or ROBUSTNESS_SEEDS))
         return
-    flights = fly_elites(rows["solution"], seeds, tuple(config.measures), config, flags, client)
+    flights = fly_elites(rows["solution"], seeds, tuple(config.measures), config, cluster, client)
     fixed = corrected_archive(archive, config, rows["solution"], flights)
     summary = corrected_summary(fixed, own, seeds, len(rows["solution"]))
     write_corrected(run, fixed, summary, config)

@@ -14,18 +14,17 @@ from __future__ import annotations
 import contextlib
 import json
 from pathlib import Path
-from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 from qdsearch.algorithms import cvt_positions, kind_of, task_of
 from qdsearch.analysis.run_folder import elite_rows, load_run, shown_terrain
-from qdsearch.base.flags import takes
 from qdsearch.base.run_files import atomic_write, check_writable, console_log
-from qdsearch.config.options import TERRAIN_FLAGS, checked
+from qdsearch.config.command_settings import Terrain
+from qdsearch.config.options import checked
 from qdsearch.config.run_config import RunConfig
-from qdsearch.config.settings import CLUSTER_FLAGS
+from qdsearch.config.settings import ClusterSettings
 from qdsearch.search.cluster import dask_client, scheduler_of
 from qdsearch.search.engine import gather_with_progress, worker_env
 from qdsearch.store.metrics import load_metrics
@@ -40,7 +39,7 @@ from qdsearch.tasks import (
     returns_of,
 )
 from qdsearch.tasks.family import require_drawing, require_one_world
-from qdsearch.tasks.policies import LINEAR, Policy, policy_of
+from qdsearch.tasks.policies import LINEAR, Policy
 
 # The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
 # fills in its /*DATA*/ (the run's data) and /*POLICY*/ (its Content-Security-Policy).
@@ -149,31 +148,23 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
     }
 
 
-@takes(CLUSTER_FLAGS, TERRAIN_FLAGS)
-def explore(run_dir: str, **flags: Any) -> None:
-    """Write RUN_DIR/explorer.html: one self-contained page to browse the archive and watch any
-    elite's episode. It opens offline in any current browser (no server, nothing fetched): the
-    heatmap (hover a cell for its numbers, click it to watch its elite), a sortable table of the
-    best elites, and the run's progress curves. Every elite is flown again on the cluster to record
-    its poses, so the page plays exactly the episode that `video` renders.
-
-    Args:
-        run_dir: A run folder written by this script.
-    """
-    env_seed, workers = flags["env_seed"], flags["workers"]
+def explore(run_dir: Path, terrain: Terrain, cluster: ClusterSettings) -> None:
+    """Write RUN_DIR/explorer.html, every elite flown again on the cluster `cluster` names, on
+    the env seed `terrain` names, to record its poses: one self-contained page to browse the
+    archive and watch any elite's episode."""
     archive, config = load_run(run_dir)
     require_drawing(task_of(config).family, "explore")
     require_one_world(task_of(config).family, config.reset, "explore")
-    shown = shown_terrain(config, env_seed)
-    workers, run = checked("workers", workers), Path(str(run_dir))
+    shown = shown_terrain(config, terrain.env_seed)
+    workers, run = checked("workers", cluster.workers), run_dir
     metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown
     check_writable(run)
-    scheduler_address = scheduler_of(flags)
+    scheduler_address = scheduler_of(cluster)
     rows = elite_rows(archive)
     with dask_client(workers, scheduler_address, console_log()) as client:
         chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
         futures = [client.submit(record_poses, chunk, flown_seeds(chunk, shown, config), config.env,
-                                 policy_of(config),
+                                 config.network,
                                  episode_of(config), pure=False, retries=3)
                    for chunk in chunks]
         flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]

@@ -17,9 +17,10 @@ import io
 import os
 from pathlib import Path
 
-from qdsearch.base.flags import UsageError, named, positive_int
+from qdsearch.base.flags import UsageError
 from qdsearch.base.run_files import check_present, read_regular
 from qdsearch.base.stopping import STOP
+from qdsearch.config.command_settings import WatchSettings
 from qdsearch.config.run_config import RunConfig, load_checked_config
 from qdsearch.store.metrics import load_metrics
 from qdsearch.tasks import MEASURES, returns_of
@@ -119,26 +120,16 @@ def live_document(run_dir: Path, config: RunConfig):
     return make
 
 
-def watch(run_dir: str, port: int = 5006, host: str = "127.0.0.1") -> None:
-    """Serve a live page of a run (running or not): its archive and QD score, redrawn as its folder
-    is refreshed. Open the printed address in a browser; Ctrl-C ends it.
-
-    Args:
-        run_dir: A run folder written by this script.
-        port: The port to serve on.
-        host: The address to serve on (127.0.0.1: this machine only; the page shows the run to
-            whoever can reach it).
-    """
+def watch(path: Path, settings: WatchSettings) -> None:
+    """Serve a live page of the run in `path` (running or not) where `settings` says, redrawn as
+    its folder is refreshed, until Ctrl-C."""
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
     from bokeh.server.server import Server
 
-    path = Path(str(run_dir))
+    port, host = settings.port, settings.host
     config = load_checked_config(path)
     check_present(path, WATCHED)  # one that is there but no readable file: refused, not shown empty
-    port = positive_int("port", port)
-    if port > 65535:
-        raise UsageError(f"{named('port')} must be at most 65535, got {port}")
     try:
         server = Server({"/": Application(FunctionHandler(live_document(path, config)))}, port=port,
                         address=str(host), allow_websocket_origin=[f"{host}:{port}", f"localhost:{port}"])

@@ -20,7 +20,6 @@ from qdsearch.config.run_config import check_run_config, load_run_config
 from qdsearch.search.experiment_folder import read_experiment as read_plan
 from qdsearch.store.metrics import load_metrics
 from qdsearch.tasks import episode_of, make_env, reset_seeds, rollout
-from qdsearch.tasks.policies import policy_of
 
 
 @dataclasses.dataclass
@@ -97,7 +96,7 @@ def fly_elite(run: Any, elite: int) -> EliteFlight:
     measures = tuple(config.measures)
     env = make_env(config.fast_env, env_name=config.env, episode=episode_of(config))
     seeds = [int(seed) for seed in reset_seeds(solution[None], config)[0]]
-    rows = [rollout(solution, seed, env, measures, env_name=config.env, policy=policy_of(config))
+    rows = [rollout(solution, seed, env, measures, env_name=config.env, policy=config.network)
             for seed in seeds]
     env.close()
     episodes = pd.DataFrame(rows, columns=["objective", *measures]).assign(reset_seed=seeds)

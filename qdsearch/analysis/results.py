@@ -14,6 +14,7 @@ Map:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import math
 import os
@@ -28,10 +29,10 @@ import numpy as np
 
 from qdsearch.algorithms import ARCHIVES, kind_of
 from qdsearch.analysis.run_folder import elite_rows, load_run, shown_terrain
-from qdsearch.base.flags import UsageError, check_flags, named, shown, takes
+from qdsearch.base.flags import UsageError, named, shown
 from qdsearch.base.run_files import RunError, atomic_write, check_writable, fault_text, write_csv
 from qdsearch.base.stopping import STOP
-from qdsearch.config.options import ELITES_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS
+from qdsearch.config.command_settings import EliteFilter, Selection, Terrain
 from qdsearch.config.run_config import RunConfig
 from qdsearch.search.engine import averaged, per_terrain
 from qdsearch.tasks import (
@@ -49,7 +50,7 @@ from qdsearch.tasks import (
     rollout,
 )
 from qdsearch.tasks.family import require_one_world
-from qdsearch.tasks.policies import LINEAR, Policy, policy_of
+from qdsearch.tasks.policies import LINEAR, Policy
 
 
 def is_number(value: Any) -> bool:
@@ -139,12 +140,12 @@ def elite_of_cell(archive, point: tuple[float, ...], measures: list[str], neares
     return {**near, "name": f"{name}_nearest{near['index']}"}
 
 
-def select_elites(archive, cells: Any = None, best: Any = False, top: Any = None,
-                  index: Any = None, nearest: Any = False, *, measures: list[str]) -> list[dict]:
-    """The elites a results command shows, each named for its file: the --cells points' cells,
-    the --best, the --top K by objective, the --index cells, in that order."""
-    checked = check_flags(SELECTION_FLAGS, {"best": best, "top": top, "nearest": nearest})
-    best, top, nearest, measures = checked["best"], checked["top"], checked["nearest"], list(measures)
+def select_elites(archive, cells: Any = None, best: bool = False, top: int | None = None,
+                  index: Any = None, nearest: bool = False, *, measures: list[str]) -> list[dict]:
+    """The elites a results command shows (a Selection's fields, checked), each named for its
+    file: the cells of the points `cells`, the best, the `top` K by objective, the cells of
+    `index`, in that order."""
+    measures = list(measures)
     if cells is None and not best and top is None and index is None:
         raise UsageError(f"choose elites with {named('cells')}, {named('best')}, {named('top')} or "
                          f"{named('index')}")
@@ -222,21 +223,21 @@ def rendered(env: gym.Env) -> np.ndarray:
         raise renderer_missing(error) from None
 
 
-def load_chosen_elites(run_dir: Any, flags: dict[str, Any]) -> tuple[RunConfig, list[dict], int]:
-    """The run's config, the elites the SELECTION_FLAGS among `flags` pick from its archive, and
-    the terrain to show them on: --env_seed, by default the run's first."""
+def load_chosen_elites(run_dir: Path, selection: Selection,
+                       terrain: Terrain) -> tuple[RunConfig, list[dict], int]:
+    """The run's config, the elites `selection` picks from its archive, and the terrain to show
+    them on: the env seed `terrain` names, by default the run's first."""
     archive, config = load_run(run_dir)
-    shown = shown_terrain(config, flags["env_seed"])
-    selection = {name: flags[name] for name in SELECTION_FLAGS}
-    check_writable(Path(str(run_dir)))  # before any elite is flown
-    return config, select_elites(archive, **selection, measures=config.measures), shown
+    shown = shown_terrain(config, terrain.env_seed)
+    check_writable(run_dir)  # before any elite is flown
+    return config, select_elites(archive, **dataclasses.asdict(selection), measures=config.measures), shown
 
 
 def reflown(elite: dict, config: RunConfig) -> tuple[float, list[float]]:
     """The elite flown again in its run's setting (every terrain, averaged as the engine does):
     rollouts are deterministic, so this is exactly its stored objective and measures."""
     env = make_env(config.fast_env, env_name=config.env, episode=episode_of(config))
-    seeds, policy = reset_seeds(elite["solution"][None], config), policy_of(config)
+    seeds, policy = reset_seeds(elite["solution"][None], config), config.network
     rows = [np.array([rollout(elite["solution"], int(seed), env, config.measures, env_name=config.env,
                               policy=policy) for seed in seeds[0]])]
     objectives, measures = averaged(per_terrain(rows, seeds))
@@ -264,24 +265,16 @@ def record_video(solution: np.ndarray, env_seed: int, path: Path, env_name: str,
         raise RunError(f"cannot write {path}: {cause}") from None
 
 
-@takes(SELECTION_FLAGS, TERRAIN_FLAGS)
-def video(run_dir: str, **flags: Any) -> None:
-    """Render an mp4 per chosen elite, flown on one of the run's env seeds, into RUN_DIR/videos/.
-
-    Each elite is also flown again in its run's setting and must score exactly its stored
-    objective and measures (a warning says if not). videos/index.csv lists the videos with the
-    elites' objectives and measures, earlier calls' videos too.
-
-    Args:
-        run_dir: A run folder written by this script.
-    """
-
-    config, chosen, shown = load_chosen_elites(run_dir, flags)
-    folder, rows, measures = Path(str(run_dir)) / "videos", [], config.measures
+def video(run_dir: Path, selection: Selection, terrain: Terrain) -> None:
+    """An mp4 per elite `selection` picks, flown on the env seed `terrain` names, into
+    RUN_DIR/videos/ (listed in videos/index.csv); each elite flown again in its run's setting
+    must score exactly its stored objective and measures (a warning says if not)."""
+    config, chosen, shown = load_chosen_elites(run_dir, selection, terrain)
+    folder, rows, measures = run_dir / "videos", [], config.measures
     for elite in chosen:
         STOP.check()  # Ctrl-C is acted on between videos (main defers it, see StopRequests)
         path, (seed,) = folder / f"{elite['name']}.mp4", flown_seeds(elite["solution"][None], shown, config)
-        record_video(elite["solution"], seed, path, config.env, policy_of(config), episode_of(config))
+        record_video(elite["solution"], seed, path, config.env, config.network, episode_of(config))
         print(f"{path}: {describe_elite(elite, measures)}")
         objective, values = reflown(elite, config)
         reproduced = objective == elite["objective"] and values == list(elite["measures"])
@@ -329,17 +322,12 @@ def elite_table(archive, measures: list[str], min_objective: float | None = None
     return table.rename(columns=columns)[list(columns.values())].reset_index(drop=True)
 
 
-@takes(ELITES_FLAGS)
-def elites(run_dir: str, **flags: Any) -> None:
-    """Print the run's elites sorted by objective, and write them to RUN_DIR/elites.csv.
-
-    Args:
-        run_dir: A run folder written by this script.
-    """
+def elites(run_dir: Path, chosen: EliteFilter) -> None:
+    """Print the run's elites that `chosen` keeps, sorted by objective, and write them to
+    RUN_DIR/elites.csv."""
     archive, config = load_run(run_dir)
-    chosen = check_flags(ELITES_FLAGS, flags)
-    table = elite_table(archive, config.measures, chosen["min_objective"], chosen["top"])
-    path = Path(str(run_dir)) / "elites.csv"
+    table = elite_table(archive, config.measures, chosen.min_objective, chosen.top)
+    path = run_dir / "elites.csv"
     write_csv(path, table)
     print(table.to_string(index=False, float_format=lambda value: f"{value:.3f}")
           if len(table) else "no elites match")
@@ -401,22 +389,15 @@ def save_trajectory_plot(chosen: list[dict], paths: list[tuple[np.ndarray, int]]
     plt.close(fig)
 
 
-@takes(SELECTION_FLAGS, TERRAIN_FLAGS)
-def trajectories(run_dir: str, **flags: Any) -> None:
-    """Draw the paths of the chosen elites, as their task's family draws them (the lander's flights
-    over its terrain, a walker's or a robot's torso): RUN_DIR/trajectories.png.
-
-    The elites are chosen as for the video command. Each drawing is also kept in
-    RUN_DIR/trajectories/, and trajectories/index.csv lists the elites of every drawing.
-
-    Args:
-        run_dir: A run folder written by this script.
-    """
-    config, chosen, shown = load_chosen_elites(run_dir, flags)
+def trajectories(run_dir: Path, selection: Selection, terrain: Terrain) -> None:
+    """The paths of the elites `selection` picks, flown on the env seed `terrain` names, as their
+    task's family draws them: RUN_DIR/trajectories.png, each drawing kept in
+    RUN_DIR/trajectories/ and listed in its index.csv."""
+    config, chosen, shown = load_chosen_elites(run_dir, selection, terrain)
     require_one_world(ENVIRONMENTS[config.env].family, config.reset, "trajectories")
-    path, kept = Path(str(run_dir)) / "trajectories.png", Path(str(run_dir)) / "trajectories"
+    path, kept = run_dir / "trajectories.png", run_dir / "trajectories"
     seeds = flown_seeds(np.array([elite["solution"] for elite in chosen]), shown, config) if chosen else []
-    paths = fly_paths(chosen, seeds, config.env, policy_of(config), episode_of(config))
+    paths = fly_paths(chosen, seeds, config.env, config.network, episode_of(config))
     save_trajectory_plot(chosen, paths, shown, path, config.env)
     kept.mkdir(exist_ok=True)
     drawing = kept / f"trajectories_{1 + len(list(kept.glob('trajectories_*.png'))):03d}.png"

@@ -13,8 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.base.flags import UsageError, check_flags, named
-from qdsearch.config.options import TERRAIN_FLAGS
+from qdsearch.base.flags import UsageError, named
 from qdsearch.config.run_config import RunConfig, archive_source, load_archive, load_checked_config
 from qdsearch.tasks import ENVIRONMENTS
 
@@ -56,13 +55,12 @@ def elite_rows(archive) -> dict[str, np.ndarray]:
     return {field: values[order] for field, values in data.items()}
 
 
-def shown_terrain(config: RunConfig, env_seed: Any) -> int:
+def shown_terrain(config: RunConfig, env_seed: int | None) -> int:
     """The terrain (a seed, as the task's family calls it) a results command shows a run on:
     --env_seed, one of the run's (its elites' objectives and measures were flown there), by
-    default the run's first."""
-    if env_seed is None:
+    default the run's first (a Terrain's env_seed, checked)."""
+    if (terrain := env_seed) is None:
         return config.env_seed[0]
-    terrain = check_flags(TERRAIN_FLAGS, {"env_seed": env_seed})["env_seed"]
     if terrain not in config.env_seed:
         terrains, noun = ",".join(map(str, config.env_seed)), ENVIRONMENTS[config.env].family.seed_noun
         raise UsageError(f"{named('env_seed')} {terrain} is not a {noun} of this run (it was flown on "

@@ -1,38 +1,37 @@
-"""Flags: how a command's flags are declared once, and how every value a user gives is checked.
+"""Flags: how a setting is declared once as a flag, and how every value a user gives is checked.
 
-A command's flags live in a table of `Flag` entries (options.py's SEARCH_FLAGS,
-CLUSTER_FLAGS and SELECTION_FLAGS): each entry holds the default, the --help line, the check,
-and the flag's part in experiments. `takes` gives a command those flags as keyword arguments:
-its signature and its docstring's Args come from the tables, so Fire's parsing, --help and a
-direct call all see one declaration.
+A settings class (config/settings.py, config/command_settings.py) declares each setting as a
+field made by `flag`: its default, its --help line, its check and its part in experiments. A
+command's table of flags is made from such classes (`flags_of`), and a command's values become
+its class through `settings_from`. The command line (qdsearch.cli) makes its commands' signatures
+and --help from the tables and parses the text typed; nothing here knows it.
 
 Map:
-- `UsageError`: bad input, reported as one line and exit code 2;
-- the checkers, each `(flag name, value) -> checked value`: `positive_int`,
-  `whole_number_up_to`, `seed_number`, `positive_float`, `fraction`, `boolean`, `one_of`,
-  `seed_list`, `distinct_names`; `listed` splits a list as typed; `shown` quotes a bad value,
-  `clipped` cuts a library's message, `one_line` keeps a message on one line;
+- `UsageError`: bad input, reported as one line and exit code 2; `BadValue`, one setting's
+  value refused (which setting, which value, why);
+- `named` (by NAMING's style): how a message names a setting;
+- the checkers, each `(setting name, value) -> checked value`: `positive_int`,
+  `whole_number_up_to`, `seed_number`, `positive_float`, `finite_number`, `number_up_to`,
+  `fraction`, `boolean`, `one_of`, `seed_list`, `distinct_names`; `listed` splits a list as
+  typed; `shown` quotes a bad value, `clipped` cuts a library's message, `one_line` keeps a
+  message on one line;
 - `nearest` and `did_you_mean`: how every refusal of a name (a task, an algorithm, a measure,
   a tracker, a command, a flag) ends, with the name the user most likely meant;
-- `Flag`, `flag` (a settings class's field that is a flag) and `flags_of` (a class's flags as a
-  command's table), `check_flags` (values through their entries' checks), `takes` (the
-  decorator) and `flag_table` (the flags a command took from the tables);
+- `Flag`, `flag` (a settings class's field that is a flag), `flags_of` (a class's flags as a
+  command's table), `check_flags` (values through their entries' checks), `settings_from`
+  (a settings class from a command's values);
 - `summary`: a docstring's first line (the tables' rows describe themselves by it).
-
-The command line (qdsearch.cli) renders --help and parses the text typed from these entries.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
-import functools
 import inspect
 import math
 import re
-import textwrap
 import unicodedata
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, TypeVar
 
 import numpy as np
 
@@ -42,8 +41,21 @@ class UsageError(Exception):
     Its words name each setting through `named`."""
 
 
+class BadValue(UsageError):
+    """A setting's value refused: which setting, which value, and why (the words after the
+    setting's name). Its line names the setting as whoever reports it words settings (`named`
+    when it is read, not when it is raised)."""
+
+    def __init__(self, setting: str, value: Any, why: str) -> None:
+        super().__init__(setting, value, why)
+        self.setting, self.value, self.why = setting, value, why
+
+    def __str__(self) -> str:
+        return f"{named(self.setting)} {self.why}"
+
+
 # How a message names a setting: as the keyword a Python caller passes (env), unless whoever
-# reports the messages words them otherwise (the command line: --env, `name_settings_as`).
+# reports the messages words them otherwise: the command line sets "--{}" (--env) when it loads.
 NAMING = {"style": "{}"}
 
 
@@ -52,17 +64,13 @@ def named(setting: str) -> str:
     return NAMING["style"].format(setting)
 
 
-def name_settings_as(style: str) -> None:
-    """Word every later message's settings by `style` ("--{}": as flags)."""
-    NAMING["style"] = style
-
-
 Check = Callable[[str, Any], Any]
+T = TypeVar("T")
 
 
 def positive_int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise UsageError(f"{named(name)} must be a positive whole number, got {shown(value)}")
+        raise BadValue(name, value, f"must be a positive whole number, got {shown(value)}")
     return value
 
 
@@ -71,7 +79,7 @@ def whole_number_up_to(most: int) -> Check:
     is allocated or written)."""
     def check(name: str, value: Any) -> int:
         if positive_int(name, value) > most:
-            raise UsageError(f"{named(name)} must be at most {most:,}, got {shown(value)}")
+            raise BadValue(name, value, f"must be at most {most:,}, got {shown(value)}")
         return value
     return check
 
@@ -83,20 +91,20 @@ MAX_SEEDS = 10_000  # seeds in one list or range (terrains to fly every policy o
 def seed_number(name: str, value: Any) -> int:
     """One seed: a whole number from 0 to MAX_SEED."""
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SEED:
-        raise UsageError(f"{named(name)} must be a whole number from 0 to {MAX_SEED}, got {shown(value)}")
+        raise BadValue(name, value, f"must be a whole number from 0 to {MAX_SEED}, got {shown(value)}")
     return value
 
 
 def positive_float(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
-        raise UsageError(f"{named(name)} must be a positive number, got {shown(value)}")
+        raise BadValue(name, value, f"must be a positive number, got {shown(value)}")
     return float(value)
 
 
 def finite_number(name: str, value: Any) -> float:
     """Any real number, as a float (a QD offset)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise UsageError(f"{named(name)} must be a number, got {shown(value)}")
+        raise BadValue(name, value, f"must be a number, got {shown(value)}")
     return float(value)
 
 
@@ -104,14 +112,14 @@ def number_up_to(most: float) -> Check:
     """A check for a positive number of at most `most`."""
     def check(name: str, value: Any) -> float:
         if positive_float(name, value) > most:
-            raise UsageError(f"{named(name)} must be at most {most:g}, got {shown(value)}")
+            raise BadValue(name, value, f"must be at most {most:g}, got {shown(value)}")
         return float(value)
     return check
 
 
 def fraction(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
-        raise UsageError(f"{named(name)} must be a number in (0, 1], got {shown(value)}")
+        raise BadValue(name, value, f"must be a number in (0, 1], got {shown(value)}")
     return float(value)
 
 
@@ -122,14 +130,14 @@ def boolean(name: str, value: Any) -> bool:
         return bool(value)
     if str(value).lower() in words:
         return words[str(value).lower()]
-    raise UsageError(f"{named(name)} must be true or false, got {shown(value)}")
+    raise BadValue(name, value, f"must be true or false, got {shown(value)}")
 
 
 def one_of(choices: dict) -> Check:
     """A check that the value is a key of `choices` (a table such as ALGORITHMS)."""
     def check(name: str, value: Any) -> str:
         if not isinstance(value, str) or value not in choices:
-            raise UsageError(f"{named(name)} {shown(value)} is unknown; {did_you_mean(value, choices)}")
+            raise BadValue(name, value, f"{shown(value)} is unknown; {did_you_mean(value, choices)}")
         return value
     return check
 
@@ -190,14 +198,14 @@ def seed_list(name: str, value: Any) -> list[int]:
         match = re.fullmatch(r"\s*(\d{1,20})\s*(?:-\s*(\d{1,20})\s*)?", part)
         first, last = (int(match[1]), int(match[2] or match[1])) if match else (0, -1)
         if isinstance(value, bool) or not match or last < first or last > MAX_SEED:
-            raise UsageError(f"{named(name)} takes seeds from 0 to {MAX_SEED} such as 52, 0-19, 3,5,8 or "
+            raise BadValue(name, value, f"takes seeds from 0 to {MAX_SEED} such as 52, 0-19, 3,5,8 or "
                              f"0-4,10; got {shown(value)}")
         bounds.append((first, last))
     if not bounds:
-        raise UsageError(f"{named(name)} takes at least one seed, such as 52, 0-19 or 3,5,8; got "
+        raise BadValue(name, value, f"takes at least one seed, such as 52, 0-19 or 3,5,8; got "
                          f"{shown(value)}")
     if (count := sum(last - first + 1 for first, last in bounds)) > MAX_SEEDS:
-        raise UsageError(f"{named(name)} lists {count:,} seeds; at most {MAX_SEEDS:,}")
+        raise BadValue(name, value, f"lists {count:,} seeds; at most {MAX_SEEDS:,}")
     return list(dict.fromkeys(seed for first, last in bounds for seed in range(first, last + 1)))
 
 
@@ -226,10 +234,10 @@ def distinct_names(table: dict, noun: str, most: int) -> Check:
     def check(name: str, value: Any) -> list[str]:
         names = listed(value) if isinstance(value, (str, tuple, list)) else []
         if unknown := [n for n in names if n and n not in table]:
-            raise UsageError(f"{named(name)} {shown(unknown[0])} is not one of the {noun}; "
+            raise BadValue(name, value, f"{shown(unknown[0])} is not one of the {noun}; "
                              + did_you_mean(unknown[0], table))
         if "" in names or not 1 <= len(names) <= most or len(set(names)) != len(names):
-            raise UsageError(f"{named(name)} takes 1 to {most} different {noun} of {', '.join(table)}; "
+            raise BadValue(name, value, f"takes 1 to {most} different {noun} of {', '.join(table)}; "
                              f"got {shown(value)}")
         return names
     return check
@@ -269,77 +277,12 @@ def check_flags(table: dict[str, Flag], values: dict[str, Any]) -> dict[str, Any
             else table[name].check(name, value) for name, value in values.items()}
 
 
-def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
-    """Give a command that takes `**flags` the flags of `tables` as ordinary keyword arguments.
-
-    The command's signature becomes its own parameters followed by the tables' flags with their
-    defaults, and its docstring's Args section gains each flag's help line (for Python's help());
-    Fire parses the command line by the signature, and help_page renders --help from the tables
-    (flag_table). A call binds its arguments to that signature (a misspelt keyword is a
-    TypeError, as for any function) and passes every flag, defaulted.
-
-    A command that declares a keyword-only `given` is told which flags the call gave, whatever
-    their values (a flag typed beside a file wins over the file's value even at its default):
-    `given` is hidden from the signature, and every flag of such a command is keyword-only, since
-    Fire passes a positional parameter's default itself but a keyword-only one's only when typed.
-    So the command line and a direct call give alike.
-    """
-    flags = {name: flag for table in tables for name, flag in table.items()}
-
-    def decorate(function: Callable) -> Callable:
-        own = inspect.signature(function)
-        tells = GIVEN in own.parameters and own.parameters[GIVEN].kind is inspect.Parameter.KEYWORD_ONLY
-        keep = [p for p in own.parameters.values()
-                if not (p.kind is p.VAR_KEYWORD and p.name == "flags") and not (tells and p.name == GIVEN)]
-        at = next((i for i, p in enumerate(keep) if p.kind in (p.KEYWORD_ONLY, p.VAR_KEYWORD)), len(keep))
-        kind = inspect.Parameter.KEYWORD_ONLY if tells else inspect.Parameter.POSITIONAL_OR_KEYWORD
-        added = [inspect.Parameter(name, kind, default=flag.default)
-                 for name, flag in flags.items() if name not in own.parameters]
-        if tells:
-            keep = [p.replace(kind=p.KEYWORD_ONLY) if p.kind is p.POSITIONAL_OR_KEYWORD
-                    and p.default is not p.empty else p for p in keep]
-        signature = own.replace(parameters=keep[:at] + added + keep[at:])
-        rest = next((p.name for p in keep if p.kind is p.VAR_KEYWORD), None)  # experiment's **search_flags
-
-        @functools.wraps(function)
-        def command(*args: Any, **kwargs: Any) -> Any:
-            bound = signature.bind(*args, **kwargs)
-            given = frozenset({*(name for name in bound.arguments if name != rest),
-                               *bound.arguments.get(rest, {})})
-            bound.apply_defaults()
-            arguments = dict(bound.arguments)
-            extra = arguments.pop(rest) if rest else {}
-            return function(**arguments, **extra, **({GIVEN: given} if tells else {}))
-
-        command.__signature__ = signature
-        FLAG_TABLES[command] = {name: flags[name] for name in flags if name not in own.parameters}
-        command.__doc__ = with_flag_help(function.__doc__ or "", FLAG_TABLES[command])
-        return command
-    return decorate
-
-
-GIVEN = "given"  # the keyword-only parameter through which `takes` tells a command the flags given
-
-
-# The flags each command took from the tables, kept here and not as an attribute of the command:
-# Fire lists a function's public attributes as commands of their own ("GROUPS ... flag_table").
-FLAG_TABLES: dict[Callable, dict[str, Flag]] = {}
-
-
-def flag_table(function: Callable) -> dict[str, Flag]:
-    """The flags a command took from the tables through `takes` (none for the others)."""
-    return FLAG_TABLES.get(function, {})
-
-
-def with_flag_help(doc: str, flags: dict[str, Flag]) -> str:
-    """The docstring with a Google-style Args line per flag (for Python's help(); --help is help_page's)."""
-    doc = inspect.cleandoc(doc)
-    lines = [textwrap.fill(f"{name}: {flag.help}", 96, initial_indent="    ", subsequent_indent="        ",
-                           break_on_hyphens=False) for name, flag in flags.items()]
-    if "\nArgs:\n" not in doc:
-        doc += "\n\nArgs:"
-    head, _, tail = doc.partition("\nArgs:\n")
-    return "\n".join([head, "Args:", *(tail.splitlines() if tail else []), *lines])
+def settings_from(section: type[T], values: dict[str, Any]) -> T:
+    """A settings class made from a command's values: each of its fields' (one not among them:
+    its flag's default), through its flag's check once (None passes: a value not given)."""
+    table = flags_of(section)
+    given = {name: values.get(name, entry.default) for name, entry in table.items()}
+    return section(**check_flags(table, given))
 
 
 def summary(doc: str) -> str:

@@ -3,25 +3,45 @@ answered in one line and exit code 2, a fault of the machine in one line and exi
 -h or --help anywhere the command's page (help.py). `python lunar_lander.py ...` and the installed
 `lunar-lander ...` both run `run_as_script`.
 
-Map: COMMANDS, `command`, `help_text`, `main`, `run_as_script`, `exit_now`.
+Map: COMMANDS, `command`, PROGRAM (the command as typed), `help_text`, `main`, `run_as_script`,
+`exit_now`.
 """
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import logging
 import multiprocessing
 import os
 import signal
 import sys
+from pathlib import Path
 from typing import Any, Callable
 
 from qdsearch.base.flags import UsageError, did_you_mean, one_line, shown, summary
 from qdsearch.base.run_files import RunError, fault_text
 from qdsearch.base.stopping import STOP, Stopped
+from qdsearch.cli.commands import (
+    compare,
+    elites,
+    evaluate,
+    experiment,
+    explore,
+    resume,
+    search,
+    trajectories,
+    video,
+    watch,
+)
 from qdsearch.cli.help import help_page
-from qdsearch.cli.parsing import as_typed, known_flags, reject_unknown_flags, text_flags, typed_flags
+from qdsearch.cli.parsing import (
+    as_typed,
+    known_flags,
+    reject_unknown_flags,
+    text_flags,
+    typed_flags,
+    typed_setting,
+)
 from qdsearch.config.options import refuse_unused_row_flags
 from qdsearch.config.settings import SEARCH_FLAGS
 
@@ -32,37 +52,42 @@ if multiprocessing.parent_process() is not None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-# The commands, each the package module and function that implement it: a command's module is
-# imported only when it is run, so `--help` and bad input answer without loading the rest.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "search": ("qdsearch.search.run", "search"),
-    "resume": ("qdsearch.search.experiments", "resume"),
-    "experiment": ("qdsearch.search.experiments", "experiment"),
-    "video": ("qdsearch.analysis.results", "video"),
-    "elites": ("qdsearch.analysis.results", "elites"),
-    "trajectories": ("qdsearch.analysis.results", "trajectories"),
-    "evaluate": ("qdsearch.analysis.evaluation", "evaluate"),
-    "explore": ("qdsearch.analysis.explorer", "explore"),
-    "compare": ("qdsearch.analysis.comparison", "compare"),
-    "watch": ("qdsearch.analysis.live", "watch"),
+# The commands, by the name typed (commands.py: each imports its core module when it runs, so
+# --help and bad input answer without loading the rest).
+COMMANDS: dict[str, Callable] = {
+    "search": search,
+    "resume": resume,
+    "experiment": experiment,
+    "video": video,
+    "elites": elites,
+    "trajectories": trajectories,
+    "evaluate": evaluate,
+    "explore": explore,
+    "compare": compare,
+    "watch": watch,
 }
 
 
 def command(name: str) -> Callable:
     """The function of a command of COMMANDS."""
-    module, function = COMMANDS[name]
-    return getattr(importlib.import_module(module), function)
+    return COMMANDS[name]
+
+
+# The command as the user typed it: the script, or the installed entry point (run_as_script).
+PROGRAM = {"typed": "python lunar_lander.py"}
+INSTALLED = "lunar-lander"  # pyproject.toml's [project.scripts]
 
 
 def help_text(name: str, function: Callable) -> str:
-    """A command's --help page; the main one (search's) lists every command too."""
+    """A command's --help page, titled as the command was typed; the main one (search's) lists
+    every command too."""
     passed_on = {flag: SEARCH_FLAGS[flag] for flag in known_flags(function)
                  if flag not in inspect.signature(function).parameters}
     if name != "search":
-        return help_page(f"lunar_lander.py {name}", function, passed_on)
+        return help_page(f"{PROGRAM['typed']} {name}", function, passed_on)
     commands = {other: ("(the default: no command name) " if other == "search" else "")
                 + summary(command(other).__doc__ or "") for other in COMMANDS}
-    return help_page("lunar_lander.py", function, passed_on, commands)
+    return help_page(PROGRAM["typed"], function, passed_on, commands)
 
 
 def main(argv: list[str]) -> int:
@@ -80,13 +105,13 @@ def main(argv: list[str]) -> int:
             return 0
         reject_unknown_flags(function, args)
         if name == "search":  # a row's own flag typed where the run's row ignores it: the row typed,
-            from qdsearch.search.run import typed_setting  # else --config's run's (experiment: its own check)
-
+            # else --config's run's (experiment: its own check)
             typed = dict(typed_flags(args))
             refuse_unused_row_flags([typed_setting(typed, "algorithm")], list(typed),
                                     [typed_setting(typed, "policy")])
         args = as_typed(args, text_flags(function))
-        fire.Fire(function, command=args, name="lunar_lander.py" if name == "search" else name)
+        fire.Fire(function, command=args, name=PROGRAM["typed"].removeprefix("python ")
+                  + ("" if name == "search" else f" {name}"))
     except UsageError as error:
         print(f"error: {one_line(str(error))}", file=sys.stderr)
         return 2
@@ -101,7 +126,10 @@ def main(argv: list[str]) -> int:
 
 
 def run_as_script() -> None:
-    """`python lunar_lander.py ...`: main, then a quick exit (see exit_now)."""
+    """`python lunar_lander.py ...` or the installed `lunar-lander ...`: main, then a quick exit
+    (see exit_now)."""
+    if Path(sys.argv[0]).name == INSTALLED:
+        PROGRAM["typed"] = INSTALLED
     try:
         exit_now(main(sys.argv[1:]))
     except SystemExit as done:  # Fire's own usage messages (exit code 2)

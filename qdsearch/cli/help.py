@@ -12,7 +12,8 @@ import re
 import textwrap
 from typing import Any, Callable
 
-from qdsearch.base.flags import Flag, flag_table, summary
+from qdsearch.base.flags import Flag, summary
+from qdsearch.cli.signatures import flag_table
 
 # --help is drawn here from the signature and the tables, not by Fire, which builds its page by
 # parsing the docstring: any wrapped line "word ...: text" starts a new argument there (--workers'
@@ -23,12 +24,13 @@ from qdsearch.base.flags import Flag, flag_table, summary
 WIDTH = 100  # of a help page's lines
 
 
-def help_page(title: str, function: Callable, passed_on: dict[str, Flag] | None = None,
+def help_page(program: str, function: Callable, passed_on: dict[str, Flag] | None = None,
               commands: dict[str, str] | None = None) -> str:
     """A command's --help: NAME (its docstring's first paragraph), SYNOPSIS, DESCRIPTION (the rest
     before Args), COMMANDS (the main page's: name to summary), its positional arguments, its FLAGS
     (a table's help for a flag it took, its docstring's Args for its own) and, for a command that
-    passes flags on (experiment's **search_flags), those flags with their tables' help."""
+    passes flags on (experiment's **search_flags), those flags with their tables' help. `program`
+    is the command as typed ("python lunar_lander.py video", "lunar-lander video")."""
     doc, table = function.__doc__ or "", flag_table(function)
     documented = documented_arguments(doc)
     parameters = list(inspect.signature(function).parameters.values())
@@ -36,10 +38,10 @@ def help_page(title: str, function: Callable, passed_on: dict[str, Flag] | None 
     words = [p.name.upper() + ("..." if p.kind is p.VAR_POSITIONAL else "") for p in positional]
     passes = next((documented.get(p.name, "") for p in parameters if p.kind is p.VAR_KEYWORD), "")
     sections = {
-        "NAME": wrapped(f"{title} - {summary(doc)}", 4),
-        "SYNOPSIS": wrapped(" ".join(["python", title, *words, "[--FLAG=VALUE ...]"]), 4),
+        "NAME": wrapped(f"{program.removeprefix('python ')} - {summary(doc)}", 4),
+        "SYNOPSIS": wrapped(" ".join([program, *words, "[--FLAG=VALUE ...]"]), 4),
         "DESCRIPTION": textwrap.indent(description(doc), "    "),
-        "COMMANDS": listing(f"python {title} COMMAND --help: a command's own page.",
+        "COMMANDS": listing(f"{program} COMMAND --help: a command's own page.",
                             [help_item(name, text) for name, text in (commands or {}).items()]),
         "POSITIONAL ARGUMENTS": listing("", [help_item(word, documented.get(p.name, ""))
                                              for word, p in zip(words, positional)]),

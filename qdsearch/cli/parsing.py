@@ -8,9 +8,12 @@ Map: `known_flags`, `text_flags`, `typed_flags`, `positional_words`, `reject_unk
 from __future__ import annotations
 
 import inspect
+from pathlib import Path
 from typing import Callable
 
-from qdsearch.base.flags import UsageError, did_you_mean, flag_table, shown
+from qdsearch.base.flags import UsageError, did_you_mean, shown
+from qdsearch.cli.signatures import flag_table
+from qdsearch.config.run_config import recorded_settings
 from qdsearch.config.settings import SEARCH_FLAGS
 
 
@@ -96,3 +99,14 @@ def as_typed(args: list[str], text_flags: set[str]) -> list[str]:
         else:  # a flag with no value (Fire reads it as True): the check refuses it
             typed.append(arg)
     return typed
+
+
+def typed_setting(typed: dict[str, str | None], flag: str) -> str:
+    """What a search typed so runs with for `flag` (its algorithm, its policy): the value typed,
+    else that of the run --config names, else the default (the command line's check of a row's
+    own flags typed)."""
+    if typed.get(flag) is not None:
+        return str(typed[flag]).strip("'\"")
+    if typed.get("config") is None:
+        return SEARCH_FLAGS[flag].default
+    return recorded_settings(Path(str(typed["config"])))[flag]

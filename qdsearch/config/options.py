@@ -4,8 +4,6 @@ Map:
 - ROW_FLAGS, POLICY_FLAGS (the flags some rows alone use), BUDGETS; `own_flags` and `ignores`,
   `refuse_unused_row_flags` (an algorithm's or a policy's own flag given where no row uses it);
 - `check_sizes` (`solutions_per_iteration`) and `check_rollouts` (the sizes flags make together);
-- the tables of the other commands: RESUME_FLAGS, SELECTION_FLAGS, TERRAIN_FLAGS (search's and
-  the cluster's are settings.py's);
 - `checked` (a value through its flag's check), `with_task` (a config's measures, checked
   against its task, and its archive's cells), `with_offset`, `legacy_offset`, `with_policy`,
   `for_policy` (less what its policy ignores), `resumed_budget`, `with_budget`, `check_memory`;
@@ -14,7 +12,6 @@ Map:
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from typing import Any
 
@@ -25,16 +22,10 @@ from qdsearch.algorithms import (
     memory_needed,
 )
 from qdsearch.base.flags import (
-    Flag,
     UsageError,
-    boolean,
-    finite_number,
     named,
-    positive_int,
-    seed_number,
 )
 from qdsearch.config.settings import (
-    CLUSTER_FLAGS,
     DEFAULT_CVT_CELLS,
     DEFAULT_GRID,
     DEFAULT_HIDDEN,
@@ -43,7 +34,6 @@ from qdsearch.config.settings import (
     MAX_ROLLOUTS,
     MAX_SOLUTIONS,
     SEARCH_FLAGS,
-    seed_nouns,
     unchecked,
 )
 from qdsearch.tasks import (
@@ -54,7 +44,7 @@ from qdsearch.tasks import (
     episode_of,
     family_measures,
 )
-from qdsearch.tasks.policies import POLICIES, policy_of
+from qdsearch.tasks.policies import POLICIES
 
 # The flags only some algorithms use (each row of ALGORITHMS names its own).
 ROW_FLAGS = frozenset(flag for row in ALGORITHMS.values() for flag in row.flags)
@@ -122,56 +112,6 @@ def check_rollouts(solutions: int, terrains: int, when: str) -> None:
     if solutions * terrains > MAX_ROLLOUTS:
         raise UsageError(f"{solutions:,} solutions on {terrains:,} env seed(s) make "
                          f"{solutions * terrains:,} rollouts {when}; at most {MAX_ROLLOUTS:,}")
-
-
-# resume: a run goes on as it was started unless told otherwise.
-RESUME_FLAGS: dict[str, Flag] = {
-    "iterations": dataclasses.replace(
-        SEARCH_FLAGS["iterations"], default=None, help="Total iterations to reach; default: those "
-        "the run was started with. A larger number extends a finished run."),
-    "evaluations": dataclasses.replace(
-        SEARCH_FLAGS["evaluations"], help="A total budget in evaluations to reach instead of "
-        "--iterations: each run goes to its last iteration within it (an experiment's rows that fly "
-        "different numbers per iteration meet at one budget)."),
-    "workers": dataclasses.replace(CLUSTER_FLAGS["workers"], default=None, help=(
-        CLUSTER_FLAGS["workers"].help + " Default: as the run was started.")),
-    **{name: flag for name, flag in CLUSTER_FLAGS.items() if name != "workers"},
-    "trust": Flag(False, "Resume from a checkpoint not signed with your key (another user's, or "
-                         "from before checkpoints were signed) and sign it with yours; loading a "
-                         "pickle may run any code it holds, so only for one you trust.", boolean),
-}
-
-# The best elites, by objective: declared once for every command that picks them (video,
-# trajectories, elites, evaluate).
-TOP = Flag(None, "The K elites with the highest objectives.", positive_int)
-
-# Which elites a results command shows (video, trajectories), and on which terrain (explore too).
-SELECTION_FLAGS: dict[str, Flag] = {
-    "cells": Flag(None, 'Points in the run\'s measures "[(m1, m2), ...]": the elite of each '
-                        "point's cell (archive.retrieve_single); for the tutorial's impact x and "
-                        'impact y-velocity, e.g. "[(-0.4, -0.1), (0.6, -0.1), (0.0, -0.1)]".'),
-    "best": Flag(False, "The elite with the highest objective.", boolean),
-    "top": TOP,
-    "index": Flag(None, "Archive cell indices (the cell_index column of the elites command)."),
-    "nearest": Flag(False, "For an empty cell, use the nearest occupied cell instead of "
-                           "stopping.", boolean),
-}
-# elites: which elites its table lists.
-ELITES_FLAGS: dict[str, Flag] = {
-    "min_objective": Flag(None, "Only elites scoring at least this; the last line counts those at "
-                                "the task's solved return (LunarLander-v3's 200: good landings; "
-                                "BipedalWalker-v3's 300).", finite_number),
-    "top": dataclasses.replace(TOP, help="Only the K best of those."),
-}
-# evaluate: which elites its robustness table flies.
-EVALUATE_FLAGS: dict[str, Flag] = {
-    "top": dataclasses.replace(TOP, help="Robustness only: the K elites with the highest objectives "
-                                         "(default: all)."),
-}
-TERRAIN_FLAGS: dict[str, Flag] = {
-    "env_seed": Flag(None, f"The env seed to fly on ({seed_nouns()}), one of the run's; default: "
-                           "the run's first.", seed_number),
-}
 
 
 def checked(name: str, value: Any) -> Any:
@@ -281,7 +221,7 @@ def check_memory(config: dict[str, Any]) -> None:
     """Refuse, before anything is written, a row whose emitters and archives would not fit in the
     machine's memory with this policy (a full CMA-ES covariance grows as the weights squared:
     ~3.5 GB at Ant-v5's 21,000 weights of a 128x128 network), naming the rows that fit."""
-    weights = policy_of(unchecked(config)).size(ENVIRONMENTS[config["env"]].shape)
+    weights = unchecked(config).network.size(ENVIRONMENTS[config["env"]].shape)
     room = MEMORY_SHARE * physical_memory()
 
     def needs(algorithm: str) -> float:

@@ -16,11 +16,13 @@ Map:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import os
+import secrets
 from pathlib import Path
-from typing import Any
+from typing import Any, Collection
 
 import numpy as np
 
@@ -30,15 +32,17 @@ from qdsearch.base.run_files import read_regular, read_run_json, write_json
 from qdsearch.base.signing import read_signed_pickle
 from qdsearch.config.options import (
     before_the_flags,
+    check_memory,
     check_sizes,
     legacy_offset,
     search_defaults,
     with_offset,
     with_task,
 )
-from qdsearch.config.settings import CLUSTER_FLAGS, RECORDS, SEARCH_FLAGS, RunConfig, RunRecords
+from qdsearch.config.settings import BUDGETS, CLUSTER_FLAGS, RECORDS, SEARCH_FLAGS, RunConfig, RunRecords
 from qdsearch.store.archive_data import archive_from_csv, empty_archive, read_archive_data, recorded_config
 from qdsearch.store.metrics import check_metrics
+from qdsearch.tasks import check_spaces
 
 
 def upgrade(recorded: dict) -> dict:
@@ -260,3 +264,67 @@ def load_checkpoint(path: Path, trust: bool = False) -> dict:
         raise UsageError(f"{path}: its metrics do not match its iteration {iteration}")
     check_archive(checkpoint["scheduler"].result_archive, path, checkpoint["config"])
     return checkpoint
+
+
+def search_config(flags: dict[str, Any], given: Collection[str] = (), path: Path | None = None) -> RunConfig:
+    """The checked config a search runs with (nothing is written): its flags, or with --config
+    (`path`) the file's settings with the flags `given` beside it in their place (settings_of);
+    a seed drawn if none is set."""
+    if path is not None:
+        flags = settings_of(path, flags, given)
+    flags = with_task(check_flags(SEARCH_FLAGS, flags))
+    check_spaces(flags["env"])
+    if flags["seed"] is None:
+        flags["seed"] = secrets.randbelow(2**31)
+    # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
+    config = check_run_config({name: value if value is None or SEARCH_FLAGS[name].check else str(value)
+                               for name, value in flags.items()})
+    check_memory(config.to_json())  # after the sizes' own bounds (check_run_config's)
+    return config
+
+
+# What --config does not take from its file: where the new run goes and the cluster it flies on.
+NOT_FROM_CONFIG = ("outdir", *CLUSTER_FLAGS)
+# What a flag given beside --config takes along when its value is not the file's: the values the
+# file's value made or alone used, each back to the flag's (its default, unless given too), so
+# another task gets its own measures and archive, not the file's task's.
+FOLLOWS: dict[str, tuple[str, ...]] = {
+    "env": ("measures", "archive", "grid", "cells", "terminate_when_unhealthy", "qd_offset"),
+    "episode_length": ("qd_offset",),
+    "archive": ("grid", "cells"),
+    "policy": ("hidden",),
+}
+
+
+def settings_of(path: Path, flags: dict[str, Any], given: Collection[str]) -> dict[str, Any]:
+    """search's flags from a run's config.json (--config): the file's, with each flag `given`
+    beside it (whatever its value) in place of the file's and what it takes along (FOLLOWS,
+    BUDGETS); where the run goes and its cluster (NOT_FROM_CONFIG) are never the file's."""
+    recorded = recorded_settings(path)
+    merged = {flag: flags[flag] if flag in given or flag in NOT_FROM_CONFIG else recorded[flag]
+              for flag in SEARCH_FLAGS}
+    for flag, along in FOLLOWS.items():
+        if flag in given and check_flags(SEARCH_FLAGS, {flag: flags[flag]})[flag] != recorded[flag]:
+            merged.update({name: flags[name] for name in along})
+    if set(BUDGETS) & set(given):  # a budget given replaces the file's, whatever its value
+        merged.update({name: flags[name] for name in BUDGETS})
+    return merged
+
+
+def recorded_settings(path: Path) -> dict[str, Any]:
+    """The settings of the run whose config.json (or run folder) --config names, checked; an
+    experiment's experiment.json (or folder) is refused naming how to give one of its runs."""
+    folder, name = (path, "config.json") if path.is_dir() else (path.parent, path.name)
+    if name in ("config.json", "experiment.json") and (folder / "experiment.json").is_file() and not (
+            os.path.lexists(folder / "config.json")):
+        runs: list[str] = []
+        with contextlib.suppress(OSError):  # (a run to name is a help, not a need)
+            runs = sorted(run.name for run in folder.iterdir() if (run / "config.json").is_file())
+        example = f" (such as {named('config')} {folder / runs[0]})" if runs else ""
+        raise UsageError(f"{named('config')} {path}: an experiment's file, not a run's: give one of its "
+                         "runs, "
+                         f"{named('config')} {folder}/RUN_NAME{example}")
+    try:
+        return check_run_config(read_run_json(folder, name)).to_json()
+    except UsageError as error:
+        raise UsageError(f"{named('config')} {path}: {error}") from None

@@ -57,7 +57,7 @@ from qdsearch.tasks import (
     family_measures,
 )
 from qdsearch.tasks.family import Family
-from qdsearch.tasks.policies import POLICIES, STARTS
+from qdsearch.tasks.policies import POLICIES, STARTS, Policy
 
 # The flags only some algorithms use (each row of ALGORITHMS names its own).
 ROW_FLAGS = frozenset(flag for row in ALGORITHMS.values() for flag in row.flags)
@@ -227,6 +227,13 @@ class PolicySettings:
         label=15,
         text=True,
     )
+
+    @property
+    def network(self) -> Policy:
+        """The policy these settings make, as every rollout flies it (linear: no hidden layers):
+        its kind, its hidden layers and its start (a checked config: only a policy with hidden
+        layers has them, options.with_policy). Runs from before --start start as their row does."""
+        return Policy(self.policy, tuple(self.hidden or ()), self.start or "")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,6 +34,7 @@ from typing import Any, Callable, Iterator
 from qdsearch.base.flags import UsageError, clipped, named, positive_float, shown
 from qdsearch.base.run_files import RunError, fault_text
 from qdsearch.base.stopping import STOP
+from qdsearch.config.settings import ClusterSettings
 
 
 class SchedulerLost(RunError):
@@ -52,7 +53,7 @@ HANDSHAKE_TIMEOUT = 20.0
 WORKER_POLL = 0.5  # s between asking the scheduler whether a worker has joined
 
 
-def scheduler_of(cluster: dict[str, Any]) -> str | None:
+def scheduler_of(cluster: ClusterSettings) -> str | None:
     """The address of the Dask scheduler a command joins (None: it starts a local cluster), found
     and checked before anything is written: --scheduler_address, or the address in
     --scheduler_file once that file appears (a batch job's scheduler writes it when it starts).
@@ -61,22 +62,22 @@ def scheduler_of(cluster: dict[str, Any]) -> str | None:
     DASK_SCHEDULER_ADDRESS in the environment is not used: a variable left over from another job
     must not send runs to another cluster unasked (dask_client says so when it is set).
     """
-    address, path = cluster.get("scheduler_address"), cluster.get("scheduler_file")
+    address, path = cluster.scheduler_address, cluster.scheduler_file
     if address is not None and path is not None:
         raise UsageError(f"give {named('scheduler_address')} or {named('scheduler_file')}, not both")
-    timeout = positive_float("scheduler_timeout", cluster.get("scheduler_timeout"))
+    timeout = positive_float("scheduler_timeout", cluster.scheduler_timeout)
     if path is not None:
         address = read_scheduler_file(path, timeout)
     if address is None:
-        if cluster.get("workers") is not None:
-            check_local_memory(cluster["workers"])
+        if cluster.workers is not None:
+            check_local_memory(cluster.workers)
         return None
     if not isinstance(address, str):
         raise UsageError(f"{named('scheduler_address')} must be an address such as tcp://HOST:PORT, got "
                          f"{clipped(address)}")
     handshake = min(timeout, HANDSHAKE_TIMEOUT)
     identity = check_scheduler_reachable(address, path, handshake)
-    wait_for_workers(address, identity, positive_float("worker_timeout", cluster.get("worker_timeout")),
+    wait_for_workers(address, identity, positive_float("worker_timeout", cluster.worker_timeout),
                      handshake)
     return address
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from qdsearch.base.stopping import STOP
 from qdsearch.tasks import TASKS_OWN, Episode, episode_of, make_env, reset_seeds, rollout
-from qdsearch.tasks.policies import LINEAR, Policy, policy_of
+from qdsearch.tasks.policies import LINEAR, Policy
 
 _WORKER_ENVS: dict[tuple[str, bool, Episode, int], gym.Env] = {}  # per worker thread, reused across tasks
 
@@ -173,7 +173,7 @@ def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarr
     """
     seeds = reset_seeds(solutions, config)
     futures = submit_flights(client, solutions, seeds, config.measures, config.fast_env,
-                             env_name=config.env, policy=policy_of(config), episode=episode_of(config))
+                             env_name=config.env, policy=config.network, episode=episode_of(config))
     return averaged(per_terrain(client.gather(futures), seeds))
 
 

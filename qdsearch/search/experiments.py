@@ -19,6 +19,7 @@ An experiment may be split into parts (--part I/K), each driven by its own proce
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import itertools
 import logging
@@ -34,7 +35,6 @@ import numpy as np
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.base.flags import (
     UsageError,
-    boolean,
     check_flags,
     did_you_mean,
     listed,
@@ -43,7 +43,6 @@ from qdsearch.base.flags import (
     positive_int,
     seed_list,
     shown,
-    takes,
 )
 from qdsearch.base.run_files import (
     RunError,
@@ -59,8 +58,8 @@ from qdsearch.base.run_files import (
     write_json,
 )
 from qdsearch.base.signing import adopt
+from qdsearch.config.command_settings import EXPERIMENT_OWN, ExperimentSettings, ResumeSettings
 from qdsearch.config.options import (
-    RESUME_FLAGS,
     check_memory,
     check_sizes,
     checked,
@@ -74,7 +73,7 @@ from qdsearch.config.options import (
     with_task,
 )
 from qdsearch.config.run_config import check_run_config, load_run_state, upgrade, write_config
-from qdsearch.config.settings import BUDGETS, CLUSTER_FLAGS, POLICY_FLAGS, SEARCH_FLAGS
+from qdsearch.config.settings import BUDGETS, POLICY_FLAGS, SEARCH_FLAGS, ClusterSettings
 from qdsearch.search.cluster import scheduler_of
 from qdsearch.search.experiment_folder import (
     EXPERIMENT_FORMAT,
@@ -92,7 +91,7 @@ from qdsearch.search.parts import (
     runs_of_part,
     write_part_state,
 )
-from qdsearch.search.run import resume_run, session
+from qdsearch.search.run import resume_run, session, where_to_look
 from qdsearch.tasks import check_spaces
 
 # Which search flags an experiment sets itself (per_run) and which may take a list of values,
@@ -105,41 +104,14 @@ def passed_on() -> list[str]:
     return [name for name, flag in SEARCH_FLAGS.items() if not flag.per_run]
 
 
-def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | None = None,
-               max_in_flight: int | None = None, part: str | None = None, plan: str | None = None, *,
-               given: frozenset[str] = frozenset(), **search_flags: Any) -> None:
-    """Run every combination of the listed settings with every seed, interleaved on one cluster.
-
-    Each run is an ordinary run folder inside the experiment folder (every command works on it),
-    bit for bit what `search` writes alone with the same flags. One process drives all runs: when
-    a run's batch is back it is told, saved every log_every iterations, and its next batch is
-    asked and sent, so the other runs' batches keep the workers busy while one waits for its
-    slowest chunk. experiment.json records the grid, the command and each run's state. Ctrl-C,
-    SIGTERM or kill -9 lose at most what each run did since its last checkpoint: continue with
-    `resume EXPERIMENT_DIR`. A failing run is reported and recorded; the others go on.
-
-    Args:
-        algorithms: Rows of the ALGORITHMS table: cma_me, or a list "[cma_me, cma_mae]".
-        seeds: The seeds of every setting: a range 1-5, a list 1,2,7 or both.
-        outdir: Experiment folder; default outputs/<timestamp>_experiment. Must be new or empty.
-        max_in_flight: Runs evaluated at once (default: all); the others wait their turn. Bounds
-            memory with hundreds of runs.
-        part: I/K: drive only part I of the experiment split in K parts (run i belongs to part
-            i mod K + 1), each part its own process, on its own cluster if wanted (a SLURM job
-            array: docs/clusters.md). Every part is given the same flags and --outdir; the first
-            writes the plan, each keeps its runs' states in parts/I_of_K/. Run again, a part
-            continues where it stopped.
-        plan: A TOML file of the experiment (see the README's Experiments): its algorithms, seeds,
-            max_in_flight and any flag it passes on, a list of values for an axis of the grid;
-            and [[rows]] tables, each a grid of its own with its own algorithms and flags over the
-            file's (dqd-rl's rows differ in emitters and batches: docs/presets/). A flag given
-            beside it replaces the file's value and every row's, whatever its value (--seeds
-            1-5 too). The file is copied into the experiment folder as plan.toml.
-        search_flags: Any flag of search that it passes to every run (see: lunar_lander.py --help):
-            {passed_on}. A list of values of {sweeps}, e.g. --learning_rate "[0.01, 0.1]", is one
-            more axis of the grid.
-    """
-    cluster = {name: search_flags.pop(name) for name in CLUSTER_FLAGS}
+def experiment(own: ExperimentSettings, search_flags: dict[str, Any], cluster: ClusterSettings,
+               given: Collection[str] = ()) -> None:
+    """Run every combination of the settings `search_flags` list (values, or lists of values: axes
+    of the grid) with every seed, interleaved on the cluster `cluster` names, into a new experiment
+    folder (own.outdir), or drive one part of it (own.part). A plan file (own.plan) gives the
+    experiment's flags and rows; each setting `given` beside it wins over the file's."""
+    algorithms, seeds, outdir, max_in_flight = own.algorithms, own.seeds, own.outdir, own.max_in_flight
+    part, plan = own.part, own.plan
     plan_text, rows = None, [{}]
     if plan is not None:
         plan_text, planned = read_plan(Path(str(plan)))
@@ -155,7 +127,7 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
         refuse_unused_row_flags([a for axes, _, _ in grids for a in axes["algorithm"]], list(search_flags),
                                 policies)
     (axes, common, seeds), runs = grids[0], rows_runs(grids)
-    workers = checked("workers", cluster["workers"])
+    workers = checked("workers", cluster.workers)
     limit = None if max_in_flight is None else positive_int("max_in_flight", max_in_flight)
     scheduler_address = scheduler_of(cluster)
     split = None if part is None else parse_part(part)
@@ -179,7 +151,7 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
         claim_plan(folder, plan_of(split[1]))
         if plan_text is not None and not (folder / "plan.toml").exists():  # the first part's copy
             atomic_write(folder / "plan.toml", lambda f: f.write(plan_text), mode="w")
-        return resume_experiment(folder, None, workers, cluster, split)
+        return resume_experiment(folder, ResumeSettings(None, None, workers, False), cluster, split)
     with new_folder(outdir, "experiment") as folder:
         if plan_text is not None:
             atomic_write(folder / "plan.toml", lambda f: f.write(plan_text), mode="w")
@@ -188,8 +160,6 @@ def experiment(algorithms: Any = ("cma_me",), seeds: Any = "1-5", outdir: str | 
         run_experiment(folder, record, workers, scheduler_address)
 
 
-# The keys of a plan file that are experiment's own flags (the others are flags it passes on).
-EXPERIMENT_OWN = ("algorithms", "seeds", "max_in_flight")
 ROWS = "rows"  # a plan's [[rows]]: grids of their own, each with its algorithms and flags
 
 
@@ -254,12 +224,6 @@ def check_plan_flags(path: Path, flags: dict[str, Any], known: list[str], where:
                                        and any(isinstance(v, dict) for v in value)):
             raise UsageError(f"{named('plan')} {path}: {where}{name} is a table; give a value or a list of "
                              "values")
-
-
-experiment.__doc__ = experiment.__doc__.format(
-    passed_on=", ".join(f"{named(name)}" for name in passed_on()),
-    sweeps=", ".join(f"{named(name)}" for name, flag in SEARCH_FLAGS.items() if flag.sweep))
-experiment = takes(CLUSTER_FLAGS)(experiment)
 
 
 def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
@@ -493,23 +457,15 @@ class Experiment(Driver):
         return lines
 
 
-@takes(RESUME_FLAGS)
-def resume(run_dir: str, part: str | None = None, **flags: Any) -> None:
-    """Continue the run in run_dir from its checkpoint, exactly as if it had never stopped; or,
-    for an experiment folder, every unfinished run of the experiment (of one part of it).
-
-    Args:
-        run_dir: A run folder (or an experiment folder) written by this script.
-        part: I/K: of an experiment split in K parts (experiment --part), only part I.
-    """
-    path = Path(str(run_dir))
+def resume(path: Path, budget: ResumeSettings, cluster: ClusterSettings, part: str | None = None) -> None:
+    """Continue the run in `path` from its checkpoint (run.resume_run), or, for an experiment
+    folder, every unfinished run of the experiment (of its part `part`, I/K)."""
     if (path / "experiment.json").is_file():
         split = None if part is None else parse_part(part)
-        return resume_experiment(path, flags["iterations"], flags["workers"], flags, split,
-                                 flags["evaluations"])
+        return resume_experiment(path, budget, cluster, split)
     if part is not None:
         raise UsageError(f"{named('part')} is for an experiment folder; {path} is a run")
-    return resume_run(run_dir, **flags)
+    print(where_to_look(path, resume_run(path, budget, cluster).pictures))
 
 
 def check_split(plan: dict, folder: Path, split: tuple[int, int] | None, iterations: int | None) -> None:
@@ -522,16 +478,15 @@ def check_split(plan: dict, folder: Path, split: tuple[int, int] | None, iterati
                          f"extend it; start a new experiment")
 
 
-def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
-                      cluster: dict[str, Any], split: tuple[int, int] | None = None,
-                      evaluations: int | None = None) -> None:
+def resume_experiment(folder: Path, budget: ResumeSettings, cluster: ClusterSettings,
+                      split: tuple[int, int] | None = None) -> None:
     """Continue every unfinished run of an experiment, or of one part of it (failed ones are
     tried again), on the cluster the `cluster` flags name (by default a local one). A part locks
     its own folder; the whole of a split experiment locks every part's. With --trust, the
     checkpoints of its unfinished runs are signed with the user's key first."""
+    iterations, evaluations, workers = budget.iterations, budget.evaluations, budget.workers
     check_split(read_experiment(folder), folder, split, iterations or evaluations)  # before any write
-    trust = boolean("trust", cluster.get("trust", False))  # experiment --part: its own runs only
-    scheduler_address = scheduler_of(cluster)
+    scheduler_address = scheduler_of(dataclasses.replace(cluster, workers=workers))
     with contextlib.ExitStack() as locks:
         plan = read_experiment(folder)
         parts = [split[0]] if split else list(range(1, plan["parts"] + 1)) if plan.get("parts") else []
@@ -543,7 +498,7 @@ def resume_experiment(folder: Path, iterations: int | None, workers: int | None,
             locks.enter_context(folder_lock(folder))
         plan = read_experiment(folder)  # as it is now that no other process writes it
         mine = runs_of_part(plan, split[0] if split else None)
-        for entry in mine if trust else []:
+        for entry in mine if budget.trust else []:
             if entry["state"] != "done":
                 adopt(folder / entry["name"] / "checkpoint.pkl")
         workers = checked("workers", plan["workers"] if workers is None else workers)

@@ -46,7 +46,6 @@ from qdsearch.store.metrics import describe_progress, iteration_metrics
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
 from qdsearch.tasks import episode_of, reset_seeds, returns_of
-from qdsearch.tasks.policies import policy_of
 
 
 class Run:
@@ -76,7 +75,7 @@ class Run:
         self.target = config.iterations  # where this drive stops (resume may stop it sooner)
         self.tracking = Tracking(run_dir, config, log)  # --track: fed after each save (trackers.py)
         self._asked_at = 0.0
-        self.policy, self.episode = policy_of(config), episode_of(config)
+        self.policy, self.episode = config.network, episode_of(config)
         self.gradients: np.ndarray | None = None  # a DQD row's sample draws, while its gradients fly
         self.sampled = 0  # solutions flown for this iteration's gradients (told: its branches fly)
 

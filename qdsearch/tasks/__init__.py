@@ -233,7 +233,7 @@ def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | No
 
         def on_step(action: Any, obs: np.ndarray) -> None:
             trajectory.append(task.family.position(env, obs))
-    return task.family.fly(task.policy(solution, policy), env_seed, env, task, on_step)
+    return task.family.fly(policy.act(solution, task.shape, task.continuous), env_seed, env, task, on_step)
 
 
 def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,

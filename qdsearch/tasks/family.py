@@ -16,8 +16,8 @@ Map:
   leaves undrawn is one line);
 - `Environment`: a task a search can fly (a row of ENVIRONMENTS): `make` (gym.make's env, a
   missing simulator or renderer in one line: `renderer_missing`, GL_PACKAGES) and `spaces`
-  (read once, on first use), whence the policy's `shape`, `continuous`, `solution_dim` (of the
-  linear policy) and `policy` (any policy's act);
+  (read once, on first use), whence the policy's `shape`, `continuous` and `solution_dim` (of
+  the linear policy);
 - `Returns`: the range of a run's objectives (its QD offset, solved return, CQD's top and the
   heatmaps' colours), `Environment.returns` (a task's, for an episode's length);
 - `Measure`: a behaviour solutions are told apart by (a row of MEASURES).
@@ -36,7 +36,6 @@ import numpy as np
 
 from qdsearch.base.flags import UsageError, named, one_line
 from qdsearch.base.run_files import RunError
-from qdsearch.tasks.policies import LINEAR, Policy
 
 OnStep = Callable[[Any, np.ndarray], None]  # called with each step's action and observation
 
@@ -199,11 +198,6 @@ class Environment:
     def solution_dim(self) -> int:
         """The linear policy's weights (a run's own policy: `Policy.size(task.shape)`)."""
         return self.action_dim * self.obs_dim
-
-    def policy(self, solution: np.ndarray, policy: Policy = LINEAR) -> Callable:
-        """obs -> action of `solution` as `policy` (default: the linear one) in this task."""
-        return policy.act(solution, self.shape, self.continuous)
-
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Returns:

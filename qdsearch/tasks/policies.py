@@ -11,14 +11,14 @@ Map:
   hidden layers with biases, a Glorot draw at the start, as dqd-rl and QDax start theirs);
 - STARTS (--start): where the emitters start, zeros or a Glorot draw, for any row;
 - `Policy`: what a run flies (a row, its hidden sizes, its start), small and hashable: it travels
-  with every chunk of rollouts; `policy_of` reads it from a run's config; LINEAR;
+  with every chunk of rollouts (a run's config makes it: `PolicySettings.network`); LINEAR;
 - `layer_sizes`, `mlp_act`, `glorot`: the network, its forward pass and its initial draw.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
@@ -149,10 +149,3 @@ class Policy:
 
 
 LINEAR = Policy()
-
-
-def policy_of(config: Any) -> Policy:
-    """A run's policy, from its checked config (a RunConfig: only a policy with hidden layers has
-    --hidden, options.with_policy): --policy, --hidden and --start. Runs from before --policy are
-    linear, from before --start the row's own."""
-    return Policy(config.policy, tuple(config.hidden or ()), config.start or "")
