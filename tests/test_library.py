@@ -101,3 +101,66 @@ def test_a_python_caller_reads_each_setting_by_its_keyword_and_the_command_line_
     show = "import qdsearch.base.flags as f; print(f.named('env'))"
     assert settings_after(show)["printed"] == ["env"]
     assert settings_after("import qdsearch.cli; " + show)["printed"] == ["--env"]
+
+
+def test_a_refused_value_says_which_setting_which_value_and_why_even_past_a_process():
+    """A checker's refusal is a BadValue: its setting, its value and its words, the same after a
+    pickle (a Dask worker's error comes back pickled)."""
+    import pickle
+
+    from qdsearch.base import flags
+
+    with pytest.raises(flags.BadValue) as refused:
+        flags.boolean("corrected", "perhaps")
+    again = pickle.loads(pickle.dumps(refused.value))
+    assert again.args == ("corrected", "perhaps", "must be true or false, got 'perhaps'")
+    assert (again.setting, again.value, again.why) == again.args
+    assert str(again) == str(refused.value) == "--corrected must be true or false, got 'perhaps'"
+
+
+@pytest.mark.parametrize("typed, value", [
+    *[(word, True) for word in ("true", "True", "yes", "1", True, np.True_)],
+    *[(word, False) for word in ("false", "FALSE", "no", "0", False, np.False_)]])
+def test_a_yes_or_no_flag_reads_the_words_a_user_types(typed, value):
+    from qdsearch.base import flags
+
+    assert flags.boolean("best", typed) is value
+
+
+@pytest.mark.parametrize("value, ok", [(0, True), (2**32 - 1, True), (-1, False), (2**32, False),
+                                       (True, False), (3.0, False)])
+def test_a_seed_is_a_whole_number_numpy_and_box2d_take(value, ok):
+    from qdsearch.base import flags
+
+    if ok:
+        assert flags.seed_number("env_seed", value) == value
+    else:
+        words = rf"^--env_seed must be a whole number from 0 to {2**32 - 1}, got {value!r}$"
+        with pytest.raises(flags.BadValue, match=words) as refused:
+            flags.seed_number("env_seed", value)
+        assert refused.value.value is value
+
+
+def test_a_commands_settings_are_made_from_the_values_given_each_checked_the_rest_defaulted():
+    """settings_from: the values given, each through its flag's check; a field not given takes
+    its flag's default (a Python caller need not name every flag)."""
+    from qdsearch.base import flags
+    from qdsearch.config import command_settings as cs
+    from qdsearch.config.settings import ClusterSettings
+
+    chosen = flags.settings_from(cs.Selection, {"top": 2, "best": "yes"})
+    assert chosen == cs.Selection(cells=None, best=True, top=2, index=None, nearest=False)
+    assert flags.settings_from(cs.WatchSettings, {}) == cs.WatchSettings(5006, "127.0.0.1")
+    assert flags.settings_from(cs.WatchSettings, {"port": 65535}).port == 65535
+    with pytest.raises(flags.BadValue, match=r"^--port must be at most 65535, got 65536$") as refused:
+        flags.settings_from(cs.WatchSettings, {"port": 65536})
+    assert (refused.value.setting, refused.value.value) == ("port", 65536)
+    with pytest.raises(flags.BadValue, match=r"^--port must be a positive whole number, got 0$"):
+        flags.settings_from(cs.WatchSettings, {"port": 0})
+    with pytest.raises(flags.BadValue) as refused:
+        flags.settings_from(cs.EliteFilter, {"top": -2})
+    assert (refused.value.setting, refused.value.value) == ("top", -2)
+    cluster = flags.settings_from(ClusterSettings, {"workers": 3, "scheduler_address": "tcp://h:1"})
+    resumed = cs.resumed_cluster(flags.settings_from(cs.ResumeSettings, {"workers": None}), cluster)
+    assert (resumed.workers, resumed.scheduler_address) == (None, "tcp://h:1")  # as the run was started
+    assert cs.resumed_cluster(flags.settings_from(cs.ResumeSettings, {"workers": 1}), cluster).workers == 1

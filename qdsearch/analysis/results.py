@@ -2,7 +2,7 @@
 explorer page is explorer.py's). None of these commands changes the run's archive.
 
 Map:
-- choosing elites (SELECTION_FLAGS of options.py): `parse_cells`, `parse_indices`,
+- choosing elites (a Selection of command_settings.py): `parse_cells`, `parse_indices`,
   `select_elites`, `load_chosen_elites` (the run read by run_folder.py's readers);
 - `video` (`Mp4Recorder`, `record_video`, `reflown`: each elite flown again must score exactly
   its stored objective), `elites` (`elite_table`, `solved_count`), `trajectories` (`fly_paths`,

@@ -2,7 +2,8 @@
 mistakes Fire would answer with a page of usage (or not at all), and the values Fire would misread.
 
 Map: `known_flags`, `text_flags`, `typed_flags`, `positional_words`, `reject_unknown_flags`,
-`as_typed`.
+`as_typed`; `typed_setting` (a search's algorithm or policy as typed, or its --config run's: whose
+own flags main refuses where they are unused).
 """
 
 from __future__ import annotations

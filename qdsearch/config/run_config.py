@@ -6,6 +6,9 @@ with the user's key (signing.py): the results commands read the archive as data 
 Map:
 - `upgrade`, `check_run_config` (every value checked: the one way a RunConfig, settings.py's, is
   made from flags or a record), `write_config`;
+- `search_config`: the RunConfig a search runs with, from its flags, or with --config from a
+  run's recorded settings (`recorded_settings`) with the flags given beside it in their place
+  (`settings_of`: NOT_FROM_CONFIG, FOLLOWS);
 - CHECKPOINT_FORMAT; `load_checkpoint` (signed, or trusted: resume --trust);
 - `load_run_config`, `load_checked_config` (what the results commands read: config.json checked
   against archive.npz's config), `load_run_state` (what resume reads), `check_same_config`,

@@ -5,21 +5,20 @@ A run's results depend on its own asks and tells only, so each run ends bit for 
 alone would end it, whatever the interleaving, the worker count or a stop and resume between.
 
 Map:
-- `experiment`: the command (its flags on the command line or in a plan file: `read_plan`, and
-  `with_plan`: a flag given beside the file wins);
+- `experiment`: an experiment of its settings (ExperimentSettings) and the search flags it passes
+  on, given or in a plan file (`read_plan`, and `with_plan`: a flag given beside the file wins);
   `experiment_grid` checks the grid's axes and the flags every run shares; `experiment_runs`
   names each run by its setting (`run_setting`, shared with compare);
 - `run_experiment` and `Experiment`: the cluster, the log, and the runs driven through the one
   run loop (loop.py's Driver), their states recorded in experiment.json;
-- `resume`: the command, for a run folder (run.resume_run) or an experiment folder
-  (`resume_experiment`). experiment_folder.py reads experiment.json and labels settings.
+- `resume`: a run folder (run.resume_run) or an experiment folder (`resume_experiment`) taken
+  on to a budget (ResumeSettings). experiment_folder.py reads experiment.json and labels settings.
 An experiment may be split into parts (--part I/K), each driven by its own process: parts.py.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import datetime
 import itertools
 import logging
@@ -58,7 +57,12 @@ from qdsearch.base.run_files import (
     write_json,
 )
 from qdsearch.base.signing import adopt
-from qdsearch.config.command_settings import EXPERIMENT_OWN, ExperimentSettings, ResumeSettings
+from qdsearch.config.command_settings import (
+    EXPERIMENT_OWN,
+    ExperimentSettings,
+    ResumeSettings,
+    resumed_cluster,
+)
 from qdsearch.config.options import (
     check_memory,
     check_sizes,
@@ -486,7 +490,7 @@ def resume_experiment(folder: Path, budget: ResumeSettings, cluster: ClusterSett
     checkpoints of its unfinished runs are signed with the user's key first."""
     iterations, evaluations, workers = budget.iterations, budget.evaluations, budget.workers
     check_split(read_experiment(folder), folder, split, iterations or evaluations)  # before any write
-    scheduler_address = scheduler_of(dataclasses.replace(cluster, workers=workers))
+    scheduler_address = scheduler_of(resumed_cluster(budget, cluster))
     with contextlib.ExitStack() as locks:
         plan = read_experiment(folder)
         parts = [split[0]] if split else list(range(1, plan["parts"] + 1)) if plan.get("parts") else []

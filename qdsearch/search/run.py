@@ -1,10 +1,9 @@
-"""The commands of one run: `search` starts one, `resume_run` continues one (the `resume` of a run
-folder), both driving it through the one run loop (loop.py's OneRun).
+"""One run: `search` starts the run a checked RunConfig describes (run_config.search_config makes
+it), `resume_run` continues one to a budget (the `resume` of a run folder), both driving it
+through the one run loop (loop.py's OneRun).
 
 Map:
-- `search`, `resume_run`; `search_config`, the config a search runs with, and with --config
-  `settings_of` (the run's settings, a flag given beside its file in their place: NOT_FROM_CONFIG,
-  FOLLOWS) and `typed_setting` (the command line's check of a row's own flags typed beside it);
+- `search`, `resume_run`;
 - what they share with experiments: `session` (the Dask client and the log, and the one line a
   stop or a fault ends with), `run_session` (a run folder's: `checkpoint_state`), `where_to_look`
   (the end of a finished search).
@@ -13,7 +12,6 @@ Map:
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import datetime
 import shlex
 import sys
@@ -31,7 +29,7 @@ from qdsearch.base.run_files import (
 )
 from qdsearch.base.signing import adopt, read_signed_pickle
 from qdsearch.base.stopping import Stopped
-from qdsearch.config.command_settings import ResumeSettings
+from qdsearch.config.command_settings import ResumeSettings, resumed_cluster
 from qdsearch.config.options import checked, resumed_budget
 from qdsearch.config.run_config import RunConfig, load_archive, load_run_state, write_config
 from qdsearch.config.settings import ClusterSettings
@@ -64,7 +62,7 @@ def resume_run(path: Path, budget: ResumeSettings, cluster: ClusterSettings) -> 
     workers, trust = budget.workers, budget.trust
     found, _ = load_run_state(path, trust)  # refuse a bad folder, or budget, before anything is
     resumed_budget(found.to_json(), budget.iterations, budget.evaluations)  # written in it
-    scheduler_address = scheduler_of(dataclasses.replace(cluster, workers=workers))
+    scheduler_address = scheduler_of(resumed_cluster(budget, cluster))
     with folder_lock(path):
         if trust:
             adopt(path / "checkpoint.pkl")
