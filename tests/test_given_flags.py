@@ -99,7 +99,7 @@ def test_a_word_no_argument_takes_is_refused_before_the_command_runs(run_cli, tm
 
 def test_the_table_holds_every_flag_a_file_gives():
     assert sorted(ROWS) == sorted(FROM_CONFIG)
-    assert set(experiments.passed_on()) <= set(ROWS)
+    assert set(settings.PASSED_ON) <= set(ROWS)
 
 
 def cases(flags):
@@ -273,7 +273,7 @@ def grid_of(**flags):
 @pytest.mark.parametrize("flag, planned, given", [
     *((flag, value, other) for flag, (value, other) in PLAN_OWN.items()),
     *((flag, other, value) for flag, (value, other) in PLAN_OWN.items()),
-    *cases(experiments.passed_on())], ids=lambda value: repr(value)[:20])
+    *cases(settings.PASSED_ON)], ids=lambda value: repr(value)[:20])
 def test_a_flag_given_beside_a_plan_wins_whatever_its_value(flag, planned, given):
     if flag == "track" and TRACKER is None:
         pytest.skip("no tracker is installed")

@@ -220,3 +220,22 @@ def test_the_core_commands_take_typed_settings_never_flags():
         assert not any(p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL) for p in parameters), function
         hints = typing.get_type_hints(function)
         assert any(dataclasses.is_dataclass(hint) for hint in hints.values()), function
+
+
+def test_no_layer_but_the_command_line_and_the_config_reads_a_flag_table():
+    """The flag tables (a name ending in _FLAGS: the entries a command's signature and --help are
+    made from) are the config layer's and the command line's; the others read typed settings and
+    what settings.py says of them (SETTINGS, PASSED_ON, SWEEPS, LABELLED, checked_settings; the
+    names of the flags some rows alone use, ROW_FLAGS and POLICY_FLAGS, are sets, not tables)."""
+    import importlib
+
+    for layer in LAYERS:
+        if layer in ("config", "cli"):
+            continue
+        for path in (PACKAGE / layer).glob("*.py"):
+            tables = sorted({alias.name for node in ast.walk(ast.parse(path.read_text()))
+                             if isinstance(node, ast.ImportFrom) and node.module.startswith("qdsearch")
+                             for alias in node.names if isinstance(
+                                 getattr(importlib.import_module(node.module), alias.name, None), dict)
+                             and alias.name.endswith("_FLAGS")})
+            assert not tables, (path, tables)

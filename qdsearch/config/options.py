@@ -1,7 +1,7 @@
 """The other commands' flag tables, and the checks of what a run's flags make together.
 
 Map:
-- ROW_FLAGS, POLICY_FLAGS (the flags some rows alone use), BUDGETS; `own_flags` and `ignores`,
+- (settings.py's ROW_FLAGS, POLICY_FLAGS and BUDGETS, read here:) `own_flags` and `ignores`,
   `refuse_unused_row_flags` (an algorithm's or a policy's own flag given where no row uses it);
 - `check_sizes` (`solutions_per_iteration`) and `check_rollouts` (the sizes flags make together);
 - `checked` (a value through its flag's check), `with_task` (a config's measures, checked
@@ -26,6 +26,7 @@ from qdsearch.base.flags import (
     named,
 )
 from qdsearch.config.settings import (
+    BUDGETS,
     DEFAULT_CVT_CELLS,
     DEFAULT_GRID,
     DEFAULT_HIDDEN,
@@ -33,6 +34,8 @@ from qdsearch.config.settings import (
     MAX_ITERATIONS,
     MAX_ROLLOUTS,
     MAX_SOLUTIONS,
+    POLICY_FLAGS,
+    ROW_FLAGS,
     SEARCH_FLAGS,
     unchecked,
 )
@@ -47,9 +50,6 @@ from qdsearch.tasks import (
 from qdsearch.tasks.policies import POLICIES
 
 # The flags only some algorithms use (each row of ALGORITHMS names its own).
-ROW_FLAGS = frozenset(flag for row in ALGORITHMS.values() for flag in row.flags)
-POLICY_FLAGS = frozenset(flag for row in POLICIES.values() for flag in row.flags)  # so of the policies
-BUDGETS = ("iterations", "evaluations")  # a run's two budgets: one is given, or neither
 
 
 def own_flags(algorithm: str) -> tuple[str, ...]:

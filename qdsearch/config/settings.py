@@ -9,8 +9,9 @@ Map:
 - the checks of their own (`layer_widths`, `even_samples`) and the help's words (`seed_nouns`,
   `default_measures`);
 - the settings: RunSettings, TaskSettings, PolicySettings, EpisodeSettings, ArchiveSettings,
-  AlgorithmSettings, OutputSettings, ClusterSettings; the tables made from them: CLUSTER_FLAGS,
-  SEARCH_FLAGS;
+  AlgorithmSettings, OutputSettings, ClusterSettings (`PolicySettings.network`: the policy they
+  make); the tables made from them: CLUSTER_FLAGS, SEARCH_FLAGS (the command line's), and what
+  the search layer reads of them: SETTINGS, PASSED_ON, SWEEPS, LABELLED, `checked_settings`;
 - `RunConfig`: all of them, then `RunRecords` (what a run notes about itself; RECORDS: the JSON
   type of each); `unchecked` (a config's typed view while its checks run).
 """
@@ -32,6 +33,7 @@ from qdsearch.base.flags import (
     Flag,
     UsageError,
     boolean,
+    check_flags,
     distinct_names,
     finite_number,
     flag,
@@ -504,6 +506,20 @@ class ClusterSettings:
 CLUSTER_FLAGS: dict[str, Flag] = flags_of(ClusterSettings)
 SEARCH_FLAGS: dict[str, Flag] = flags_of(RunSettings, TaskSettings, PolicySettings, EpisodeSettings,
                                          ArchiveSettings, AlgorithmSettings, OutputSettings, ClusterSettings)
+
+# A run's settings as the search layer reads them, from their entries: every setting's name in
+# order, those an experiment passes on to every run (the others it sets per run) and those a list
+# of values sweeps, the settings that label a run's setting (in label order), and a value's check.
+SETTINGS: tuple[str, ...] = tuple(SEARCH_FLAGS)
+PASSED_ON: tuple[str, ...] = tuple(name for name, entry in SEARCH_FLAGS.items() if not entry.per_run)
+SWEEPS: frozenset[str] = frozenset(name for name, entry in SEARCH_FLAGS.items() if entry.sweep)
+LABELLED: tuple[str, ...] = tuple(sorted((name for name, entry in SEARCH_FLAGS.items() if entry.label),
+                                         key=lambda name: SEARCH_FLAGS[name].label))
+
+
+def checked_settings(values: dict[str, Any]) -> dict[str, Any]:
+    """A run's settings among `values` through their checks (others, and None, as they are)."""
+    return check_flags(SEARCH_FLAGS, values)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,7 +2,7 @@
 writes it (experiments.py): experiment.json's format, its run states, and the label that names a
 run's setting.
 
-Map: EXPERIMENT_FORMAT, RUN_STATES; `label_flags`, `run_setting` (a setting's label, shared by the
+Map: EXPERIMENT_FORMAT, RUN_STATES; `run_setting` (a setting's label, shared by the
 runs of an experiment and compare's groups), `shortened` (labels less what all settings share);
 `read_experiment` (experiment.json checked, with its parts' states merged); `unfinished_note`
 (what a reader of an unfinished plan is told).
@@ -15,20 +15,14 @@ import re
 from pathlib import Path
 
 from qdsearch.algorithms import ALGORITHMS
-from qdsearch.base.flags import UsageError, check_flags, shown
+from qdsearch.base.flags import UsageError, shown
 from qdsearch.base.run_files import read_run_json
 from qdsearch.config.options import checked, ignores, own_flags, search_defaults, with_task
 from qdsearch.config.run_config import upgrade
-from qdsearch.config.settings import SEARCH_FLAGS
+from qdsearch.config.settings import LABELLED, checked_settings
 from qdsearch.search.parts import merge_part_states, part_of
 
 EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
-
-
-def label_flags() -> list[str]:
-    """The flags that name a run's setting when they differ from their defaults, in label order."""
-    return sorted((name for name, flag in SEARCH_FLAGS.items() if flag.label),
-                  key=lambda name: SEARCH_FLAGS[name].label)
 
 
 def run_setting(config: dict) -> str:
@@ -36,18 +30,18 @@ def run_setting(config: dict) -> str:
     defaults: runs of one setting with different seeds are repeats of one experiment. An
     algorithm's own flags are always named (cma_mae at 0.01 and at 0.5 are different algorithms
     in effect), so a label means the same whatever the defaults become."""
-    defaults, changed = check_flags(SEARCH_FLAGS, search_defaults()), []
+    defaults, changed = checked_settings(search_defaults()), []
     config = upgrade(config)  # a config.json from before a flag: what it ran with
     with contextlib.suppress(KeyError, TypeError, UsageError):  # measures: the task's default
         defaults = with_task({**defaults, "env": config["env"]})
         config = with_task(config)
     algorithm = config.get("algorithm")
     own = own_flags(algorithm) if algorithm in ALGORITHMS else ()
-    for flag in (flag for flag in label_flags() if flag in config):
+    for flag in (flag for flag in LABELLED if flag in config):
         if algorithm in ALGORITHMS and ignores(algorithm, flag):
             continue
         with contextlib.suppress(UsageError):
-            value = check_flags(SEARCH_FLAGS, {flag: config[flag]})[flag]  # 52 and [52]: one terrain
+            value = checked_settings({flag: config[flag]})[flag]  # 52 and [52]: one terrain
             if value is None:  # a flag of another archive kind (--grid of a CVT run)
                 continue
             if value != defaults[flag] or flag in own:
@@ -90,7 +84,7 @@ def read_experiment(folder: Path) -> dict:
         try:
             if fits:
                 checked("iterations", config.get("iterations"))
-                check_flags(SEARCH_FLAGS, {"seed": config.get("seed")})
+                checked_settings({"seed": config.get("seed")})
         except UsageError as error:
             fits, why = False, f": {error}"
         else:

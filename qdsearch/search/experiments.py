@@ -34,7 +34,6 @@ import numpy as np
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.base.flags import (
     UsageError,
-    check_flags,
     did_you_mean,
     listed,
     named,
@@ -77,7 +76,15 @@ from qdsearch.config.options import (
     with_task,
 )
 from qdsearch.config.run_config import check_run_config, load_run_state, upgrade, write_config
-from qdsearch.config.settings import BUDGETS, POLICY_FLAGS, SEARCH_FLAGS, ClusterSettings
+from qdsearch.config.settings import (
+    BUDGETS,
+    PASSED_ON,
+    POLICY_FLAGS,
+    SETTINGS,
+    SWEEPS,
+    ClusterSettings,
+    checked_settings,
+)
 from qdsearch.search.cluster import scheduler_of
 from qdsearch.search.experiment_folder import (
     EXPERIMENT_FORMAT,
@@ -98,14 +105,10 @@ from qdsearch.search.parts import (
 from qdsearch.search.run import resume_run, session, where_to_look
 from qdsearch.tasks import check_spaces
 
-# Which search flags an experiment sets itself (per_run) and which may take a list of values,
-# one more axis of the grid (sweep), is said by their entries in SEARCH_FLAGS. (--env_seed and
-# --measures take lists of their own: several terrains, several measures of every run.)
-
-
-def passed_on() -> list[str]:
-    """The search flags an experiment passes to every run."""
-    return [name for name, flag in SEARCH_FLAGS.items() if not flag.per_run]
+# Which settings an experiment passes on to every run (PASSED_ON; it sets the others per run) and
+# which may take a list of values, one more axis of the grid (SWEEPS), is said by their entries in
+# settings.py. (--env_seed and --measures take lists of their own: several terrains, several
+# measures of every run.)
 
 
 def experiment(own: ExperimentSettings, search_flags: dict[str, Any], cluster: ClusterSettings,
@@ -209,12 +212,12 @@ def read_plan(path: Path) -> tuple[str, dict[str, Any]]:
         raise UsageError(f"{named('plan')} {path}: cannot read it ({fault_text(error)})") from None
     except tomllib.TOMLDecodeError as error:
         raise UsageError(f"{named('plan')} {path}: not TOML ({error})") from None
-    check_plan_flags(path, planned, [*EXPERIMENT_OWN, *passed_on(), ROWS], "")
+    check_plan_flags(path, planned, [*EXPERIMENT_OWN, *PASSED_ON, ROWS], "")
     rows = planned.get(ROWS, [{}])
     if not (isinstance(rows, list) and rows and all(isinstance(row, dict) for row in rows)):
         raise UsageError(f"{named('plan')} {path}: {ROWS} must be [[{ROWS}]] tables, each a grid's flags")
     for i, row in enumerate(rows, 1):
-        check_plan_flags(path, row, ["algorithms", *passed_on()], f"[[{ROWS}]] {i}: ")
+        check_plan_flags(path, row, ["algorithms", *PASSED_ON], f"[[{ROWS}]] {i}: ")
     return text, planned
 
 
@@ -236,7 +239,7 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
     the seeds, each value checked as search checks it. A row's own flag (cma_mae's
     --learning_rate) must be of an algorithm of the grid: of `own_flags` (a plan's row's), or of
     every flag given."""
-    if given := sorted(set(search_flags) - set(passed_on()) & set(SEARCH_FLAGS)):
+    if given := sorted(set(search_flags) - set(PASSED_ON) & set(SETTINGS)):
         raise UsageError(f"{named(given[0])} is set by the experiment for each run; use "
                          f"{named('algorithms')}, "
                          f"{named('seeds')}, {named('outdir')}, {named('workers')} and "
@@ -244,20 +247,20 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
                          f"of experiment")
     if unknown := sorted(set(search_flags) - set(search_defaults())):
         raise UsageError(f"unknown flag {named(unknown[0])}; "
-                         f"{did_you_mean(unknown[0], passed_on(), named(''))}")
+                         f"{did_you_mean(unknown[0], PASSED_ON, named(''))}")
     names = listed(algorithms)
     if not names:
         raise UsageError(f"{named('algorithms')} is empty: the grid has no run")
     axes = {"algorithm": [one_of(ALGORITHMS)("algorithms", name) for name in names]}
-    common = {name: search_defaults()[name] for name in passed_on()}
+    common = {name: search_defaults()[name] for name in PASSED_ON}
     for name, value in search_flags.items():
-        if SEARCH_FLAGS[name].sweep and isinstance(value, (list, tuple)):
+        if name in SWEEPS and isinstance(value, (list, tuple)):
             if not value:
                 raise UsageError(f"{named(name)} is an empty list: the grid has no run")
-            axes[name] = [check_flags(SEARCH_FLAGS, {name: v})[name] for v in value]
+            axes[name] = [checked_settings({name: v})[name] for v in value]
         else:
             common[name] = value
-    checked_flags = check_flags(SEARCH_FLAGS, common)
+    checked_flags = checked_settings(common)
     # With --policy an axis, a policy's own flags (--hidden) are each setting's to take or leave
     # (for_policy), as an algorithm's own are each run's (ignores).
     swept = {flag: checked_flags[flag] for flag in POLICY_FLAGS} if "policy" in axes else {}
