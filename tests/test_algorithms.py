@@ -82,7 +82,7 @@ def test_seed_fixes_the_proposals_and_emitters_differ():
 
 def algorithm_flags(dask_cluster, algorithm, **overrides):
     """The tiny run's flags for 2 iterations of `algorithm` (a DQD row: 4 gradient samples)."""
-    dqd = {"es_samples": 4} if algorithms.ALGORITHMS[algorithm].dqd else {}
+    dqd = {"es_samples": 4} if algorithms.ALGORITHMS[algorithm].samples else {}
     return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **dqd, **overrides})
 
 
@@ -190,7 +190,8 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
     for name, scheduler in schedulers.items():
         if algorithms.ALGORITHMS[name].dqd:
             assert told_gradients(scheduler, rng, [-1, -3], [1, 0]) == (5, 32)
-        assert scheduler.ask().shape == (5 * 30, 32)
+        batch = 1 if algorithms.ALGORITHMS[name].es_steps else 30  # ME-ES: one offspring a chain
+        assert scheduler.ask().shape == (5 * batch, 32)
     assert sum(bandit.active) == 5
 
 
@@ -209,8 +210,9 @@ def test_every_row_asks_and_tells_on_every_task(env):
                 shape = told_gradients(scheduler, rng, lower, upper)
                 assert shape == (2, tasks.ENVIRONMENTS[env].solution_dim)
             solutions = scheduler.ask()
-            assert solutions.shape == (6, tasks.ENVIRONMENTS[env].solution_dim)
-            scheduler.tell(rng.uniform(-100, 100, 6), rng.uniform(lower, upper, (6, len(lower))))
+            count = 2 if algorithms.ALGORITHMS[name].es_steps else 6  # ME-ES: one offspring a chain
+            assert solutions.shape == (count, tasks.ENVIRONMENTS[env].solution_dim)
+            scheduler.tell(rng.uniform(-100, 100, count), rng.uniform(lower, upper, (count, len(lower))))
         assert len(scheduler.result_archive) > 0
 
 
@@ -222,7 +224,9 @@ def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
     metrics = run_metrics(run_dir)
     assert [row["iteration"] for row in metrics] == [1, 2]
     spent = 12 + (2 * (1 + 4) if algorithms.ALGORITHMS[algorithm].dqd else 0)  # a DQD row's points, samples
-    assert [row["evaluations"] for row in metrics] == [spent, 2 * spent]
+    # ME-ES: x0 alone on each of its 2 chains, then each chain's 4 samples and offspring
+    assert [row["evaluations"] for row in metrics] == ([2, 2 + 2 * (1 + 4)] if algorithms.ALGORITHMS[
+        algorithm].es_steps else [spent, 2 * spent])
     assert json.loads((run_dir / "config.json").read_text())["algorithm"] == algorithm
     checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
     assert checkpoint["config"]["algorithm"] == algorithm

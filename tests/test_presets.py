@@ -194,15 +194,18 @@ def test_each_preset_is_a_plan_of_its_papers_settings(path, run_cli, tmp_path):
 @pytest.mark.slow  # MuJoCo runs of 19,590-weight networks
 def test_dqd_rls_preset_runs_a_tiny_budget_given_beside_it(tmp_path, run_cli, dask_cluster):
     path = ROOT / "docs" / "presets" / "dqd_rl_walker.toml"
-    result = run_cli("experiment", "--plan", path, "--evaluations", 200, "--seeds", 1, "--episode_length", 5,
+    result = run_cli("experiment", "--plan", path, "--evaluations", 201, "--seeds", 1, "--episode_length", 5,
                      "--scheduler_address", dask_cluster.scheduler_address, "--outdir", tmp_path / "exp")
     assert result.returncode == 0, result.stderr
     plan = json.loads((tmp_path / "exp" / "experiment.json").read_text())
     rows = [(e["config"]["algorithm"], e["config"]["batch_size"], e["config"]["grid"], e["config"]["reset"],
              e["config"]["hidden"], e["state"]) for e in plan["runs"]]
     assert rows == [("cma_mega_es", 99, 32, "each", [128, 128], "done"),
-                    ("map_elites", 100, 32, "each", [128, 128], "done")]
-    assert [run_metrics(tmp_path / "exp" / e["name"])[-1]["evaluations"] for e in plan["runs"]] == [200, 200]
+                    ("map_elites", 100, 32, "each", [128, 128], "done"),
+                    ("me_es", 30, 32, "each", [128, 128], "done")]  # (its batch unused)
+    # each to its last iteration within 201: ME-ES's first (of 201 a budget counts) flies x0 alone
+    spent = [run_metrics(tmp_path / "exp" / e["name"])[-1]["evaluations"] for e in plan["runs"]]
+    assert spent == [200, 200, 1]
 
 
 def slurm_parts(environment: dict[str, str]) -> str:

@@ -249,7 +249,8 @@ def test_an_iteration_costs_its_rows_evaluations():
     config = type("Config", (), dict(n_emitters=3, batch_size=7, es_samples=20))
     for name, row in ALGORITHMS.items():
         config.algorithm = name
-        assert evaluations_per_iteration(config) == 21 + (3 * 21 if row.dqd else 0), name
+        expected = 3 * 21 if row.es_steps else 21 + (3 * 21 if row.dqd else 0)  # ME-ES: samples, offspring
+        assert evaluations_per_iteration(config) == expected, name
 
 
 def test_a_budget_in_evaluations_sets_the_most_iterations_within_it():

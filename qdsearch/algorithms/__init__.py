@@ -2,14 +2,15 @@
 scheduler tying them. This module is the layer's table of them.
 
 The layer's modules, imports going down the list only (this table last):
-- gradients: the DQD rows' gradients, estimated from mirrored samples flown around a point.
+- gradients: the DQD rows' gradients, estimated from mirrored samples flown around a point;
+- me_es: ME-ES's emitter, a chain of ES steps on the return or on novelty (dqd-rl's).
 
 Map:
 - the ALGORITHMS table (--algorithm): each row's archive kwargs, result archive and emitters;
 - the ARCHIVES table (--archive): how each kind of archive is made (`grid_archives`,
   `cvt_archives`: a CVT's centroids made once per run by `k_means` from the run's seed), where its
   cells lie (`cell_positions`) and an empty archive of the same cells (`empty_like`); MAX_CELLS;
-- the DQD rows (`gradient_arborescence`), `evaluations_per_iteration`, and what a row's
+- the DQD rows (`gradient_arborescence`), ME-ES, `evaluations_per_iteration`, and what a row's
   emitters and archives hold in memory (ES_BYTES, `memory_needed`);
 - `task_of`, `derive_seeds` (the archive's and each emitter's seed, from the run's),
   `archive_shape` and `build_scheduler` (a run's pyribs Scheduler, from its config).
@@ -23,17 +24,18 @@ from typing import Any, Callable
 
 import numpy as np
 
+from qdsearch.algorithms.me_es import MEESEmitter
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, returns_of
 from qdsearch.tasks.family import Environment
 
 
 @dataclasses.dataclass(frozen=True)
 class Emitters:
-    """A group of pyribs emitters of one class: `kind` names it in ribs.emitters, `kwargs` gives
-    its keyword arguments from the run's config (the archive, x0, batch size and seed come from
-    build_scheduler)."""
+    """A group of pyribs emitters of one class: `kind` names it in ribs.emitters (or is the class,
+    one of ours), `kwargs` gives its keyword arguments from the run's config (the archive, x0,
+    batch size and seed come from build_scheduler)."""
 
-    kind: str
+    kind: str | type
     kwargs: Callable[[Any], dict[str, Any]]
     es: str | None = None  # the evolution strategy each keeps over the solution's weights, if any
 
@@ -58,6 +60,12 @@ class Algorithm:
     bandit: bool = False  # pyribs' BanditScheduler picks n_emitters of the pool (UCB1)
     flags: tuple[str, ...] = ()  # the flags of SEARCH_FLAGS only this row (and others) use
     dqd: bool = False  # its emitters need gradients: ask_dqd and tell_dqd, estimated (gradients.py)
+    es_steps: bool = False  # its emitters step on their own ES samples first (ME-ES: me_es.py)
+
+    @property
+    def samples(self) -> bool:
+        """Whether an iteration flies ES samples (--es_samples) before its batch."""
+        return self.dqd or self.es_steps
 
 
 def evolution_strategy(ranker: str, selection_rule: str = "filter", restart_rule: str = "no_improvement",
@@ -198,10 +206,22 @@ ALGORITHMS["cma_maega_es"] = Algorithm(
     result_archive=True, flags=("learning_rate", "es_samples", "es_sigma"), dqd=True)
 
 
+# ME-ES (Colas et al. 2020) with dqd-rl's settings (me_es.py): a chain of ES steps per emitter,
+# each on --es_samples mirrored samples at --es_sigma (dqd-rl: 200 at 0.02), its one offspring a
+# step offered to the archive (--batch_size is not used).
+ALGORITHMS["me_es"] = Algorithm(
+    "ME-ES (explore-exploit)",
+    (Emitters(MEESEmitter, es="adam", kwargs=lambda config: {"sigma": config.es_sigma}),),
+    flags=("es_samples", "es_sigma"), es_steps=True)
+
+
 def evaluations_per_iteration(config: Any) -> int:
-    """The solutions an iteration flies: every emitter's batch, and for a DQD row each emitter's
-    point and its gradient samples too (what metrics.json's `evaluations` counts)."""
+    """The solutions an iteration flies: every emitter's batch, for a DQD row each emitter's point
+    and its gradient samples too, and for ME-ES each emitter's samples and offspring (what
+    metrics.json's `evaluations` counts; ME-ES's first iteration flies x0 alone)."""
     row, emitters = ALGORITHMS[config.algorithm], config.n_emitters
+    if row.es_steps:
+        return emitters * (1 + config.es_samples)
     return emitters * config.batch_size + (emitters * (1 + config.es_samples) if row.dqd else 0)
 
 
@@ -211,7 +231,8 @@ def evaluations_per_iteration(config: Any) -> int:
 # vectors (170 n and 260 n doubles, the batch's included).
 ES_BYTES: dict[str, Callable[[int], float]] = {"cma_es": lambda n: 8 * 7.2 * n * n,
                                                "sep_cma_es": lambda n: 8 * 180 * n,
-                                               "lm_ma_es": lambda n: 8 * 270 * n}
+                                               "lm_ma_es": lambda n: 8 * 270 * n,
+                                               "adam": lambda n: 8 * 6 * n}  # ME-ES: theta, m, v, x0
 
 
 def memory_needed(config: Any, solution_dim: int) -> float:
@@ -327,13 +348,19 @@ def kind_of(archive: Any) -> str | None:
     return next((name for name, row in ARCHIVES.items() if type(archive).__name__ == row["class"]), None)
 
 
+def emitter_class(kind: str | type) -> type:
+    """An emitter group's class: ours as it is, else pyribs' of that name."""
+    from ribs import emitters as ribs_emitters
+
+    return kind if isinstance(kind, type) else getattr(ribs_emitters, kind)
+
+
 def build_scheduler(config: Any, x0: np.ndarray | None = None):
     """The archives, emitters and scheduler of `config.algorithm`, seeded from `config.seed`.
 
     The emitters start from `x0` (default: the policy's start, zeros for the linear policy as in
     the tutorial).
     """
-    from ribs import emitters as ribs_emitters
     from ribs.schedulers import BanditScheduler, Scheduler
 
     row = ALGORITHMS[config.algorithm]
@@ -350,8 +377,8 @@ def build_scheduler(config: Any, x0: np.ndarray | None = None):
     start = config.network.start(task_of(config).shape, config.seed) if x0 is None else x0
     sampled = result_archive if row.emitters_on_result else archive
     seeds = iter(emitter_seeds)
-    emitters = [getattr(ribs_emitters, group.kind)(sampled, x0=start, batch_size=config.batch_size,
-                                                   seed=next(seeds), **group.kwargs(config))
+    emitters = [emitter_class(group.kind)(sampled, x0=start, batch_size=config.batch_size,
+                                          seed=next(seeds), **group.kwargs(config))
                 for group in row.emitters for _ in range(config.n_emitters)]
     if row.bandit:
         return BanditScheduler(archive, emitters, result_archive, num_active=config.n_emitters,

@@ -95,11 +95,14 @@ def check_sizes(config: dict) -> None:
 
 def solutions_per_iteration(config: dict) -> tuple[int, str]:
     """The solutions an iteration asks, and the flags that make the number: n_emitters x
-    batch_size, or a DQD row's emitters each with its point and gradient samples if more, so
-    that a refusal names the flag to lower."""
-    n_emitters, batch = config["n_emitters"], config["batch_size"]
+    batch_size, or a DQD row's emitters each with its point and gradient samples if more (ME-ES's:
+    their samples), so that a refusal names the flag to lower."""
+    n_emitters, batch, row = config["n_emitters"], config["batch_size"], ALGORITHMS[config["algorithm"]]
+    if row.es_steps:
+        samples = config["es_samples"]
+        return n_emitters * samples, f"{named('n_emitters')} {n_emitters} x {named('es_samples')} {samples}"
     made = {f"{named('n_emitters')} {n_emitters} x {named('batch_size')} {batch}": n_emitters * batch}
-    if ALGORITHMS[config["algorithm"]].dqd:
+    if row.dqd:
         samples = config["es_samples"]
         gradients = f"{named('n_emitters')} {n_emitters} x (1 + {named('es_samples')} {samples})"
         made[gradients] = n_emitters * (1 + samples)

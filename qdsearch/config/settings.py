@@ -404,18 +404,18 @@ class AlgorithmSettings:
     )
     es_samples: int = flag(
         100,
-        "The DQD rows (cma_mega_es, cma_maega_es): mirrored samples flown around "
-        "each emitter's point per iteration to estimate its gradients, an even "
-        f"number (dqd-rl's 100; n_emitters * (1 + es_samples): at most "
-        f"{MAX_SOLUTIONS:,}).",
+        "The DQD rows (cma_mega_es, cma_maega_es) and me_es: mirrored samples flown "
+        "around each emitter's point per iteration to estimate its gradients (me_es: "
+        "its ES step), an even number (dqd-rl's 100, its ME-ES 200; n_emitters * "
+        f"(1 + es_samples): at most {MAX_SOLUTIONS:,}).",
         even_samples,
         sweep=True,
         label=18,
     )
     es_sigma: float = flag(
         0.02,
-        "The DQD rows: the samples' standard deviation around the point (dqd-rl's "
-        f"0.02; at most {MAX_STEP:g}).",
+        "The DQD rows and me_es: the samples' standard deviation around the point "
+        f"(dqd-rl's 0.02; at most {MAX_STEP:g}).",
         number_up_to(MAX_STEP),
         sweep=True,
         label=19,

@@ -125,14 +125,21 @@ class Run:
     def ask(self) -> np.ndarray:
         """The next batch to fly. A DQD row's iteration has two: first its emitters' points with
         the samples that estimate their gradients (gradients.py), then the solutions branched
-        along those gradients (pyribs' ask_dqd, tell_dqd, then ask and tell)."""
+        along those gradients (pyribs' ask_dqd, tell_dqd, then ask and tell). ME-ES's too: first
+        the samples around each chain's theta (me_es.py: its ES step), then the stepped thetas
+        (its first iteration flies x0 alone)."""
+        row = ALGORITHMS[self.config.algorithm]
         if not self.sampled:  # the iteration's first batch
             self._asked_at = time.perf_counter()  # elapsed_s counts from here to the tell
-        if not self.sampled and ALGORITHMS[self.config.algorithm].dqd:
-            points = self.scheduler.ask_dqd()
-            self.gradients = noise(self.config.seed, self.iteration, len(points),
-                                   self.config.es_samples, points.shape[1])
-            return sample_points(points, self.gradients, self.config.es_sigma)
+        if not self.sampled and row.samples:
+            points = (self.scheduler.ask_dqd() if row.dqd else
+                      [emitter.es_point() for emitter in self.scheduler.emitters])
+            if not any(point is None for point in points):
+                points = np.asarray(points)
+                self.gradients = noise(self.config.seed, self.iteration, len(points),
+                                       self.config.es_samples, points.shape[1])
+                batch = sample_points(points, self.gradients, self.config.es_sigma)
+                return batch if row.dqd else batch[len(points):]  # ME-ES flies no point
         return self.scheduler.ask()
 
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
@@ -161,8 +168,14 @@ class Run:
             raise failed
         objectives, measures = averaged(per_terrain(chunks, self.seeds))
         if self.gradients is not None:
-            flown = np.column_stack([objectives, measures])
-            self.scheduler.tell_dqd(*estimate(flown, self.gradients, self.config.es_sigma))
+            if ALGORITHMS[self.config.algorithm].dqd:
+                flown = np.column_stack([objectives, measures])
+                self.scheduler.tell_dqd(*estimate(flown, self.gradients, self.config.es_sigma))
+            else:  # ME-ES: each chain's samples, in its emitter's order
+                chains = zip(self.scheduler.emitters, np.split(objectives, len(self.gradients)),
+                             np.split(measures, len(self.gradients)), self.gradients)
+                for emitter, chain_objectives, chain_measures, eps in chains:
+                    emitter.es_step(chain_objectives, chain_measures, eps)
             self.gradients, self.sampled = None, len(objectives)
             return None
         return self.tell(objectives, measures)

@@ -1,0 +1,158 @@
+"""ME-ES (Colas et al. 2020, "Scaling MAP-Elites to deep neuroevolution") as dqd-rl runs it
+(icaros-usc/dqd-rl, src/me_es/, adapted from Uber's code): one chain of ES steps per emitter,
+each step's offspring offered to the archive, the chain moving to a new parent from the archive
+every STEPS_PER_PARENT steps, its phases alternating between exploiting the return and exploring
+novelty, exploit first.
+
+An iteration is two batches (search/loop.py): the samples theta +- sigma * eps around each
+emitter's current theta (`es_point`, flown apart: no sample enters the archive), from which
+`es_step` takes one Adam step on the return's or the novelty's ES gradient; then the stepped
+theta itself (`ask`), told to the archive as any solution (`tell`). The first iteration flies x0
+alone. The gradient is dqd-rl's: sum_j eps_j (rank(+j) - rank(-j)) / pairs over the centred ranks
+of the samples' scores, not divided by sigma, followed by Adam (lr 0.01) on it with L2 0.005
+(pyribs' AdamOpt is Uber's optimiser), its moments reset at each new parent.
+
+Novelty is the mean squared distance to the K_NEAREST nearest measures among every offspring the
+emitter has flown (the archive's elites are among them), each measure scaled to its range
+(dqd-rl's measures all lie in [0, 1]). A new parent is drawn with the emitter's own generator:
+- explore: dqd-rl's `novelty_bias`: the EXPLORE_TOP most novel elites share 0.9 of the draw in
+  proportion to their novelty, every elite 0.1 evenly;
+- exploit: dqd-rl's `best2inlast5_or_best`: a cell's score is the best sample return of the ES
+  step whose offspring made it; half the time, or with fewer than 5 elites, the best cell, else
+  one of the 2 best of the 5 cells discovered last (the last half of them, under 10), in
+  proportion to their scores shifted to start at 1.
+
+All of it is the emitter's state, pickled with the scheduler, so a run resumes exactly.
+
+Map: K_NEAREST, EXPLORE_TOP, STEPS_PER_PARENT, LEARNING_RATE, L2_COEFF; `novelty`, `es_gradient`,
+`novelty_bias`, `best_recent_or_best`; `MEESEmitter`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from ribs.emitters import EmitterBase
+from ribs.emitters.opt import AdamOpt
+
+from qdsearch.algorithms.gradients import centred_ranks
+
+K_NEAREST = 10  # dqd-rl's k for novelty
+EXPLORE_TOP = 5  # the most novel elites that share 0.9 of an explore phase's draw
+STEPS_PER_PARENT = 10  # dqd-rl's nb_consecutive_steps
+LEARNING_RATE = 0.01  # dqd-rl's Adam step
+L2_COEFF = 0.005  # dqd-rl's l2_coeff
+
+
+def novelty(points: np.ndarray, against: np.ndarray, skip_self: bool = False) -> np.ndarray:
+    """Each point's mean squared distance to its K_NEAREST nearest rows of `against` (fewer if
+    `against` has fewer); with `skip_self`, one exact match (the point itself) is left out."""
+    from scipy.spatial import cKDTree
+
+    k = min(K_NEAREST + skip_self, len(against))
+    distances = cKDTree(against).query(points, k=k)[0].reshape(len(points), k)
+    if skip_self and k > 1:  # a zero first is the point itself; else the farthest is one too many
+        distances = np.where(distances[:, :1] == 0.0, distances[:, 1:], distances[:, :-1])
+    return (distances[:, :K_NEAREST] ** 2).mean(axis=1)
+
+
+def es_gradient(scores: np.ndarray, eps: np.ndarray) -> np.ndarray:
+    """dqd-rl's ES gradient of `scores` (the samples' in sample_points' order: +eps, then -eps):
+    sum_j eps_j (rank(+j) - rank(-j)) / pairs, over the scores' centred ranks."""
+    ranks = centred_ranks(scores)
+    pairs = len(eps)
+    return (ranks[:pairs] - ranks[pairs:]) @ eps / pairs
+
+
+def novelty_bias(novelties: np.ndarray) -> np.ndarray:
+    """dqd-rl's explore draw: the EXPLORE_TOP most novel share 0.9 by their novelty, all 0.1."""
+    weights = np.full(len(novelties), 0.1 / len(novelties))
+    top = np.argsort(-novelties, kind="stable")[:EXPLORE_TOP]
+    total = novelties[top].sum()
+    weights[top] += 0.9 * (novelties[top] / total if total > 0 else np.full(len(top), 1 / len(top)))
+    return weights / weights.sum()
+
+
+def best_recent_or_best(cells: np.ndarray, scores: np.ndarray, discovered: list[int],
+                        rng: np.random.Generator) -> int:
+    """dqd-rl's exploit draw: the position in `cells` of the best score half the time (always
+    under 5 cells), else of one of the 2 best of the last discovered cells still held."""
+    if rng.random() < 0.5 or len(cells) < 5:
+        return int(np.argmax(scores))
+    recent = discovered[-5:] if len(discovered) >= 10 else discovered[-max(1, len(discovered) // 2):]
+    place = {int(cell): i for i, cell in enumerate(cells)}
+    held = [place[cell] for cell in dict.fromkeys(recent) if cell in place]
+    if not held:
+        return int(np.argmax(scores))
+    best = sorted(held, key=lambda i: -scores[i])[:2]
+    weights = scores[best] - scores[best].min() + 1.0
+    return best[int(rng.choice(len(best), p=weights / weights.sum()))]
+
+
+class MEESEmitter(EmitterBase):
+    """One ME-ES chain (see the module's docstring). `batch_size` is not used: each step makes
+    one offspring. `samples` (mirrored, even) are drawn by the loop (gradients.noise) at `sigma`."""
+
+    def __init__(self, archive: Any, *, x0: np.ndarray, batch_size: int, seed: int, sigma: float) -> None:
+        super().__init__(archive, solution_dim=len(x0), bounds=None, lower_bounds=None, upper_bounds=None)
+        self.x0, self.sigma = np.array(x0, dtype=float), float(sigma)
+        self.rng = np.random.default_rng(seed)
+        self.opt = AdamOpt(self.x0, lr=LEARNING_RATE, l2_coeff=L2_COEFF)
+        self.started = False  # x0 flown
+        self.explore = True  # toggled before each new parent: the first phase exploits
+        self.steps = 0  # ES steps from the current parent
+        self.offspring = np.empty((0, archive.measure_dim))  # every offspring's scaled measures
+        self.best_train: dict[int, float] = {}  # a cell's score: its step's best sample return
+        self.discovered: list[int] = []  # cells in the order offspring first filled them
+        self.step_best: float | None = None  # the last step's best sample return
+
+    def scaled(self, measures: np.ndarray) -> np.ndarray:
+        """Measures as fractions of the archive's ranges."""
+        low, high = self.archive.lower_bounds, self.archive.upper_bounds
+        return (np.asarray(measures, dtype=float) - low) / (high - low)
+
+    def es_point(self) -> np.ndarray | None:
+        """The theta whose samples this iteration flies (None: the first, which flies x0 alone);
+        a new parent drawn first when the last one has had its steps."""
+        if not self.started:
+            return None
+        if self.steps % STEPS_PER_PARENT == 0:
+            self.explore = not self.explore
+            self.opt.reset(self.parent())
+        return self.opt.theta.copy()
+
+    def parent(self) -> np.ndarray:
+        """An elite of the archive, drawn as the phase draws (explore: novelty, exploit: scores)."""
+        elites = self.archive.data(["index", "measures", "solution"])
+        if self.explore:
+            novelties = novelty(self.scaled(elites["measures"]), self.offspring, skip_self=True)
+            chosen = int(self.rng.choice(len(novelties), p=novelty_bias(novelties)))
+        else:
+            scores = np.array([self.best_train.get(int(cell), -np.inf) for cell in elites["index"]])
+            chosen = best_recent_or_best(elites["index"], scores, self.discovered, self.rng)
+        return elites["solution"][chosen]
+
+    def es_step(self, objectives: np.ndarray, measures: np.ndarray, eps: np.ndarray) -> None:
+        """One Adam step of theta on the ES gradient of the samples' returns (exploit) or novelty
+        (explore); the samples flown at theta + sigma * eps, then theta - sigma * eps."""
+        scores = novelty(self.scaled(measures), self.offspring) if self.explore else objectives
+        self.opt.step(es_gradient(np.asarray(scores, dtype=float), eps))
+        self.steps += 1
+        self.step_best = float(np.max(objectives))
+
+    def ask(self) -> np.ndarray:
+        return (self.opt.theta if self.started else self.x0)[None].copy()
+
+    def tell(self, solution: np.ndarray, objective: np.ndarray, measures: np.ndarray,
+             add_info: dict, **fields: Any) -> None:
+        """The offspring told: its measures join the novelty set; a cell it made or improved takes
+        its step's best sample return as its score (x0: its own return)."""
+        self.offspring = np.concatenate([self.offspring, self.scaled(measures)])
+        best = float(objective[0]) if not self.started else self.step_best
+        self.started = True
+        if add_info["status"][0] > 0:
+            cell = int(self.archive.index_of(np.asarray(measures))[0])
+            self.best_train[cell] = best
+            if add_info["status"][0] == 2:
+                self.discovered.append(cell)
