@@ -131,3 +131,123 @@ def test_me_es_on_hopper_with_an_mlp_is_the_same_on_one_and_two_workers(tmp_path
     metrics = run_metrics(tmp_path / "one")
     assert [row["evaluations"] for row in metrics] == [2, 2 + 14, 2 + 28]  # x0s, then 6 samples + 1
     assert metrics == run_metrics(tmp_path / "two") and metrics[-1]["num_elites"] > 0
+
+
+def hand_weights(novelties):
+    """dqd-rl's novelty_bias by hand: 0.1 / n each, and 0.9 shared by the 5 most novel (the
+    first of equals first) in proportion to their novelty."""
+    n = len(novelties)
+    order = sorted(range(n), key=lambda i: (-novelties[i], i))[:5]
+    total = sum(novelties[i] for i in order)
+    return [0.1 / n + (0.9 * novelties[i] / total if i in order else 0.0) for i in range(n)]
+
+
+def test_explore_ties_go_to_the_first_cell_and_a_lone_point_has_no_novelty():
+    novelties = np.array([1.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0])  # six of 2.0 for five places
+    assert np.allclose(me_es.novelty_bias(novelties), hand_weights(list(novelties)), rtol=1e-12)
+    small = np.array([0.01, 0.05, 0.02, 0.04, 0.03, 0.06, 0.001])  # scaled measures': sums below 1
+    assert np.allclose(me_es.novelty_bias(small), hand_weights(list(small)), rtol=1e-12)
+    none = me_es.novelty_bias(np.zeros(7))  # no novelty yet: the first five share 0.9 evenly
+    assert np.allclose(none, [0.1 / 7 + 0.9 / 5] * 5 + [0.1 / 7] * 2, rtol=1e-12)
+    point, other = np.array([[0.3, 0.3]]), np.array([[0.3, 0.3], [0.6, 0.7]])
+    assert me_es.novelty(point, point, skip_self=True).tolist() == [0.0]
+    assert np.allclose(me_es.novelty(point, other, skip_self=True), [0.3 ** 2 + 0.4 ** 2])
+
+
+@pytest.mark.parametrize("found, recent", [(12, [7, 8, 9, 10, 11]), (10, [5, 6, 7, 8, 9]),
+                                           (6, [3, 4, 5]), (3, [2]), (1, [0])])
+def test_exploit_draws_from_the_last_five_discovered_or_the_last_half_under_ten(found, recent):
+    cells = np.arange(12)
+    scores = np.array([10.0, 1.0, 0.0, 6.0, 0.5, 2.0, 7.0, 3.0, 0.0, 1.0, 2.0, 2.5])
+    # cell 0 the best of all; the cells just before each recent run score high, to be left out
+    picks = {me_es.best_recent_or_best(cells, scores, list(range(found)), np.random.default_rng(seed))
+             for seed in range(300)}
+    best_two = sorted(recent, key=lambda cell: (-scores[cell], cell))[:2]
+    assert picks == {0, *best_two}
+
+
+def test_exploit_takes_the_best_under_five_cells_and_when_no_recent_cell_is_held():
+    scores = np.array([1.0, 4.0, 2.0, 3.0, 0.0])
+    picks = {me_es.best_recent_or_best(np.arange(5), scores, [4, 4, 4, 4, 4, 4], np.random.default_rng(s))
+             for s in range(100)}
+    assert picks == {1, 4}  # five cells: the best, or the recent 4
+    assert {me_es.best_recent_or_best(np.arange(4), scores[:4], [3], np.random.default_rng(s))
+            for s in range(50)} == {1}  # four cells: always the best
+    assert {me_es.best_recent_or_best(np.arange(5), scores, [9, 8], np.random.default_rng(s))
+            for s in range(50)} == {1}  # the recent cells were emptied: the best
+
+
+def test_exploit_never_draws_an_elite_no_step_of_the_chain_made():
+    """A warm start's elites are in the archive before the chain: they have no score."""
+    archive, emitter, scheduler = lone_chain(dim=2)
+    archive.add(np.array([[5.0, 5.0], [6.0, 6.0], [7.0, 7.0]]), np.array([50.0, 60.0, 70.0]),
+                np.array([[0.9, 0.9], [0.8, 0.8], [0.7, 0.7]]))
+    emitter.es_point()
+    tell(scheduler, 1.0, [0.1, 0.1])  # x0, the chain's one cell (4 cells: the best is drawn)
+    assert np.array_equal(emitter.es_point(), np.ones(2)) and not emitter.explore
+
+
+def ranged_chain(seed=4):
+    """An ME-ES chain on an archive whose measures span [-1, 1] and [0, 10]."""
+    archive = GridArchive(solution_dim=2, dims=[4, 5], ranges=[(-1, 1), (0, 10)])
+    emitter = me_es.MEESEmitter(archive, x0=np.zeros(2), batch_size=1, seed=seed, sigma=0.02)
+    return archive, emitter, Scheduler(archive, [emitter])
+
+
+def test_exploring_steps_on_the_samples_novelty_among_the_offspring_in_scaled_measures():
+    archive, emitter, scheduler = ranged_chain()
+    emitter.es_point()
+    for objective, measures in ((1.0, [-0.5, 2.0]), (2.0, [0.5, 8.0])):
+        tell(scheduler, objective, measures)
+    scaled = np.array([[0.25, 0.2], [0.75, 0.8]])  # (m - low) / (high - low), by hand
+    assert np.allclose(emitter.offspring, scaled)
+    emitter.explore, emitter.steps = True, 1  # in an explore phase, between parents
+    theta = emitter.opt.theta.copy()
+    eps = np.array([[1.0, 0.0], [0.0, 1.0]])
+    measures = np.array([[-1.0, 0.0], [0.9, 9.0], [0.0, 5.0], [1.0, 10.0]])
+    emitter.es_step(np.array([1.0, 9.0, 5.0, 3.0]), measures, eps)  # ranked apart from novelty
+    against = emitter.offspring
+    novelties = [hand_novelty((m - [-1, 0]) / [2, 10], against) for m in measures]
+    assert np.allclose(emitter.opt.theta, hand_adam(theta, [me_es.es_gradient(np.array(novelties), eps)]))
+    assert emitter.step_best == 9.0
+
+
+def test_a_cell_takes_the_best_sample_return_of_the_step_that_made_or_improved_it():
+    archive, emitter, scheduler = ranged_chain()
+    emitter.es_point()
+    tell(scheduler, 1.0, [-0.9, 1.0])  # x0: its own return, a new cell
+    first = int(archive.index_of(np.array([[-0.9, 1.0]]))[0])
+    assert emitter.best_train == {first: 1.0} and emitter.discovered == [first]
+    for step_best, objective, measures, status in ((7.0, 0.5, [-0.9, 1.0], 0), (8.0, 3.0, [-0.9, 1.0], 1),
+                                                   (6.0, 2.0, [0.9, 9.0], 2)):
+        emitter.step_best = step_best
+        tell(scheduler, objective, measures)
+        cell = int(archive.index_of(np.array([measures]))[0])
+        assert emitter.best_train.get(cell) == ({0: 1.0, 1: 8.0, 2: 6.0}[status])
+        assert emitter.discovered[-1] == cell and len(emitter.discovered) == (1 if status < 2 else 2)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_a_new_parent_is_drawn_as_dqd_rl_draws_it_with_the_chains_own_generator(seed):
+    archive, emitter, scheduler = ranged_chain(seed=seed)
+    emitter.es_point()
+    rng = np.random.default_rng(100 + seed)
+    for _ in range(16):
+        emitter.opt.reset(rng.normal(size=2))  # each offspring a solution of its own
+        tell(scheduler, float(rng.normal()), [rng.uniform(-1, 1), rng.uniform(0, 10)])
+        emitter.step_best = float(rng.normal())
+    assert len({tuple(solution) for solution in archive.data("solution")}) == len(archive) > 5
+    elites = archive.data(["index", "measures", "solution"])
+    twin = np.random.default_rng(seed)  # the emitter's generator, drawn from here as it will be
+    emitter.explore = False  # so that the draw below explores
+    emitter.steps = 0
+    drawn = emitter.es_point()
+    scaled = (elites["measures"] - [-1, 0]) / [2, 10]
+    novelties = [hand_novelty(m, emitter.offspring, skip_self=True) for m in scaled]
+    expected = elites["solution"][twin.choice(len(novelties), p=hand_weights(novelties))]
+    assert emitter.explore and np.array_equal(drawn, expected)
+    scores = np.array([emitter.best_train[int(cell)] for cell in elites["index"]])
+    emitter.steps, emitter.explore = 0, True  # so that the next draw exploits
+    chosen = me_es.best_recent_or_best(elites["index"], scores, emitter.discovered, twin)
+    expected = elites["solution"][chosen]
+    assert np.array_equal(emitter.es_point(), expected) and not emitter.explore

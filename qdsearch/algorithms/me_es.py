@@ -71,7 +71,7 @@ def novelty_bias(novelties: np.ndarray) -> np.ndarray:
     top = np.argsort(-novelties, kind="stable")[:EXPLORE_TOP]
     total = novelties[top].sum()
     weights[top] += 0.9 * (novelties[top] / total if total > 0 else np.full(len(top), 1 / len(top)))
-    return weights / weights.sum()
+    return weights
 
 
 def best_recent_or_best(cells: np.ndarray, scores: np.ndarray, discovered: list[int],
@@ -129,6 +129,7 @@ class MEESEmitter(EmitterBase):
             novelties = novelty(self.scaled(elites["measures"]), self.offspring, skip_self=True)
             chosen = int(self.rng.choice(len(novelties), p=novelty_bias(novelties)))
         else:
+            # an elite no step of the chain made (a warm start's) has no score: never the best
             scores = np.array([self.best_train.get(int(cell), -np.inf) for cell in elites["index"]])
             chosen = best_recent_or_best(elites["index"], scores, self.discovered, self.rng)
         return elites["solution"][chosen]
@@ -142,7 +143,8 @@ class MEESEmitter(EmitterBase):
         self.step_best = float(np.max(objectives))
 
     def ask(self) -> np.ndarray:
-        return (self.opt.theta if self.started else self.x0)[None].copy()
+        """The chain's theta: x0 at first (the optimiser starts there), then each step's."""
+        return self.opt.theta[None].copy()
 
     def tell(self, solution: np.ndarray, objective: np.ndarray, measures: np.ndarray,
              add_info: dict, **fields: Any) -> None:
