@@ -27,6 +27,21 @@ def test_one_run_on_one_worker_takes_its_work_plus_the_driver_between_iterations
     assert costly["search_s"] == pytest.approx(work + 4 * 0.05)
 
 
+def test_an_iteration_of_two_batches_flies_them_in_turn_each_of_its_own_size():
+    """ME-ES's samples, then its offspring: a lone run on 8 workers flies its 8 samples of 100
+    steps in the engine's chunks, then its 1 offspring, each batch once the last is told; the
+    driver turns once a batch."""
+    workload = Workload(runs=1, iterations=6, batch=(8, 1), lengths=[np.array([100])])
+    assert [workload.size(k) for k in range(4)] == [8, 1, 8, 1]
+    chunks = scale_model.chunk_sizes(8, 8, 1)  # [4, 4]: at least MIN_CHUNK rollouts a chunk
+    path = 3 * max(chunks) * 0.1 + 3 * 0.1  # each samples' batch its largest chunk, then one episode
+    free = simulate(workload, 8, FREE)
+    assert free["search_s"] == pytest.approx(path) and free["ideal_s"] == pytest.approx(path)
+    assert free["tasks_per_batch"] == pytest.approx((3 * len(chunks) + 3 * 1) / 6)
+    costly = simulate(workload, 8, Costs(**{**FREE.__dict__, "driver_iteration_s": 0.05}))
+    assert costly["search_s"] == pytest.approx(path + 5 * 0.05)
+
+
 def test_a_batch_is_split_as_the_engine_splits_it():
     assert scale_model.chunk_sizes(150, 2, 1) == [38, 38, 37, 37]  # a lone run: 2 chunks per worker
     assert len(scale_model.chunk_sizes(150, 16, 1)) == 32  # whatever its workers

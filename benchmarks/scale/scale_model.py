@@ -39,6 +39,9 @@ The model (every server serves one job at a time, first come first served):
   sharing: a job is slowed by the processes busy when it starts), as on the benchmark's machine;
 - chunks per batch: engine.submit_flights' own rule, with the runs on the scheduler as `sharing`
   (a run's first batch: those its driver has opened so far, and the other parts');
+- a run's iteration is one batch, or several flown one after the other (`batch` a list: a DQD
+  row's point and samples, then its branches; ME-ES's samples, then its offspring), each told
+  before the next is sent, each a turn of `driver_iteration_s`;
 - with `log_every`, a run saves after every log_every-th iteration (and its last): `save_s` of its
   driver's time, booked after the next batch is sent (the saver thread takes the driver's GIL);
   with `draw_s`, its CSV and pictures are a task on the cluster of that many seconds (a design
@@ -153,22 +156,28 @@ class Costs:
 
 @dataclasses.dataclass
 class Workload:
-    """runs x iterations batches of `batch` episodes; iteration k's episode lengths are drawn
-    from lengths[k] (a real search's, iteration by iteration; the last for later ones)."""
+    """runs x iterations batches of `batch` episodes (a list: an iteration's batches in turn, so
+    `iterations` counts batches); batch k's episode lengths are drawn from lengths[k] (a real
+    search's, iteration by iteration; the last for later ones)."""
 
     runs: int
     iterations: int
-    batch: int
+    batch: int | tuple[int, ...]
     lengths: list[np.ndarray]
     seed: int = 0
 
+    def size(self, k: int) -> int:
+        """The episodes of a run's k-th batch."""
+        return self.batch[k % len(self.batch)] if isinstance(self.batch, tuple) else self.batch
+
     def episodes(self) -> np.ndarray:
-        """(runs, iterations, batch) episode lengths, fixed by the seed."""
+        """(runs, iterations, largest batch) episode lengths, fixed by the seed."""
         rng = np.random.default_rng(self.seed)
-        out = np.empty((self.runs, self.iterations, self.batch), dtype=np.int64)
+        largest = max(self.batch) if isinstance(self.batch, tuple) else self.batch
+        out = np.empty((self.runs, self.iterations, largest), dtype=np.int64)
         for k in range(self.iterations):
             pool = self.lengths[min(k, len(self.lengths) - 1)]
-            out[:, k, :] = rng.choice(pool, size=(self.runs, self.batch))
+            out[:, k, :] = rng.choice(pool, size=(self.runs, largest))
         return out
 
 
@@ -364,7 +373,7 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
         # loop.Driver.start_more sends each as it opens it
         opened[part] += k == 0
         runs_in_flight = opened[part] if k == 0 else own[part]
-        sizes = chunk_sizes(workload.batch, sum(w.threads for w in pool), runs_in_flight,
+        sizes = chunk_sizes(workload.size(k), sum(w.threads for w in pool), runs_in_flight,
                             c.chunks_per_worker) if k < workload.iterations else []
         service = (c.driver_iteration_s * turns.choice(spread) + c.client_task_s * len(sizes)
                    + (c.run_open_s if k == 0 else 0.0))
@@ -521,13 +530,15 @@ def load_lengths(path: str) -> tuple[list[np.ndarray], float]:
         return [data[k] for k in keys], float(data["us_per_step"]) * 1e-6
 
 
-def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300, batch: int = 150,
-         parts: tuple = (1,), schedulers: tuple = (0,),
-         lengths: str = str(HERE / "episode_lengths_lander.npz"), **costs: float) -> None:
+def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: int = 300,
+         batch: int | tuple = 150, parts: tuple = (1,), schedulers: tuple = (0,),
+         lengths: str = str(HERE / "episode_lengths_lander.npz"), steps: int | None = None,
+         **costs: float) -> None:
     """Print the model's prediction for each size, workload and design (`schedulers` 0: one per
-    part): `lengths` (a real
-    search's episodes, iteration by iteration: episode_lengths.py) and `costs` (the
-    fields of Costs; step_s defaults to the lengths file's own)."""
+    part): `lengths` (a real search's episodes, iteration by iteration: episode_lengths.py; or
+    every episode `steps` long, a MuJoCo task that never ends early) and `costs` (the fields of
+    Costs; step_s defaults to the lengths file's own). A `batch` list is an iteration's batches
+    in turn: `iterations` iterations fly iterations x its length batches."""
     import json
 
     if costs.pop("help", None):  # fire hands --help on to a function that takes **costs
@@ -537,9 +548,13 @@ def main(workers: tuple = (16, 64, 256, 512), runs: tuple = (60,), iterations: i
     if unknown := sorted(set(costs) - set(fields)):
         raise SystemExit(f"not a cost: {', '.join(unknown)}; the costs are {', '.join(fields)}")
     per_iteration, step_s = load_lengths(lengths)
+    if steps is not None:
+        per_iteration = [np.array([int(steps)])]
+    batches = tuple(int(b) for b in batch) if isinstance(batch, (list, tuple)) else int(batch)
+    turns = iterations * (len(batches) if isinstance(batches, tuple) else 1)
     model = Costs(**{"step_s": step_s, **costs})
     for n, r, k, s in itertools.product(workers, runs, parts, schedulers):
-        row = simulate(Workload(int(r), iterations, batch, per_iteration), int(n), model, parts=int(k),
+        row = simulate(Workload(int(r), turns, batches, per_iteration), int(n), model, parts=int(k),
                        schedulers=int(s) or int(k))
         print(json.dumps({key: round(value, 4) if isinstance(value, float) else value
                           for key, value in row.items()}))
