@@ -2,6 +2,9 @@
 novelty, the ES gradient and Adam step, the draws of a parent, the schedule of phases; and a
 Hopper MLP run that is the same on 1 and 2 workers."""
 
+import os
+import signal
+
 import numpy as np
 import pytest
 from ribs.archives import GridArchive
@@ -9,7 +12,7 @@ from ribs.schedulers import Scheduler
 
 from qdsearch.algorithms import me_es
 from qdsearch.cli import commands
-from util import run_archive, run_metrics, tiny_flags
+from util import checkpoint_iteration, launch, run_archive, run_metrics, tiny_flags, wait_for
 
 
 def hand_novelty(point, against, skip_self=False):
@@ -251,3 +254,23 @@ def test_a_new_parent_is_drawn_as_dqd_rl_draws_it_with_the_chains_own_generator(
     chosen = me_es.best_recent_or_best(elites["index"], scores, emitter.discovered, twin)
     expected = elites["solution"][chosen]
     assert np.array_equal(emitter.es_point(), expected) and not emitter.explore
+
+
+@pytest.mark.slow  # a Hopper search killed and resumed, and its uninterrupted twin
+def test_me_es_killed_mid_chain_then_resumed_ends_as_its_uninterrupted_twin(tmp_path, dask_cluster,
+                                                                            one_worker_cluster):
+    """kill -9 past a checkpoint, in a chain's first phase; resumed on one worker, through the
+    change of parent and phase (Adam's moments, the draws, the novelty set: all in the checkpoint),
+    it ends bit for bit as the run that never stopped on two."""
+    flags = dict(algorithm="me_es", env="Hopper-v5", policy="mlp", hidden="4", episode_length=20,
+                 es_samples=6, n_emitters=2, iterations=14, log_every=1, pictures="false")
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
+    run_dir = tmp_path / "killed"
+    process = launch(**{**tiny_flags(dask_cluster, **flags), "outdir": run_dir})
+    wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "a checkpoint past iteration 3")
+    os.killpg(process.pid, signal.SIGKILL)
+    process.communicate(timeout=60)
+    assert 3 <= checkpoint_iteration(run_dir) < 14
+    commands.resume(str(run_dir), scheduler_address=one_worker_cluster.scheduler_address)
+    assert run_archive(run_dir).equals(run_archive(tmp_path / "twin"))
+    assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
