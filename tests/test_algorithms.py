@@ -280,7 +280,7 @@ def test_warm_start_fills_every_archive(tmp_path, dask_cluster, tiny_runs, algor
     assert len(scheduler.archive) >= elites and len(scheduler.result_archive) >= elites
 
 
-@pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites"])
+@pytest.mark.parametrize("algorithm", ["cma_mae", "map_elites", "me_es"])
 def test_results_commands_work_for_every_algorithm(tmp_path, tiny_runs, algorithm):
     import shutil
 
