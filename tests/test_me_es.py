@@ -274,3 +274,73 @@ def test_me_es_killed_mid_chain_then_resumed_ends_as_its_uninterrupted_twin(tmp_
     commands.resume(str(run_dir), scheduler_address=one_worker_cluster.scheduler_address)
     assert run_archive(run_dir).equals(run_archive(tmp_path / "twin"))
     assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
+
+
+def test_a_folded_network_acts_on_raw_observations_as_its_theta_on_normalised_ones():
+    from qdsearch.tasks.policies import Policy
+
+    policy, shape = Policy("mlp", (5, 4)), (3, 7)  # 3 actions, 7 observations
+    rng = np.random.default_rng(6)
+    theta = rng.normal(size=policy.size(shape))
+    mean, std = rng.normal(size=7), rng.uniform(0.1, 3.0, size=7)
+    folded = me_es.fold(theta[None], (5, 7), mean, std)[0]
+    raw = rng.normal(size=(20, 7)) * 4
+    on_raw = policy.act(folded, shape, True)
+    on_normalised = policy.act(theta, shape, True)
+    assert np.allclose([on_raw(obs) for obs in raw], [on_normalised((obs - mean) / std) for obs in raw])
+    assert np.allclose(me_es.unfold(folded, (5, 7), mean, std), theta)
+    assert np.array_equal(me_es.fold(theta[None], (5, 7), np.zeros(7), np.ones(7))[0], theta)  # at first
+
+
+def test_a_networks_chain_counts_the_observations_of_its_collected_negative_samples(monkeypatch):
+    archive = GridArchive(solution_dim=5 * (2 + 1) + 1 * (5 + 1), dims=[4, 4], ranges=[(0, 1), (0, 1)])
+    x0 = np.random.default_rng(4).normal(size=archive.solution_dim)
+    chain = me_es.MEESEmitter(archive, x0=x0, batch_size=1, seed=2, sigma=0.02, first_layer=(5, 2))
+    linear = me_es.MEESEmitter(archive, x0=np.zeros(4), batch_size=1, seed=2, sigma=0.02)
+    assert len(linear.collecting(10)) == 0 and len(chain.collecting(1000)) < 10  # 0.1% of 500
+    monkeypatch.setattr(me_es, "OBS_COLLECT_PROB", 1.0)
+    assert chain.collecting(10).tolist() == [5, 6, 7, 8, 9]  # every negative sample
+    observations = np.random.default_rng(3).normal(size=(50, 2)) * [1.0, 0.01]
+    scheduler = Scheduler(archive, [chain])
+    chain.observe(observations)
+    assert np.array_equal(chain.normaliser()[0], [0, 0])  # counted only once the offspring is told
+    tell(scheduler, 1.0, [0.5, 0.5])
+    count = len(observations) + 1e-2  # dqd-rl's RunningStat: its sums start at 0, 0.01, 0.01
+    mean = observations.sum(axis=0) / count
+    variance = (np.sum(observations ** 2, axis=0) + 1e-2) / count - mean ** 2
+    assert np.allclose(chain.normaliser()[0], mean)
+    assert np.allclose(chain.normaliser()[1], np.sqrt(np.maximum(variance, 1e-2)))  # the floor: the 2nd
+    assert chain.normaliser()[1][1] == 0.1 and chain.observed is None
+    stored = archive.data("solution")[0]  # the offspring as flown: theta folded (at the first
+    assert np.array_equal(stored, x0)  # statistics, theta itself)
+    chain.steps, chain.explore = 0, True  # a new parent: the theta that folds back to the stored
+    theta = chain.es_point()
+    assert np.array_equal(theta, me_es.unfold(stored, (5, 2), *chain.normaliser()))
+    assert not np.allclose(theta, stored)
+    assert np.allclose(chain.ask()[0], stored) and not np.allclose(chain.normaliser()[1], 1.0)
+
+
+@pytest.mark.slow  # small Hopper searches whose every negative sample is observed
+def test_a_normalising_me_es_run_is_exact_on_one_and_two_workers_and_flies_what_it_stored(
+        tmp_path, dask_cluster, one_worker_cluster, monkeypatch):
+    import qdsearch
+
+    monkeypatch.setattr(me_es, "OBS_COLLECT_PROB", 1.0)  # the driver flies the search's own
+    flags = dict(algorithm="me_es", env="Hopper-v5", policy="mlp", hidden="4", episode_length=20,
+                 es_samples=4, n_emitters=1, iterations=4)
+    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "two"))
+    one = tmp_path / "one"
+    commands.search(**tiny_flags(one_worker_cluster, **{**flags, "iterations": 2}), outdir=str(one))
+    commands.resume(str(one), iterations=4, scheduler_address=one_worker_cluster.scheduler_address)
+    assert run_archive(tmp_path / "one").equals(run_archive(tmp_path / "two"))
+    assert run_metrics(tmp_path / "one") == run_metrics(tmp_path / "two")
+    from util import read_checkpoint
+
+    [chain] = read_checkpoint(tmp_path / "two" / "checkpoint.pkl")["scheduler"].emitters
+    # 3 steps x 2 negative samples, each episode up to 20 steps (a Hopper may fall sooner)
+    assert 1e-2 + 3 * 2 * 5 <= chain.obs_count <= 1e-2 + 3 * 2 * 20
+    assert not np.allclose(chain.normaliser()[1], 1.0)
+    run = qdsearch.read_run(tmp_path / "two")
+    for row in range(len(run.archive)):  # each stored network flies to its stored numbers
+        flight = qdsearch.fly_elite(run, row)
+        assert flight.objective == run.archive["objective"].iloc[row]

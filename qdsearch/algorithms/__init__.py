@@ -206,12 +206,20 @@ ALGORITHMS["cma_maega_es"] = Algorithm(
     result_archive=True, flags=("learning_rate", "es_samples", "es_sigma"), dqd=True)
 
 
+def first_layer(config: Any) -> tuple[int, int] | None:
+    """A network's first layer, (outputs, observations), whose inputs ME-ES normalises; None for
+    the linear policy (no bias to fold the mean into)."""
+    policy = config.network
+    return None if not policy.hidden else (policy.hidden[0], task_of(config).shape[1])
+
+
 # ME-ES (Colas et al. 2020) with dqd-rl's settings (me_es.py): a chain of ES steps per emitter,
 # each on --es_samples mirrored samples at --es_sigma (dqd-rl: 200 at 0.02), its one offspring a
 # step offered to the archive (--batch_size is not used).
 ALGORITHMS["me_es"] = Algorithm(
     "ME-ES (explore-exploit)",
-    (Emitters(MEESEmitter, es="adam", kwargs=lambda config: {"sigma": config.es_sigma}),),
+    (Emitters(MEESEmitter, es="adam", kwargs=lambda config: {"sigma": config.es_sigma,
+                                                              "first_layer": first_layer(config)}),),
     flags=("es_samples", "es_sigma"), es_steps=True)
 
 

@@ -22,10 +22,20 @@ emitter has flown (the archive's elites are among them), each measure scaled to 
   one of the 2 best of the 5 cells discovered last (the last half of them, under 10), in
   proportion to their scores shifted to start at 1.
 
+A network's chain normalises its observations as dqd-rl's ME-ES does (the linear policy, which
+has no bias, cannot): by running statistics of the observations of the episodes of a share
+(OBS_COLLECT_PROB) of its negative samples, flown again in the driver (episodes are
+deterministic), the statistics growing once the step's offspring is told. What is flown and
+stored is the network that acts so on raw observations: theta with the normaliser folded into
+its first layer (`fold`), so every command flies an elite as the search flew it; a parent drawn
+from the archive goes on as the theta that, with the statistics of the moment, folds back to it
+(`unfold`), where dqd-rl goes on from the parent's raw theta under the new statistics.
+
 All of it is the emitter's state, pickled with the scheduler, so a run resumes exactly.
 
-Map: K_NEAREST, EXPLORE_TOP, STEPS_PER_PARENT, LEARNING_RATE, L2_COEFF; `novelty`, `es_gradient`,
-`novelty_bias`, `best_recent_or_best`; `MEESEmitter`.
+Map: K_NEAREST, EXPLORE_TOP, STEPS_PER_PARENT, LEARNING_RATE, L2_COEFF, OBS_COLLECT_PROB,
+OBS_FLOOR; `novelty`, `es_gradient`, `novelty_bias`, `best_recent_or_best`; `fold`, `unfold`;
+`MEESEmitter`.
 """
 
 from __future__ import annotations
@@ -43,6 +53,8 @@ EXPLORE_TOP = 5  # the most novel elites that share 0.9 of an explore phase's dr
 STEPS_PER_PARENT = 10  # dqd-rl's nb_consecutive_steps
 LEARNING_RATE = 0.01  # dqd-rl's Adam step
 L2_COEFF = 0.005  # dqd-rl's l2_coeff
+OBS_COLLECT_PROB = 0.001  # dqd-rl's obs_collect_prob: a negative sample's episode feeds the normaliser
+OBS_FLOOR = 1e-2  # dqd-rl's RunningStat: squares and count start at it (mean 0, std 1); the variance's floor
 
 
 def novelty(points: np.ndarray, against: np.ndarray, skip_self: bool = False) -> np.ndarray:
@@ -90,11 +102,36 @@ def best_recent_or_best(cells: np.ndarray, scores: np.ndarray, discovered: list[
     return best[int(rng.choice(len(best), p=weights / weights.sum()))]
 
 
+def fold(thetas: np.ndarray, first_layer: tuple[int, int], mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Networks acting on raw observations as `thetas` (rows) act on normalised ones: the first
+    layer's W / std (each input's column), its bias b - (W / std) @ mean."""
+    out, inputs = first_layer
+    folded = np.array(thetas, dtype=float, ndmin=2)
+    weights = folded[:, :out * inputs].reshape(-1, out, inputs) / std
+    folded[:, :out * inputs] = weights.reshape(len(folded), -1)
+    folded[:, out * inputs:out * inputs + out] -= weights @ mean
+    return folded
+
+
+def unfold(solution: np.ndarray, first_layer: tuple[int, int], mean: np.ndarray,
+           std: np.ndarray) -> np.ndarray:
+    """The theta that `fold` makes `solution` with this normaliser."""
+    out, inputs = first_layer
+    theta = np.array(solution, dtype=float)
+    weights = theta[:out * inputs].reshape(out, inputs)
+    theta[out * inputs:out * inputs + out] += weights @ mean
+    theta[:out * inputs] = (weights * std).ravel()
+    return theta
+
+
 class MEESEmitter(EmitterBase):
     """One ME-ES chain (see the module's docstring). `batch_size` is not used: each step makes
-    one offspring. `samples` (mirrored, even) are drawn by the loop (gradients.noise) at `sigma`."""
+    one offspring. `samples` (mirrored, even) are drawn by the loop (gradients.noise) at `sigma`.
+    `first_layer` (a network's first layer, (outputs, observations)): its observations are
+    normalised; None (the linear policy): they are not."""
 
-    def __init__(self, archive: Any, *, x0: np.ndarray, batch_size: int, seed: int, sigma: float) -> None:
+    def __init__(self, archive: Any, *, x0: np.ndarray, batch_size: int, seed: int, sigma: float,
+                 first_layer: tuple[int, int] | None = None) -> None:
         super().__init__(archive, solution_dim=len(x0), bounds=None, lower_bounds=None, upper_bounds=None)
         self.x0, self.sigma = np.array(x0, dtype=float), float(sigma)
         self.rng = np.random.default_rng(seed)
@@ -106,6 +143,34 @@ class MEESEmitter(EmitterBase):
         self.best_train: dict[int, float] = {}  # a cell's score: its step's best sample return
         self.discovered: list[int] = []  # cells in the order offspring first filled them
         self.step_best: float | None = None  # the last step's best sample return
+        self.first_layer = first_layer
+        if first_layer is not None:
+            self.obs_sum, self.obs_squares = np.zeros(first_layer[1]), np.full(first_layer[1], OBS_FLOOR)
+            self.obs_count = OBS_FLOOR
+            self.collect_rng = np.random.default_rng([seed, 0x0B5])  # apart from the parents' draws
+        self.observed: np.ndarray | None = None  # this step's observations, counted after its tell
+
+    def normaliser(self) -> tuple[np.ndarray, np.ndarray]:
+        """The observations' running mean and standard deviation (its variance at least OBS_FLOOR)."""
+        mean = self.obs_sum / self.obs_count
+        return mean, np.sqrt(np.maximum(self.obs_squares / self.obs_count - mean ** 2, OBS_FLOOR))
+
+    def flown(self, thetas: np.ndarray) -> np.ndarray:
+        """The networks flown for `thetas` (rows): each with the normaliser folded in."""
+        return np.asarray(thetas) if self.first_layer is None else fold(thetas, self.first_layer,
+                                                                        *self.normaliser())
+
+    def collecting(self, samples: int) -> np.ndarray:
+        """Which of a step's samples (sample_points' order: +eps, then -eps) have their episodes'
+        observations counted: each negative sample with probability OBS_COLLECT_PROB."""
+        if self.first_layer is None:
+            return np.empty(0, dtype=int)
+        pairs = samples // 2
+        return pairs + np.flatnonzero(self.collect_rng.random(pairs) < OBS_COLLECT_PROB)
+
+    def observe(self, observations: np.ndarray) -> None:
+        """Observations of this step's collected episodes: counted once its offspring is told."""
+        self.observed = np.asarray(observations, dtype=float)
 
     def scaled(self, measures: np.ndarray) -> np.ndarray:
         """Measures as fractions of the archive's ranges."""
@@ -132,7 +197,10 @@ class MEESEmitter(EmitterBase):
             # an elite no step of the chain made (a warm start's) has no score: never the best
             scores = np.array([self.best_train.get(int(cell), -np.inf) for cell in elites["index"]])
             chosen = best_recent_or_best(elites["index"], scores, self.discovered, self.rng)
-        return elites["solution"][chosen]
+        if self.first_layer is None:
+            return elites["solution"][chosen]
+        # a stored network goes on as the theta that the statistics of the moment fold back to it
+        return unfold(elites["solution"][chosen], self.first_layer, *self.normaliser())
 
     def es_step(self, objectives: np.ndarray, measures: np.ndarray, eps: np.ndarray) -> None:
         """One Adam step of theta on the ES gradient of the samples' returns (exploit) or novelty
@@ -143,8 +211,9 @@ class MEESEmitter(EmitterBase):
         self.step_best = float(np.max(objectives))
 
     def ask(self) -> np.ndarray:
-        """The chain's theta: x0 at first (the optimiser starts there), then each step's."""
-        return self.opt.theta[None].copy()
+        """The network of the chain's theta: x0 at first (the optimiser starts there), then each
+        step's."""
+        return self.flown(self.opt.theta[None]).copy()
 
     def tell(self, solution: np.ndarray, objective: np.ndarray, measures: np.ndarray,
              add_info: dict, **fields: Any) -> None:
@@ -158,3 +227,8 @@ class MEESEmitter(EmitterBase):
             self.best_train[cell] = best
             if add_info["status"][0] == 2:
                 self.discovered.append(cell)
+        if self.observed is not None and len(self.observed):  # dqd-rl: after the offspring's insert
+            self.obs_sum = self.obs_sum + self.observed.sum(axis=0)
+            self.obs_squares = self.obs_squares + (self.observed ** 2).sum(axis=0)
+            self.obs_count += len(self.observed)
+        self.observed = None

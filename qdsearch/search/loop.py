@@ -9,7 +9,8 @@ signals ignored (saving.py's `Savers`), which only the main thread may set.
 
 Map:
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
-  chunk back), `tell`, the checkpoint (built and written here only, signed with the user's key:
+  chunk back), `tell` (ME-ES's samples: `es_steps`, their collected episodes flown again here:
+  `observations`), the checkpoint (built and written here only, signed with the user's key:
   signing.py) and `save` (its folder's files: saving.py's `save_outputs`);
 - `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
   goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
@@ -45,7 +46,7 @@ from qdsearch.search.engine import ClusterShare, averaged, evaluate_batch, per_t
 from qdsearch.store.metrics import describe_progress, iteration_metrics
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
-from qdsearch.tasks import episode_of, reset_seeds, returns_of
+from qdsearch.tasks import episode_of, fly, make_env, reset_seeds, returns_of
 
 
 class Run:
@@ -78,6 +79,7 @@ class Run:
         self.policy, self.episode = config.network, episode_of(config)
         self.gradients: np.ndarray | None = None  # a DQD row's sample draws, while its gradients fly
         self.sampled = 0  # solutions flown for this iteration's gradients (told: its branches fly)
+        self.flown: np.ndarray | None = None  # ME-ES: the networks its samples flew
 
     @classmethod
     def start(cls, run_dir: Path, config: RunConfig, client, log: logging.Logger,
@@ -126,8 +128,8 @@ class Run:
         """The next batch to fly. A DQD row's iteration has two: first its emitters' points with
         the samples that estimate their gradients (gradients.py), then the solutions branched
         along those gradients (pyribs' ask_dqd, tell_dqd, then ask and tell). ME-ES's too: first
-        the samples around each chain's theta (me_es.py: its ES step), then the stepped thetas
-        (its first iteration flies x0 alone)."""
+        the samples around each chain's theta, as the networks its normaliser makes them
+        (me_es.py: its ES step), then the stepped thetas (its first iteration flies x0 alone)."""
         row = ALGORITHMS[self.config.algorithm]
         if not self.sampled:  # the iteration's first batch
             self._asked_at = time.perf_counter()  # elapsed_s counts from here to the tell
@@ -139,7 +141,12 @@ class Run:
                 self.gradients = noise(self.config.seed, self.iteration, len(points),
                                        self.config.es_samples, points.shape[1])
                 batch = sample_points(points, self.gradients, self.config.es_sigma)
-                return batch if row.dqd else batch[len(points):]  # ME-ES flies no point
+                if row.dqd:
+                    return batch
+                chains = np.split(batch[len(points):], len(points))  # ME-ES flies no point, and each
+                self.flown = np.concatenate([emitter.flown(samples) for emitter, samples  # chain's
+                                             in zip(self.scheduler.emitters, chains)])  # networks
+                return self.flown
         return self.scheduler.ask()
 
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
@@ -172,13 +179,34 @@ class Run:
                 flown = np.column_stack([objectives, measures])
                 self.scheduler.tell_dqd(*estimate(flown, self.gradients, self.config.es_sigma))
             else:  # ME-ES: each chain's samples, in its emitter's order
-                chains = zip(self.scheduler.emitters, np.split(objectives, len(self.gradients)),
-                             np.split(measures, len(self.gradients)), self.gradients)
-                for emitter, chain_objectives, chain_measures, eps in chains:
-                    emitter.es_step(chain_objectives, chain_measures, eps)
+                self.es_steps(objectives, measures)
             self.gradients, self.sampled = None, len(objectives)
             return None
         return self.tell(objectives, measures)
+
+    def es_steps(self, objectives: np.ndarray, measures: np.ndarray) -> None:
+        """ME-ES: each chain's step on its samples' results, and the observations of the samples
+        it collects (me_es.py), their episodes flown again here."""
+        count = len(self.gradients)
+        parts = zip(self.scheduler.emitters, np.split(objectives, count), np.split(measures, count),
+                    self.gradients, np.split(self.flown, count), np.split(self.seeds, count))
+        for emitter, chain_objectives, chain_measures, eps, networks, seeds in parts:
+            emitter.es_step(chain_objectives, chain_measures, eps)
+            if len(chosen := emitter.collecting(len(networks))):
+                emitter.observe(self.observations(networks[chosen], seeds[chosen]))
+
+    def observations(self, networks: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+        """Every observation of the episodes of `networks` on their reset seeds, flown here."""
+        config, seen = self.config, []
+        env = make_env(config.fast_env, env_name=config.env, episode=self.episode)
+        try:
+            for network, own in zip(networks, seeds):
+                for seed in own:
+                    fly(network, int(seed), env, on_step=lambda action, obs: seen.append(np.array(obs)),
+                        env_name=config.env, policy=self.policy)
+        finally:
+            env.close()
+        return np.array(seen)
 
     def tell(self, objectives: np.ndarray, measures: np.ndarray) -> dict:
         """Record the evaluated batch; returns the new row of metrics, whose evaluations count
