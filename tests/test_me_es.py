@@ -290,6 +290,9 @@ def test_a_folded_network_acts_on_raw_observations_as_its_theta_on_normalised_on
     assert np.allclose([on_raw(obs) for obs in raw], [on_normalised((obs - mean) / std) for obs in raw])
     assert np.allclose(me_es.unfold(folded, (5, 7), mean, std), theta)
     assert np.array_equal(me_es.fold(theta[None], (5, 7), np.zeros(7), np.ones(7))[0], theta)  # at first
+    thetas = rng.normal(size=(3, policy.size(shape)))  # a chain's samples: row by row
+    assert np.array_equal(me_es.fold(thetas, (5, 7), mean, std),
+                          np.concatenate([me_es.fold(row[None], (5, 7), mean, std) for row in thetas]))
 
 
 def test_a_networks_chain_counts_the_observations_of_its_collected_negative_samples(monkeypatch):
@@ -298,9 +301,13 @@ def test_a_networks_chain_counts_the_observations_of_its_collected_negative_samp
     chain = me_es.MEESEmitter(archive, x0=x0, batch_size=1, seed=2, sigma=0.02, first_layer=(5, 2))
     linear = me_es.MEESEmitter(archive, x0=np.zeros(4), batch_size=1, seed=2, sigma=0.02)
     assert len(linear.collecting(10)) == 0 and len(chain.collecting(1000)) < 10  # 0.1% of 500
+    monkeypatch.setattr(me_es, "OBS_COLLECT_PROB", 0.5)  # which ones: the chain's seed says
+    twins = [me_es.MEESEmitter(archive, x0=np.zeros(archive.solution_dim), batch_size=1, seed=seed,
+                               sigma=0.02, first_layer=(5, 2)).collecting(200).tolist() for seed in (2, 2, 3)]
+    assert twins[0] == twins[1] != twins[2] and all(100 <= i < 200 for i in twins[0])
     monkeypatch.setattr(me_es, "OBS_COLLECT_PROB", 1.0)
     assert chain.collecting(10).tolist() == [5, 6, 7, 8, 9]  # every negative sample
-    observations = np.random.default_rng(3).normal(size=(50, 2)) * [1.0, 0.01]
+    observations = np.random.default_rng(3).normal(size=(50, 2)) * [1.0, 0.01] + [3.0, -1.0]
     scheduler = Scheduler(archive, [chain])
     chain.observe(observations)
     assert np.array_equal(chain.normaliser()[0], [0, 0])  # counted only once the offspring is told
