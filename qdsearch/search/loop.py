@@ -9,8 +9,8 @@ signals ignored (saving.py's `Savers`), which only the main thread may set.
 
 Map:
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
-  chunk back), `tell` (ME-ES's samples: `es_steps`, their collected episodes flown again here:
-  `observations`), the checkpoint (built and written here only, signed with the user's key:
+  chunk back), `tell` (ME-ES's samples: `chains_networks`, `es_steps`, their collected episodes
+  flown again here: `observations`), the checkpoint (built and written here only, signed with the user's key:
   signing.py) and `save` (its folder's files: saving.py's `save_outputs`);
 - `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
   goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
@@ -143,9 +143,7 @@ class Run:
                 batch = sample_points(points, self.gradients, self.config.es_sigma)
                 if row.dqd:
                     return batch
-                chains = np.split(batch[len(points):], len(points))  # ME-ES flies no point, and each
-                self.flown = np.concatenate([emitter.flown(samples) for emitter, samples  # chain's
-                                             in zip(self.scheduler.emitters, chains)])  # networks
+                self.flown = self.chains_networks(batch[len(points):])  # ME-ES flies no point
                 return self.flown
         return self.scheduler.ask()
 
@@ -183,6 +181,12 @@ class Run:
             self.gradients, self.sampled = None, len(objectives)
             return None
         return self.tell(objectives, measures)
+
+    def chains_networks(self, samples: np.ndarray) -> np.ndarray:
+        """ME-ES: each chain's samples (in its emitter's order) as the networks its normaliser
+        makes them."""
+        chains = np.split(samples, len(self.scheduler.emitters))
+        return np.concatenate([emitter.flown(part) for emitter, part in zip(self.scheduler.emitters, chains)])
 
     def es_steps(self, objectives: np.ndarray, measures: np.ndarray) -> None:
         """ME-ES: each chain's step on its samples' results, and the observations of the samples
