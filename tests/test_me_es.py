@@ -60,7 +60,7 @@ def hand_adam(theta, gradients, lr=0.01, l2=0.005):
 def lone_chain(seed=0, dim=3):
     """A GridArchive of 2 measures in [0, 1] and one ME-ES emitter on it, x0 = ones."""
     archive = GridArchive(solution_dim=dim, dims=[10, 10], ranges=[(0, 1), (0, 1)])
-    emitter = me_es.MEESEmitter(archive, x0=np.ones(dim), batch_size=1, seed=seed, sigma=0.02)
+    emitter = me_es.MEESEmitter(archive, x0=np.ones(dim), batch_size=1, seed=seed)
     return archive, emitter, Scheduler(archive, [emitter])
 
 
@@ -193,7 +193,7 @@ def test_exploit_never_draws_an_elite_no_step_of_the_chain_made():
 def ranged_chain(seed=4):
     """An ME-ES chain on an archive whose measures span [-1, 1] and [0, 10]."""
     archive = GridArchive(solution_dim=2, dims=[4, 5], ranges=[(-1, 1), (0, 10)])
-    emitter = me_es.MEESEmitter(archive, x0=np.zeros(2), batch_size=1, seed=seed, sigma=0.02)
+    emitter = me_es.MEESEmitter(archive, x0=np.zeros(2), batch_size=1, seed=seed)
     return archive, emitter, Scheduler(archive, [emitter])
 
 
@@ -298,12 +298,12 @@ def test_a_folded_network_acts_on_raw_observations_as_its_theta_on_normalised_on
 def test_a_networks_chain_counts_the_observations_of_its_collected_negative_samples(monkeypatch):
     archive = GridArchive(solution_dim=5 * (2 + 1) + 1 * (5 + 1), dims=[4, 4], ranges=[(0, 1), (0, 1)])
     x0 = np.random.default_rng(4).normal(size=archive.solution_dim)
-    chain = me_es.MEESEmitter(archive, x0=x0, batch_size=1, seed=2, sigma=0.02, first_layer=(5, 2))
-    linear = me_es.MEESEmitter(archive, x0=np.zeros(4), batch_size=1, seed=2, sigma=0.02)
+    chain = me_es.MEESEmitter(archive, x0=x0, batch_size=1, seed=2, first_layer=(5, 2))
+    linear = me_es.MEESEmitter(archive, x0=np.zeros(4), batch_size=1, seed=2)
     assert len(linear.collecting(10)) == 0 and len(chain.collecting(1000)) < 10  # 0.1% of 500
     monkeypatch.setattr(me_es, "OBS_COLLECT_PROB", 0.5)  # which ones: the chain's seed says
     twins = [me_es.MEESEmitter(archive, x0=np.zeros(archive.solution_dim), batch_size=1, seed=seed,
-                               sigma=0.02, first_layer=(5, 2)).collecting(200).tolist() for seed in (2, 2, 3)]
+                               first_layer=(5, 2)).collecting(200).tolist() for seed in (2, 2, 3)]
     assert twins[0] == twins[1] != twins[2] and all(100 <= i < 200 for i in twins[0])
     monkeypatch.setattr(me_es, "OBS_COLLECT_PROB", 1.0)
     assert chain.collecting(10).tolist() == [5, 6, 7, 8, 9]  # every negative sample

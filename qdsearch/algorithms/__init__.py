@@ -218,8 +218,7 @@ def first_layer(config: Any) -> tuple[int, int] | None:
 # step offered to the archive (--batch_size is not used).
 ALGORITHMS["me_es"] = Algorithm(
     "ME-ES (explore-exploit)",
-    (Emitters(MEESEmitter, es="adam", kwargs=lambda config: {"sigma": config.es_sigma,
-                                                              "first_layer": first_layer(config)}),),
+    (Emitters(MEESEmitter, es="adam", kwargs=lambda config: {"first_layer": first_layer(config)}),),
     flags=("es_samples", "es_sigma"), es_steps=True)
 
 

@@ -126,16 +126,15 @@ def unfold(solution: np.ndarray, first_layer: tuple[int, int], mean: np.ndarray,
 
 class MEESEmitter(EmitterBase):
     """One ME-ES chain (see the module's docstring). `batch_size` is not used: each step makes
-    one offspring. `samples` (mirrored, even) are drawn by the loop (gradients.noise) at `sigma`.
+    one offspring. Its samples (mirrored, even) are drawn by the loop (gradients.noise).
     `first_layer` (a network's first layer, (outputs, observations)): its observations are
     normalised; None (the linear policy): they are not."""
 
-    def __init__(self, archive: Any, *, x0: np.ndarray, batch_size: int, seed: int, sigma: float,
+    def __init__(self, archive: Any, *, x0: np.ndarray, batch_size: int, seed: int,
                  first_layer: tuple[int, int] | None = None) -> None:
         super().__init__(archive, solution_dim=len(x0), bounds=None, lower_bounds=None, upper_bounds=None)
-        self.x0, self.sigma = np.array(x0, dtype=float), float(sigma)
         self.rng = np.random.default_rng(seed)
-        self.opt = AdamOpt(self.x0, lr=LEARNING_RATE, l2_coeff=L2_COEFF)
+        self.opt = AdamOpt(np.array(x0, dtype=float), lr=LEARNING_RATE, l2_coeff=L2_COEFF)
         self.started = False  # x0 flown
         self.explore = True  # toggled before each new parent: the first phase exploits
         self.steps = 0  # ES steps from the current parent

@@ -3,7 +3,7 @@ answered in one line and exit code 2, a fault of the machine in one line and exi
 -h or --help anywhere the command's page (help.py). `python lunar_lander.py ...` and the installed
 `lunar-lander ...` both run `run_as_script`.
 
-Map: COMMANDS, `command`, PROGRAM (the command as typed), `help_text`, `main`, `run_as_script`,
+Map: COMMANDS, `command`, SCRIPT and INSTALLED (the command as typed), `help_text`, `main`, `run_as_script`,
 `exit_now`.
 """
 
@@ -73,24 +73,24 @@ def command(name: str) -> Callable:
     return COMMANDS[name]
 
 
-# The command as the user typed it: the script, or the installed entry point (run_as_script).
-PROGRAM = {"typed": "python lunar_lander.py"}
-INSTALLED = "lunar-lander"  # pyproject.toml's [project.scripts]
+# The command as the user typed it (run_as_script tells which): the script, or the installed
+# entry point (pyproject.toml's [project.scripts]).
+SCRIPT, INSTALLED = "python lunar_lander.py", "lunar-lander"
 
 
-def help_text(name: str, function: Callable) -> str:
+def help_text(name: str, function: Callable, program: str = SCRIPT) -> str:
     """A command's --help page, titled as the command was typed; the main one (search's) lists
     every command too."""
     passed_on = {flag: SEARCH_FLAGS[flag] for flag in known_flags(function)
                  if flag not in inspect.signature(function).parameters}
     if name != "search":
-        return help_page(f"{PROGRAM['typed']} {name}", function, passed_on)
+        return help_page(f"{program} {name}", function, passed_on)
     commands = {other: ("(the default: no command name) " if other == "search" else "")
                 + summary(command(other).__doc__ or "") for other in COMMANDS}
-    return help_page(PROGRAM["typed"], function, passed_on, commands)
+    return help_page(program, function, passed_on, commands)
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str], program: str = SCRIPT) -> int:
     import fire
 
     name = argv[0] if argv and not argv[0].startswith("-") else "search"
@@ -101,7 +101,7 @@ def main(argv: list[str]) -> int:
             raise UsageError(f"unknown command {shown(name)}; {did_you_mean(name, COMMANDS)}")
         function = command(name)
         if "-h" in args or "--help" in args:  # help wherever it is asked, and nothing run (Fire's
-            print(help_text(name, function), end="")  # -h is a flag's short name: --hidden)
+            print(help_text(name, function, program), end="")  # -h is a flag's short name: --hidden)
             return 0
         reject_unknown_flags(function, args)
         if name == "search":  # a row's own flag typed where the run's row ignores it: the row typed,
@@ -110,7 +110,7 @@ def main(argv: list[str]) -> int:
             refuse_unused_row_flags([typed_setting(typed, "algorithm")], list(typed),
                                     [typed_setting(typed, "policy")])
         args = as_typed(args, text_flags(function))
-        fire.Fire(function, command=args, name=PROGRAM["typed"].removeprefix("python ")
+        fire.Fire(function, command=args, name=program.removeprefix("python ")
                   + ("" if name == "search" else f" {name}"))
     except UsageError as error:
         print(f"error: {one_line(str(error))}", file=sys.stderr)
@@ -128,10 +128,9 @@ def main(argv: list[str]) -> int:
 def run_as_script() -> None:
     """`python lunar_lander.py ...` or the installed `lunar-lander ...`: main, then a quick exit
     (see exit_now)."""
-    if Path(sys.argv[0]).name == INSTALLED:
-        PROGRAM["typed"] = INSTALLED
+    program = INSTALLED if Path(sys.argv[0]).name == INSTALLED else SCRIPT
     try:
-        exit_now(main(sys.argv[1:]))
+        exit_now(main(sys.argv[1:], program))
     except SystemExit as done:  # Fire's own usage messages (exit code 2)
         exit_now(done.code)
 

@@ -60,9 +60,8 @@ def takes(*tables: dict[str, Flag]) -> Callable[[Callable], Callable]:
             bound.apply_defaults()
             arguments = dict(bound.arguments)
             extra = arguments.pop(rest) if rest else {}
-            spread = [arguments.pop(name) for name in ahead]  # up to and with *run_dirs (compare)
-            return function(*spread[:-1], *spread[-1:][0] if spread else (), **arguments, **extra,
-                            **({GIVEN: given} if tells else {}))
+            *before, spread = [arguments.pop(name) for name in ahead] or [()]  # compare's *run_dirs
+            return function(*before, *spread, **arguments, **extra, **({GIVEN: given} if tells else {}))
 
         command.__signature__ = signature
         FLAG_TABLES[command] = {name: flags[name] for name in flags if name not in own.parameters}
