@@ -3,6 +3,7 @@ folders, resume and warm starts for each, and the `compare` command."""
 
 import csv
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -26,8 +27,10 @@ from ribs.emitters.rankers import (
 from ribs.schedulers import BanditScheduler, Scheduler
 
 from qdsearch import algorithms, tasks
+from qdsearch.algorithms.pga_me import PGAMEEmitter
 from qdsearch.cli import commands
 from qdsearch.config import options, run_config
+from qdsearch.search.learning import Learning
 from util import (
     archive_table,
     assert_one_line_error,
@@ -81,9 +84,15 @@ def test_seed_fixes_the_proposals_and_emitters_differ():
 
 
 def algorithm_flags(dask_cluster, algorithm, **overrides):
-    """The tiny run's flags for 2 iterations of `algorithm` (a DQD row: 4 gradient samples)."""
-    dqd = {"es_samples": 4} if algorithms.ALGORITHMS[algorithm].samples else {}
-    return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **dqd, **overrides})
+    """The tiny run's flags for 2 iterations of `algorithm` (a DQD row: 4 gradient samples; a
+    learning row: the lander of continuous actions)."""
+    row = algorithms.ALGORITHMS[algorithm]
+    dqd = {"es_samples": 4} if row.samples else {}
+    box = {"env": CONTINUOUS} if row.learns else {}
+    return tiny_flags(dask_cluster, **{"algorithm": algorithm, "iterations": 2, **dqd, **box, **overrides})
+
+
+CONTINUOUS = "LunarLanderContinuous-v3"
 
 
 def told_gradients(scheduler, rng, lower, upper):
@@ -186,6 +195,14 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
     assert all(e._selection_rule == "mu" for e in schedulers["cma_mega_es"].emitters)
     assert schedulers["cma_maega_es"].archive.learning_rate == 0.01
     assert all(type(e._ranker) is ImprovementRanker for e in schedulers["cma_maega_es"].emitters)
+    pga = schedulers["pga_me"]  # dqd-rl's PGA-ME: iso+line (--sigma0, --line_sigma) for the larger half
+    assert all(isinstance(e, PGAMEEmitter) and e.batch_size == 30 and e.genetic.batch_size == 15
+               and np.all(e.genetic.iso_sigma == 1.0) and np.all(e.genetic.line_sigma == 0.2)
+               and e.genetic.archive is pga.archive for e in pga.emitters)
+    td3_es = schedulers["cma_mega_td3_es"]  # CMA-MEGA (ES)'s emitters, the critic's objective gradient
+    assert all(isinstance(e, GradientArborescenceEmitter) and e._selection_rule == "mu"
+               for e in td3_es.emitters)
+    assert algorithms.ALGORITHMS["cma_mega_td3_es"].learns.objective_gradient
     rng = np.random.default_rng(0)
     for name, scheduler in schedulers.items():
         if algorithms.ALGORITHMS[name].dqd:
@@ -197,12 +214,16 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
 
 @pytest.mark.parametrize("env", list(tasks.ENVIRONMENTS))
 def test_every_row_asks_and_tells_on_every_task(env):
-    """Each row's objects fit each task: its solution size, measures and archive kind."""
+    """Each row's objects fit each task: its solution size, measures and archive kind (a learning
+    row's, each task of continuous actions, with its learner)."""
     for name in ALGORITHMS:
+        if algorithms.ALGORITHMS[name].learns and not tasks.ENVIRONMENTS[env].continuous:
+            continue  # refused (tests/test_learning.py)
         cells = {"cells": 64} if tasks.ENVIRONMENTS[env].archive == "cvt" else {}  # k-means: quick
         config = run_config.check_run_config(options.with_task(dict(
             options.search_defaults(), algorithm=name, env=env, seed=3, n_emitters=2, batch_size=3, **cells)))
         scheduler = algorithms.build_scheduler(config)
+        Learning.of(config, scheduler)  # hands a learning row's emitters their learner
         rng = np.random.default_rng(0)
         for _ in range(2):
             lower, upper = np.array(algorithms.archive_shape(config)["ranges"]).T
@@ -223,7 +244,8 @@ def test_each_algorithm_writes_a_complete_run_folder(tiny_runs, algorithm):
     assert [p.name for p in (run_dir / "heatmaps").iterdir()] == ["heatmap_00002.png"]
     metrics = run_metrics(run_dir)
     assert [row["iteration"] for row in metrics] == [1, 2]
-    spent = 12 + (2 * (1 + 4) if algorithms.ALGORITHMS[algorithm].dqd else 0)  # a DQD row's points, samples
+    row = algorithms.ALGORITHMS[algorithm]
+    spent = 12 + (2 * (1 + 4) if row.dqd else 0) + bool(row.learns)  # a DQD row's points, samples; an actor
     # ME-ES: x0 alone on each of its 2 chains, then each chain's 4 samples and offspring
     assert [row["evaluations"] for row in metrics] == ([2, 2 + 2 * (1 + 4)] if algorithms.ALGORITHMS[
         algorithm].es_steps else [spent, 2 * spent])
@@ -258,7 +280,15 @@ def test_stopped_then_resumed_on_one_worker_equals_uninterrupted_on_two(tmp_path
     reference = tiny_runs[algorithm]
     assert run_archive(run_dir).equals(run_archive(reference))
     assert run_metrics(run_dir) == run_metrics(reference)
-    schedulers = [read_checkpoint(d / "checkpoint.pkl")["scheduler"] for d in (run_dir, reference)]
+    checkpoints = [read_checkpoint(d / "checkpoint.pkl") for d in (run_dir, reference)]
+    schedulers = [checkpoint["scheduler"] for checkpoint in checkpoints]
+    if algorithms.ALGORITHMS[algorithm].learns:  # the learner, its buffer: the same; handed to the emitters
+        saved = [checkpoint["learning"] for checkpoint in checkpoints]
+        assert np.array_equal(saved[0]["buffer"]["rows"], saved[1]["buffer"]["rows"])
+        assert pickle.dumps(saved[0]["learner"]) == pickle.dumps(saved[1]["learner"])
+        for checkpoint in checkpoints:
+            Learning.of(run_config.check_run_config(checkpoint["config"]), checkpoint["scheduler"],
+                        checkpoint["learning"])
     dqd = algorithms.ALGORITHMS[algorithm].dqd
     assert np.array_equal(next_asks(schedulers[0], dqd), next_asks(schedulers[1], dqd))
     assert archive_table(schedulers[0].archive).equals(archive_table(schedulers[1].archive))

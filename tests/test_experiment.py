@@ -81,6 +81,7 @@ def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_clu
 def test_every_row_runs_and_sweeps_only_its_own_flags(tmp_path, dask_cluster):
     folder = tmp_path / "rows"
     commands.experiment(algorithms=list(algorithms.ALGORITHMS), seeds="1-2", iterations=1,
+                           env="LunarLanderContinuous-v3",  # a box of actions: the learning rows' too
                            novelty_threshold=[0.02, 0.05], bandwidth=[0.1], outdir=str(folder),
                            scheduler_address=dask_cluster.scheduler_address, n_emitters=2, batch_size=6,
                            log_every=1, pictures=False)  # 30 runs: their pictures are not what is checked

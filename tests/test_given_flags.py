@@ -51,6 +51,7 @@ ROWS = {
     "bandwidth": (0.1, {"algorithm": "dds"}),
     "es_samples": (6, {"algorithm": "cma_mega_es"}),
     "es_sigma": (0.05, {"algorithm": "cma_mega_es"}),
+    "buffer_size": (5_000, {"algorithm": "pga_me", "env": "Hopper-v5"}),
     "log_every": (5, {}),
     "pictures": (False, {}),
     "archive_pkl": (True, {}),
@@ -230,7 +231,8 @@ def test_config_with_flags_beside_it_on_the_command_line(run_cli, tmp_path, dask
     address = dask_cluster.scheduler_address
     refused = run_cli("--config", path, "--algorithm", "cma_me", "--es_samples", 6,
                       "--outdir", tmp_path / "x")
-    assert_one_line_error(refused, "--es_samples is a flag of cma_mega_es, cma_maega_es, me_es only",
+    assert_one_line_error(refused,
+                          "--es_samples is a flag of cma_mega_es, cma_maega_es, me_es, cma_mega_td3_es only",
                           "--algorithm cma_me does not use it")
     assert_one_line_error(run_cli("--config", path, "--hidden", "8", "--policy", "linear", "--outdir",
                                   tmp_path / "x"), "--hidden", "--policy linear does not use it")

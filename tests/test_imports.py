@@ -151,10 +151,15 @@ def message_texts(path: Path) -> list[tuple[int, str]]:
     return texts
 
 
+# Texts with a "--" that are no message: a library's own option, set in the environment.
+NOT_MESSAGES = {"--xla_cpu_max_isa=AVX2"}  # base/kernels.py: JAX's kernels held to AVX2
+
+
 def test_no_layer_but_the_command_line_names_a_flag_in_its_messages():
     for layer in NAMING_LAYERS:
         for path in (PACKAGE / layer).glob("*.py"):
-            flagged = [(line, text) for line, text in message_texts(path) if re.search(r"--[a-z{]", text)]
+            flagged = [(line, text) for line, text in message_texts(path)
+                       if re.search(r"--[a-z{]", text) and text not in NOT_MESSAGES]
             assert not flagged, (path, flagged)
 
 

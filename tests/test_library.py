@@ -18,7 +18,8 @@ from qdsearch.base import kernels
 from qdsearch.cli import commands
 from util import tiny_flags
 
-HELD = ("NUMBA_DISABLE_JIT", "MPLBACKEND", "MUJOCO_GL", "OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES")
+HELD = ("NUMBA_DISABLE_JIT", "MPLBACKEND", "MUJOCO_GL", "OPENBLAS_CORETYPE", "NPY_DISABLE_CPU_FEATURES",
+        "XLA_FLAGS")
 
 
 def settings_after(code: str, **env: str) -> dict:

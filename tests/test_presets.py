@@ -202,10 +202,13 @@ def test_dqd_rls_preset_runs_a_tiny_budget_given_beside_it(tmp_path, run_cli, da
              e["config"]["hidden"], e["state"]) for e in plan["runs"]]
     assert rows == [("cma_mega_es", 99, 32, "each", [128, 128], "done"),
                     ("map_elites", 100, 32, "each", [128, 128], "done"),
-                    ("me_es", 30, 32, "each", [128, 128], "done")]  # (its batch unused)
-    # each to its last iteration within 201: ME-ES's first (of 201 a budget counts) flies x0 alone
+                    ("me_es", 30, 32, "each", [128, 128], "done"),  # (its batch unused)
+                    ("pga_me", 99, 32, "each", [128, 128], "done"),
+                    ("cma_mega_td3_es", 99, 32, "each", [128, 128], "done")]
+    # each to its last iteration within 201: ME-ES's first (of 201 a budget counts) flies x0 alone;
+    # the learning rows' greedy actor besides (PGA-ME: 99 + 1; CMA-MEGA (TD3, ES): 99 + 1 + 101)
     spent = [run_metrics(tmp_path / "exp" / e["name"])[-1]["evaluations"] for e in plan["runs"]]
-    assert spent == [200, 200, 1]
+    assert spent == [200, 200, 1, 200, 201]
 
 
 def slurm_parts(environment: dict[str, str]) -> str:

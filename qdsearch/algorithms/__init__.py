@@ -3,15 +3,18 @@ scheduler tying them. This module is the layer's table of them.
 
 The layer's modules, imports going down the list only (this table last):
 - gradients: the DQD rows' gradients, estimated from mirrored samples flown around a point;
-- me_es: ME-ES's emitter, a chain of ES steps on the return or on novelty (dqd-rl's).
+- me_es: ME-ES's emitter, a chain of ES steps on the return or on novelty (dqd-rl's);
+- pga_me: PGA-ME's emitter, half iso+line variation, half policy-gradient steps on a TD3 critic;
+- td3: the TD3 learner of the learning rows, in JAX (optional: imported by a learning run alone).
 
 Map:
 - the ALGORITHMS table (--algorithm): each row's archive kwargs, result archive and emitters;
 - the ARCHIVES table (--archive): how each kind of archive is made (`grid_archives`,
   `cvt_archives`: a CVT's centroids made once per run by `k_means` from the run's seed), where its
   cells lie (`cell_positions`) and an empty archive of the same cells (`empty_like`); MAX_CELLS;
-- the DQD rows (`gradient_arborescence`), ME-ES, `evaluations_per_iteration`, and what a row's
-  emitters and archives hold in memory (ES_BYTES, `memory_needed`);
+- the DQD rows (`gradient_arborescence`), ME-ES, the learning rows (`Learns`: PGA-ME, CMA-MEGA (TD3,
+  ES)), `evaluations_per_iteration`, and what a row's emitters, archives and replay buffer hold in
+  memory (ES_BYTES, `memory_needed`, `buffer_bytes`);
 - `task_of`, `derive_seeds` (the archive's and each emitter's seed, from the run's),
   `archive_shape` and `build_scheduler` (a run's pyribs Scheduler, from its config).
 """
@@ -25,8 +28,10 @@ from typing import Any, Callable
 import numpy as np
 
 from qdsearch.algorithms.me_es import MEESEmitter
+from qdsearch.algorithms.pga_me import PGAMEEmitter
 from qdsearch.tasks import ENVIRONMENTS, MEASURES, returns_of
 from qdsearch.tasks.family import Environment
+from qdsearch.tasks.transitions import transition_width
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +43,16 @@ class Emitters:
     kind: str | type
     kwargs: Callable[[Any], dict[str, Any]]
     es: str | None = None  # the evolution strategy each keeps over the solution's weights, if any
+
+
+@dataclasses.dataclass(frozen=True)
+class Learns:
+    """How a learning row uses its TD3 learner (td3.py, driven by search/learning.py): the critic
+    steps it takes while each iteration's last batch flies, and whether the critic gives a DQD
+    row's objective gradient. Every learning row flies the greedy actor beside its batch."""
+
+    critic_steps: int  # dqd-rl's train_critics_itrs
+    objective_gradient: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +76,7 @@ class Algorithm:
     flags: tuple[str, ...] = ()  # the flags of SEARCH_FLAGS only this row (and others) use
     dqd: bool = False  # its emitters need gradients: ask_dqd and tell_dqd, estimated (gradients.py)
     es_steps: bool = False  # its emitters step on their own ES samples first (ME-ES: me_es.py)
+    learns: Learns | None = None  # it learns a TD3 critic from every flown transition (td3.py)
 
     @property
     def samples(self) -> bool:
@@ -222,14 +238,31 @@ ALGORITHMS["me_es"] = Algorithm(
     flags=("es_samples", "es_sigma"), es_steps=True)
 
 
+# The learning rows (dqd-rl's), with a TD3 learner (td3.py; JAX: requirements-learning.txt) whose
+# greedy actor is flown beside each batch. PGA-ME: iso+line variation (--sigma0 as iso_sigma,
+# --line_sigma; dqd-rl: 0.005 and 0.05) and policy-gradient variation, half each (pga_me.py), 300
+# critic steps an iteration. CMA-MEGA (TD3, ES): dqd-rl's CMA-MEGA (ES) whose objective gradient is
+# the critic's (600 critic steps: its batches are twice PGA-ME's), the measures' still ES's.
+ALGORITHMS["pga_me"] = Algorithm(
+    "PGA-ME (TD3 policy gradients)",
+    (Emitters(PGAMEEmitter, kwargs=lambda config: {"iso_sigma": config.sigma0,
+                                                   "line_sigma": config.line_sigma}),),
+    flags=("line_sigma", "buffer_size"), learns=Learns(critic_steps=300))
+ALGORITHMS["cma_mega_td3_es"] = dataclasses.replace(
+    ALGORITHMS["cma_mega_es"], summary="CMA-MEGA (TD3 objective gradient, ES measure gradients)",
+    flags=("es_samples", "es_sigma", "buffer_size"), learns=Learns(critic_steps=600, objective_gradient=True))
+
+
 def evaluations_per_iteration(config: Any) -> int:
     """The solutions an iteration flies: every emitter's batch, for a DQD row each emitter's point
     and its gradient samples too, and for ME-ES each emitter's samples and offspring (what
-    metrics.json's `evaluations` counts; ME-ES's first iteration flies x0 alone)."""
+    metrics.json's `evaluations` counts; ME-ES's first iteration flies x0 alone), and a learning
+    row's greedy actor."""
     row, emitters = ALGORITHMS[config.algorithm], config.n_emitters
     if row.es_steps:
         return emitters * (1 + config.es_samples)
-    return emitters * config.batch_size + (emitters * (1 + config.es_samples) if row.dqd else 0)
+    return (emitters * config.batch_size + (emitters * (1 + config.es_samples) if row.dqd else 0)
+            + (row.learns is not None))
 
 
 # Bytes of memory an emitter's evolution strategy holds at its peak, as a function of the
@@ -244,12 +277,22 @@ ES_BYTES: dict[str, Callable[[int], float]] = {"cma_es": lambda n: 8 * 7.2 * n *
 
 def memory_needed(config: Any, solution_dim: int) -> float:
     """Bytes the driver holds for a run: each emitter's evolution strategy (ES_BYTES; the other
-    emitters keep a batch) and each archive's solutions (its cells, at most, times the weights)."""
+    emitters keep a batch), each archive's solutions (its cells, at most, times the weights) and a
+    learning row's replay buffer (twice: a checkpoint copies it)."""
     row = ALGORITHMS[config.algorithm]
     emitters = sum(ES_BYTES[group.es](solution_dim) if group.es else 8.0 * config.batch_size * solution_dim
                    for group in row.emitters) * config.n_emitters
     cells = config.grid ** len(config.measures) if config.archive == "grid" else config.cells
-    return emitters + 8.0 * cells * solution_dim * (1 + row.result_archive)
+    return emitters + 8.0 * cells * solution_dim * (1 + row.result_archive) + buffer_bytes(config) * 2
+
+
+def buffer_bytes(config: Any) -> float:
+    """A learning row's replay buffer when full: --buffer_size float32 transition rows (its
+    observation twice, the action, the reward and the end); 0 for the other rows."""
+    if ALGORITHMS[config.algorithm].learns is None:
+        return 0.0
+    actions, observations = task_of(config).shape
+    return 4.0 * config.buffer_size * transition_width(observations, actions)
 
 
 def task_of(config: Any) -> Environment:

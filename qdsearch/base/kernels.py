@@ -49,6 +49,10 @@ def settings() -> dict[str, tuple[str, str]]:
         "MPLBACKEND": ("Agg", "matplotlib"),
         **{name: (value, "numpy") for name, value in avx2_kernels().items()},
     }
+    # The learning rows' JAX (optional) compiles for the CPU it finds: held to AVX2 as numpy is,
+    # which on an AVX-512 machine gives the same bits as its own choice (docs/learning.md).
+    if avx2_kernels():
+        held["XLA_FLAGS"] = ("--xla_cpu_max_isa=AVX2", "jax")
     # MuJoCo renders videos headless through EGL (Debian's libegl1 and libegl-mesa0: Mesa's
     # software renderer on a machine without a GPU), where the machine has it; MUJOCO_GL=osmesa
     # picks libosmesa6. (MuJoCo loads the renderer MUJOCO_GL names when it is imported, so one
@@ -60,7 +64,8 @@ def settings() -> dict[str, tuple[str, str]]:
 
 def hold_kernels() -> list[str]:
     """Set what the command line's searches run with, where the user has not set it: numba off,
-    x86-64 CPUs held to AVX2's kernels, matplotlib drawing to files, MuJoCo rendering headless.
+    x86-64 CPUs held to AVX2's kernels (numpy's, JAX's), matplotlib drawing to files, MuJoCo
+    rendering headless.
     Returns the libraries already loaded whose settings come too late in this process (call it
     first, before numpy, in a fresh kernel); its children (Dask's local workers) inherit the rest."""
     late = []

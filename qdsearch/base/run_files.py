@@ -400,11 +400,15 @@ def console_log() -> logging.Logger:
 
 
 def library_versions() -> dict[str, str]:
-    from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
 
     packages = ["ribs", "gymnasium", "box2d", "dask", "distributed", "numpy"]
+    try:  # the learning rows' library, where installed (requirements-learning.txt)
+        learning = {"jax": version("jax")}
+    except PackageNotFoundError:
+        learning = {}
     return {"python": platform.python_version(), **{name: version(name) for name in packages},
-            "kernels": cpu_kernels()}
+            **learning, "kernels": cpu_kernels()}
 
 
 def cpu_kernels() -> str:

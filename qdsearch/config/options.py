@@ -6,12 +6,14 @@ Map:
 - `check_sizes` (`solutions_per_iteration`) and `check_rollouts` (the sizes flags make together);
 - `checked` (a value through its flag's check), `with_task` (a config's measures, checked
   against its task, and its archive's cells), `with_offset`, `legacy_offset`, `with_policy`,
-  `for_policy` (less what its policy ignores), `resumed_budget`, `with_budget`, `check_memory`;
+  `for_policy` (less what its policy ignores), `resumed_budget`, `with_budget`, `check_memory`,
+  `check_learning` (a learning row's task and library);
   `search_defaults` and `before_the_flags` (what runs recorded before a flag existed ran with).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from typing import Any
 
@@ -237,9 +239,26 @@ def check_memory(config: dict[str, Any]) -> None:
                      f"{weights:,} weights ({config['n_emitters']} emitters), more than "
                      f"{MEMORY_SHARE:.0%} of this machine's {room / MEMORY_SHARE / 1e9:.1f} GB; rows "
                      f"that fit: {', '.join(fits) or 'none'} (or fewer emitters, a smaller "
-                     f"{named('hidden')})")
+                     f"{named('hidden')} or {named('buffer_size')})")
 
 
+def check_learning(config: dict[str, Any]) -> None:
+    """A learning row (one with a TD3 critic: ALGORITHMS' `learns`) needs a task whose actions are
+    a box (the critic takes the action as an input, the actor's gradient goes through it) and the
+    optional JAX (requirements-learning.txt): refused before anything is written, naming either."""
+    if ALGORITHMS[config["algorithm"]].learns is None:
+        return
+    if not ENVIRONMENTS[config["env"]].continuous:
+        able = [name for name, task in ENVIRONMENTS.items() if task.continuous]
+        raise UsageError(f"{named('algorithm')} {config['algorithm']} learns a critic of continuous actions; "
+                         f"{named('env')} {config['env']} has a choice of actions. Tasks it can learn: "
+                         f"{', '.join(able)}")
+    if importlib.util.find_spec(LEARNING_LIBRARY) is None:
+        raise UsageError(f"{named('algorithm')} {config['algorithm']} learns with JAX, which is not "
+                         "installed: pip install -r requirements-learning.txt")
+
+
+LEARNING_LIBRARY = "jax"  # what the learning rows' td3.py imports (optional)
 MEMORY_SHARE = 0.5  # of the machine's memory a run's driver may plan to hold
 
 

@@ -35,6 +35,7 @@ from qdsearch.base.run_files import read_regular, read_run_json, write_json
 from qdsearch.base.signing import read_signed_pickle
 from qdsearch.config.options import (
     before_the_flags,
+    check_learning,
     check_memory,
     check_sizes,
     legacy_offset,
@@ -283,6 +284,7 @@ def search_config(flags: dict[str, Any], given: Collection[str] = (), path: Path
     config = check_run_config({name: value if value is None or SEARCH_FLAGS[name].check else str(value)
                                for name, value in flags.items()})
     check_memory(config.to_json())  # after the sizes' own bounds (check_run_config's)
+    check_learning(config.to_json())
     return config
 
 

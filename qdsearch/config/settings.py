@@ -75,6 +75,7 @@ DEFAULT_GRID, DEFAULT_CVT_CELLS = 50, 1024  # the tutorial's 50 x 50; QDax's 1,0
 MAX_ITERATIONS = 1_000_000  # the checkpoint keeps a row of metrics (~1 KB in memory) per iteration
 MAX_EMITTERS = 10_000  # each keeps its own CMA-ES state (a weights x weights covariance)
 MAX_SOLUTIONS = 100_000  # asked per iteration (n_emitters * batch_size): 173 MB of 216 weights
+MAX_BUFFER = 100_000_000  # transitions a learning row's replay buffer holds: 10.8 GB of Hopper's
 MAX_ROLLOUTS = 10_000_000  # solutions x terrains flown in one batch: ~32 bytes of results each
 MAX_WORKERS = 1_024  # worker processes of a local cluster (and what memory holds: check_local_memory)
 # A step size (--sigma0, --line_sigma) moves weights by that many times the policy's starting
@@ -419,6 +420,15 @@ class AlgorithmSettings:
         number_up_to(MAX_STEP),
         sweep=True,
         label=19,
+    )
+    buffer_size: int = flag(
+        1_000_000,
+        "The learning rows (pga_me, cma_mega_td3_es): the TD3 replay buffer's "
+        "transitions, the oldest dropped first (dqd-rl's 1,000,000; a checkpoint "
+        f"holds them all: docs/learning.md; at most {MAX_BUFFER:,}).",
+        whole_number_up_to(MAX_BUFFER),
+        sweep=True,
+        label=22,
     )
 
 

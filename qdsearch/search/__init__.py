@@ -6,6 +6,8 @@ Map, imports going down the list only:
 - cluster: the Dask cluster, found, checked and joined with bounded waits, or started locally;
   the package shipped to workers that lack it;
 - engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
+- learning: a learning row's TD3 learner in its run: the greedy actor, the critic's steps while a
+  batch flies, the transitions into the buffer once an iteration is told;
 - loop: the one run loop (`Run`, `Driver`);
 - run: `search` and `resume` of a run folder;
 - parts: an experiment split into parts, each its own process: the plan written once, a state

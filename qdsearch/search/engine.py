@@ -2,11 +2,12 @@
 
 Map:
 - on the workers: `worker_env` (one env per task kind, reused), `fly_chunk` (a `Chunk`: one
-  task's (solution, reset seed) rollouts, and what they fly as);
+  task's (solution, reset seed) rollouts, and what they fly as; a learning row's transitions);
 - in the driver: `submit_flights` (the chunks, as many as `chunk_count` says from
   `chunks_per_worker`, MIN_CHUNK and MAX_CHUNK, the rollouts dealt out to them by
   `chunk_pairs`; batches flown first come, first served: FIFO_TIMEOUT), `per_terrain` and
-  `averaged` (results back in solution order, averaged over terrains), `gather_with_progress`,
+  `averaged` (results back in solution order, averaged over terrains; `in_pair_order`, a
+  learning row's transitions so), `gather_with_progress`,
   and `evaluate_batch` (a run's batch, end to end);
 - `ClusterShare`: the cluster's worker threads (asked every few seconds), which with the
   driver's runs in flight size a batch's chunks.
@@ -25,6 +26,7 @@ import numpy as np
 from qdsearch.base.stopping import STOP
 from qdsearch.tasks import TASKS_OWN, Episode, episode_of, make_env, reset_seeds, rollout
 from qdsearch.tasks.policies import LINEAR, Policy
+from qdsearch.tasks.transitions import Recorder
 
 _WORKER_ENVS: dict[tuple[str, bool, Episode, int], gym.Env] = {}  # per worker thread, reused across tasks
 
@@ -53,18 +55,26 @@ class Chunk:
     policy: Policy = LINEAR
     episode: Episode = TASKS_OWN
     fast_env: bool = True
+    transitions: bool = False  # a learning row's: each rollout's transitions come back too
 
 
-def fly_chunk(chunk: Chunk) -> np.ndarray:
-    """Runs on a worker: the chunk's rollouts, rows of (objective, *measures).
+def fly_chunk(chunk: Chunk) -> np.ndarray | tuple[np.ndarray, list[np.ndarray]]:
+    """Runs on a worker: the chunk's rollouts, rows of (objective, *measures); with
+    `chunk.transitions`, also each rollout's transitions (tasks/transitions.py), in order.
 
     A chunk of rollouts per task (not one task per rollout) keeps the scheduler's per-task cost
     small next to the rollouts, and the environment is kept between tasks (worker_env).
     """
     env = worker_env(chunk.env_name, chunk.fast_env, chunk.episode)
-    rows = [rollout(solution, int(seed), env, chunk.measures, env_name=chunk.env_name, policy=chunk.policy)
-            for solution, seed in zip(chunk.solutions, chunk.env_seeds)]
-    return np.array(rows).reshape(-1, 1 + len(chunk.measures))
+    recorder = Recorder(env) if chunk.transitions else None
+    rows, transitions = [], []
+    for solution, seed in zip(chunk.solutions, chunk.env_seeds):
+        rows.append(rollout(solution, int(seed), recorder or env, chunk.measures, env_name=chunk.env_name,
+                            policy=chunk.policy))
+        if recorder is not None:
+            transitions.append(recorder.take())
+    rows = np.array(rows).reshape(-1, 1 + len(chunk.measures))
+    return (rows, transitions) if chunk.transitions else rows
 
 
 # Two chunks per worker; three where several runs in flight each have two workers or more: it paid
@@ -102,7 +112,8 @@ def chunk_count(pairs: int, workers: int, sharing: int = 1, per_worker: int | No
 
 def submit_flights(client, solutions: np.ndarray, env_seeds: list[int] | np.ndarray,
                    measures: tuple[str, ...], fast_env: bool, sharing: int = 1, threads: int | None = None, *,
-                   env_name: str, policy: Policy = LINEAR, episode: Episode = TASKS_OWN) -> list:
+                   env_name: str, policy: Policy = LINEAR, episode: Episode = TASKS_OWN,
+                   transitions: bool = False) -> list:
     """Send every solution to be flown on every terrain; the futures of the chunks, in order.
     `env_seeds`: the terrains every solution flies on, or a row of its own per solution (the
     reset seeds of a --reset each run: tasks.reset_seeds).
@@ -114,6 +125,7 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int] | np.ndar
     cost the scheduler less (`chunk_count`). The chunks go in one message (client.map), ranked after every
     batch sent before them (FIFO_TIMEOUT); tasks of a dead worker are retried. `threads`, the
     cluster's worker threads if the caller knows them, saves asking the scheduler (a round trip).
+    With `transitions`, each chunk's result also holds its rollouts' transitions (fly_chunk).
     """
     workers = max(1, threads if threads is not None else sum(client.nthreads().values()))
     terrains = np.asarray(env_seeds, dtype=np.int64)
@@ -121,7 +133,7 @@ def submit_flights(client, solutions: np.ndarray, env_seeds: list[int] | np.ndar
     pairs, per_solution = len(seeds), terrains.shape[-1]
     chunks = chunk_pairs(pairs, chunk_count(pairs, workers, sharing))
     work = [Chunk(solutions[dealt // per_solution], seeds[dealt], tuple(measures), env_name, policy, episode,
-                  fast_env) for dealt in chunks]
+                  fast_env, transitions) for dealt in chunks]
     return client.map(fly_chunk, work, pure=False, retries=3, fifo_timeout=FIFO_TIMEOUT)
 
 
@@ -144,6 +156,17 @@ def per_terrain(chunk_results: list[np.ndarray], env_seeds: list[int] | np.ndarr
     for chunk, chunk_rows in zip(chunk_pairs(pairs, len(chunk_results)), chunk_results):
         rows[chunk] = chunk_rows
     return rows.reshape(-1, np.shape(env_seeds)[-1], rows.shape[1])
+
+
+def in_pair_order(per_chunk: list[list[np.ndarray]]) -> list[np.ndarray]:
+    """The chunks' per-rollout items (a learning row's transitions) back in pair order, as
+    per_terrain puts their rows: the same whatever the number of chunks, so of workers."""
+    pairs = sum(len(items) for items in per_chunk)
+    ordered: list = [None] * pairs
+    for chunk, items in zip(chunk_pairs(pairs, len(per_chunk)), per_chunk):
+        for pair, item in zip(chunk, items):
+            ordered[pair] = item
+    return ordered
 
 
 def averaged(flights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

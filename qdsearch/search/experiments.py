@@ -63,6 +63,7 @@ from qdsearch.config.command_settings import (
     resumed_cluster,
 )
 from qdsearch.config.options import (
+    check_learning,
     check_memory,
     check_sizes,
     checked,
@@ -270,6 +271,7 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
         config = with_task(for_policy({**common, **dict(zip(axes, setting))}))
         check_sizes(config)
         check_memory(config)
+        check_learning(config)
     refuse_unused_row_flags(axes["algorithm"],  # given here: flags the user set
                             list(search_flags) if own_flags is None else own_flags,
                             axes.get("policy", [common["policy"]]))

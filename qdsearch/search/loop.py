@@ -9,9 +9,10 @@ signals ignored (saving.py's `Savers`), which only the main thread may set.
 
 Map:
 - `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
-  chunk back), `tell` (ME-ES's samples: `chains_networks`, `es_steps`, their collected episodes
-  flown again here: `observations`), the checkpoint (built and written here only, signed with the user's key:
-  signing.py) and `save` (its folder's files: saving.py's `save_outputs`);
+  chunk back), `tell` (a DQD row's gradients: `tell_gradients`; ME-ES's samples:
+  `chains_networks`, `es_steps`, their collected episodes flown again here: `observations`; a
+  learning row's learner: learning.py), the checkpoint (built and written here only, signed
+  with the user's key: signing.py) and `save` (its folder's files: saving.py's `save_outputs`);
 - `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
   goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
   next batch or finishes. Its subclasses say how runs are opened and recorded (experiments.py's
@@ -43,6 +44,7 @@ from qdsearch.base.stopping import STOP
 from qdsearch.config.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.search.cluster import SchedulerLost, shares_this_machine
 from qdsearch.search.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
+from qdsearch.search.learning import Learning
 from qdsearch.store.metrics import describe_progress, iteration_metrics
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
@@ -63,7 +65,7 @@ class Run:
     """
 
     def __init__(self, run_dir: Path, config: RunConfig, scheduler, metrics: list[dict],
-                 log: logging.Logger) -> None:
+                 log: logging.Logger, learned: dict | None = None) -> None:
         self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
         self.name, self.log = run_dir.name, log
         self.snapshot = compact_pickle.dumps(scheduler)
@@ -80,6 +82,8 @@ class Run:
         self.gradients: np.ndarray | None = None  # a DQD row's sample draws, while its gradients fly
         self.sampled = 0  # solutions flown for this iteration's gradients (told: its branches fly)
         self.flown: np.ndarray | None = None  # ME-ES: the networks its samples flew
+        self.points: np.ndarray | None = None  # a DQD row's points, while their gradients fly
+        self.learning = Learning.of(config, scheduler, learned)  # a learning row's (learning.py)
 
     @classmethod
     def start(cls, run_dir: Path, config: RunConfig, client, log: logging.Logger,
@@ -109,7 +113,8 @@ class Run:
 
     @classmethod
     def from_checkpoint(cls, run_dir: Path, checkpoint: dict, log: logging.Logger) -> Run:
-        run = cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"], log)
+        run = cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"], log,
+                  checkpoint.get("learning"))
         if not (run_dir / "centroids.npy").exists():  # deleted: resume's check refused an edited one
             run.write_centroids()
         return run
@@ -142,10 +147,12 @@ class Run:
                                        self.config.es_samples, points.shape[1])
                 batch = sample_points(points, self.gradients, self.config.es_sigma)
                 if row.dqd:
+                    self.points = points
                     return batch
                 self.flown = self.chains_networks(batch[len(points):])  # ME-ES flies no point
                 return self.flown
-        return self.scheduler.ask()
+        batch = self.scheduler.ask()
+        return batch if self.learning is None else self.learning.with_greedy(batch)
 
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
         """Ask the next batch and send it to the cluster; the futures of its chunks, in order."""
@@ -154,8 +161,11 @@ class Run:
         self.seeds = reset_seeds(solutions, config)
         futures = submit_flights(client, solutions, self.seeds, config.measures,
                                  config.fast_env, sharing=sharing, threads=threads,
-                                 env_name=config.env, policy=self.policy, episode=self.episode)
+                                 env_name=config.env, policy=self.policy, episode=self.episode,
+                                 transitions=self.learning is not None)
         self.chunks, self.waiting = [None] * len(futures), len(futures)
+        if self.learning is not None and self.gradients is None:  # the iteration's last batch
+            self.learning.train()  # while it flies
         return futures
 
     def take(self, position: int, result: Any) -> bool:
@@ -171,16 +181,27 @@ class Run:
         chunks, self.chunks = self.chunks, []
         if failed := next((chunk for chunk in chunks if isinstance(chunk, BaseException)), None):
             raise failed
+        if self.learning is not None:
+            chunks = self.learning.collect(chunks)
         objectives, measures = averaged(per_terrain(chunks, self.seeds))
         if self.gradients is not None:
             if ALGORITHMS[self.config.algorithm].dqd:
-                flown = np.column_stack([objectives, measures])
-                self.scheduler.tell_dqd(*estimate(flown, self.gradients, self.config.es_sigma))
+                self.tell_gradients(objectives, measures)
             else:  # ME-ES: each chain's samples, in its emitter's order
                 self.es_steps(objectives, measures)
             self.gradients, self.sampled = None, len(objectives)
             return None
         return self.tell(objectives, measures)
+
+    def tell_gradients(self, objectives: np.ndarray, measures: np.ndarray) -> None:
+        """A DQD row's points and their gradients, estimated from the samples (gradients.py); a
+        learning row's objective gradient is its critic's (learning.py)."""
+        flown = np.column_stack([objectives, measures])
+        values, points_measures, jacobians = estimate(flown, self.gradients, self.config.es_sigma)
+        if self.learning is not None and self.learning.learns.objective_gradient:
+            jacobians[:, 0] = self.learning.objective_gradients(self.points)
+        self.scheduler.tell_dqd(values, points_measures, jacobians)
+        self.points = None
 
     def chains_networks(self, samples: np.ndarray) -> np.ndarray:
         """ME-ES: each chain's samples (in its emitter's order) as the networks its normaliser
@@ -214,8 +235,14 @@ class Run:
 
     def tell(self, objectives: np.ndarray, measures: np.ndarray) -> dict:
         """Record the evaluated batch; returns the new row of metrics, whose evaluations count
-        the iteration's every solution flown (a DQD row's gradient samples too)."""
-        self.scheduler.tell(objectives, measures)
+        the iteration's every solution flown (a DQD row's gradient samples too, a learning row's
+        greedy actor, inserted first: learning.py)."""
+        if self.learning is not None:
+            self.learning.insert_greedy(self.scheduler, objectives[-1], measures[-1])
+            self.scheduler.tell(objectives[:-1], measures[:-1])
+            self.learning.commit()
+        else:
+            self.scheduler.tell(objectives, measures)
         self.snapshot = compact_pickle.dumps(self.scheduler)
         last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
         spent, self.sampled = len(objectives) + self.sampled, 0
@@ -233,7 +260,8 @@ class Run:
         """Everything needed to continue the run, as of the last completed iteration."""
         return {"format": CHECKPOINT_FORMAT, "scheduler": pickle.loads(self.snapshot),
                 "metrics": list(self.metrics), "iteration": self.iteration,
-                "config": self.config.to_json()}
+                "config": self.config.to_json(),
+                **({} if self.learning is None else {"learning": self.learning.checkpoint()})}
 
     def save_checkpoint(self, force: bool = False) -> None:
         """Write the checkpoint if iterations were completed since the last save (after the save

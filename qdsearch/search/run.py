@@ -30,7 +30,7 @@ from qdsearch.base.run_files import (
 from qdsearch.base.signing import adopt, read_signed_pickle
 from qdsearch.base.stopping import Stopped
 from qdsearch.config.command_settings import ResumeSettings, resumed_cluster
-from qdsearch.config.options import checked, resumed_budget
+from qdsearch.config.options import check_learning, checked, resumed_budget
 from qdsearch.config.run_config import RunConfig, load_archive, load_run_state, write_config
 from qdsearch.config.settings import ClusterSettings
 from qdsearch.search.cluster import SchedulerLost, dask_client, scheduler_of
@@ -62,6 +62,7 @@ def resume_run(path: Path, budget: ResumeSettings, cluster: ClusterSettings) -> 
     workers, trust = budget.workers, budget.trust
     found, _ = load_run_state(path, trust)  # refuse a bad folder, or budget, before anything is
     resumed_budget(found.to_json(), budget.iterations, budget.evaluations)  # written in it
+    check_learning(found.to_json())
     scheduler_address = scheduler_of(resumed_cluster(budget, cluster))
     with folder_lock(path):
         if trust:

@@ -8,7 +8,8 @@ The layer's modules, imports going down the list only (this registry last):
   `require_drawing`;
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
 - lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
-  each): its rows, its episode, how it is drawn.
+  each): its rows, its episode, how it is drawn;
+- transitions: an episode's steps kept as rows, for the learning rows' replay buffer.
 
 A family lives in a module of its own (lander.py, walker.py, locomotion.py; family.py says what
 one declares). To add one, write its module and name it in FAMILY_MODULES: its families, tasks
