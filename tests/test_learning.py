@@ -379,3 +379,43 @@ def test_without_jax_a_learning_row_is_one_line_and_its_runs_still_read(tmp_path
     assert (run_dir / "elites.csv").exists()
     resumed = without_jax("resume", run_dir, "--iterations", 3, cwd=tmp_path)
     assert_one_line_error(resumed, "learns with JAX, which is not installed")
+
+
+@pytest.mark.slow  # a tracked search, its video, its elites flown again and its explorer page
+def test_every_results_command_reads_a_learning_run(tmp_path, dask_cluster):
+    """A PGA-ME Hopper run tracked in TensorBoard (read back by its own reader); video, elites,
+    evaluate and explore on it: each elite flown again scores what the archive holds."""
+    import csv
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from qdsearch.analysis import results
+    from util import page_data, saved_archive
+
+    run_dir = tmp_path / "run"
+    commands.search(**tiny_flags(dask_cluster, **LEARNING, algorithm="pga_me", track="tensorboard"),
+                    outdir=str(run_dir))
+    events = EventAccumulator(str(run_dir / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    assert [event.value for event in events.Scalars("qd/qd_score")] == pytest.approx(
+        [row["qd_score"] for row in run_metrics(run_dir)], rel=1e-6)
+    best = saved_archive(run_dir).best_elite
+    commands.video(str(run_dir), best=True)
+    with open(run_dir / "videos" / "index.csv") as file:
+        [row] = list(csv.DictReader(file))
+    assert float(row["objective"]) == best["objective"] and row["reproduced"] == "True"
+    commands.elites(str(run_dir), top=3)
+    with open(run_dir / "elites.csv") as file:
+        assert float(next(csv.DictReader(file))["objective"]) == best["objective"]
+    address = dask_cluster.scheduler_address
+    commands.evaluate(str(run_dir), env_seeds="3", top=2, scheduler_address=address)
+    table = __import__("pandas").read_csv(run_dir / "robustness.csv")
+    elites = results.elite_rows(results.load_run(run_dir)[0])
+    solutions = dict(zip(elites["index"], elites["solution"]))
+    policy, name = Policy("mlp", (4,)), "Hopper-v5"
+    for entry in table.to_dict("records"):
+        flown = rollout(solutions[entry["cell_index"]], 3, make_env(env_name=name, episode=Episode(20)),
+                        env_name=name, policy=policy)
+        assert entry["objective_seed3"] == flown[0]
+    commands.explore(str(run_dir), scheduler_address=address)
+    assert len(page_data(run_dir)["elites"]) == len(saved_archive(run_dir))

@@ -41,7 +41,8 @@ The model (every server serves one job at a time, first come first served):
   (a run's first batch: those its driver has opened so far, and the other parts');
 - a run's iteration is one batch, or several flown one after the other (`batch` a list: a DQD
   row's point and samples, then its branches; ME-ES's samples, then its offspring), each told
-  before the next is sent, each a turn of `driver_iteration_s`;
+  before the next is sent, each a turn of `driver_iteration_s`; a learning row's driver then
+  spends `learn_s` (its critic's steps) once an iteration's last batch is sent, while it flies;
 - with `log_every`, a run saves after every log_every-th iteration (and its last): `save_s` of its
   driver's time, booked after the next batch is sent (the saver thread takes the driver's GIL);
   with `draw_s`, its CSV and pictures are a task on the cluster of that many seconds (a design
@@ -84,6 +85,9 @@ class Costs:
     """Service times, in seconds (measured: docs/performance.md)."""
 
     driver_iteration_s: float = 0.010
+    # the driver's work just after it sends an iteration's last batch, while that batch flies (a
+    # learning row's critic steps: search/learning.py); its next turn waits for it
+    learn_s: float = 0.0
     client_task_s: float = 0.0004
     scheduler_task_s: float = 0.0005
     worker_task_s: float = 0.0007
@@ -412,6 +416,9 @@ def simulate(workload: Workload, workers: int, costs: Costs, parts: int = 1, sch
             streams[run % parts].depart(t) + c.hop_s, c.graph_intake(len(tasks)),
             lambda t2: taken_in(batch, sched, tasks, t2), wall=c.intake_s is not None))
         # (the last batch's last release goes with it)
+        per_iteration = len(workload.batch) if isinstance(workload.batch, tuple) else 1
+        if c.learn_s and (k + 1) % per_iteration == 0:
+            drivers[run % parts].serve(sent, c.learn_s, lambda t: None, wall=c.driver_wall)
 
     def taken_in(batch: dict, sched: int, tasks: list[dict], now: float) -> None:
         note(batch, "to_scheduler", now - batch["sent"])

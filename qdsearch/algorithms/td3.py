@@ -81,7 +81,10 @@ class ReplayBuffer:
         added at once land where added one by one would)."""
         count = len(rows)
         kept = np.asarray(rows, dtype=np.float32)[-self.capacity:]  # the others would be overwritten
-        self.rows[(self.next + np.arange(count - len(kept), count)) % self.capacity] = kept
+        start = (self.next + count - len(kept)) % self.capacity
+        fits = min(len(kept), self.capacity - start)  # up to the end, the rest from the start
+        self.rows[start:start + fits] = kept[:fits]
+        self.rows[:len(kept) - fits] = kept[fits:]
         self.next = int((self.next + count) % self.capacity)
         self.size = min(self.capacity, self.size + count)
 
