@@ -63,10 +63,13 @@ def flights(env_name: str, episodes: int, rounds: int) -> dict:
     env = make_env(env_name=env_name, episode=Episode(1000))
     recorder = Recorder(make_env(env_name=env_name, episode=Episode(1000)))
     plain, recorded, steps, rows = [], [], 0, None
+    def fly(seed: int, where) -> float:
+        return timed(lambda: rollout(solution, seed, where, env_name=env_name, policy=POLICY))
+
     for round_ in range(rounds):
         for seed in range(episodes):
-            plain.append(timed(lambda: rollout(solution, seed, env, env_name=env_name, policy=POLICY)))
-            recorded.append(timed(lambda: rollout(solution, seed, recorder, env_name=env_name, policy=POLICY)))
+            plain.append(fly(seed, env))
+            recorded.append(fly(seed, recorder))
             rows = recorder.take()
             steps += len(rows) if round_ == 0 else 0
     per_step = steps / episodes
@@ -95,7 +98,8 @@ def learning(env_name: str, rounds: int, buffer_rows: int) -> dict:
             "pg_variation_49_parents": lambda: learner.improve(parents),
             "objective_gradient_65536_states": lambda: learner.objective_gradients(parents[:1])}
     first = {f"{name}_first_s": timed(run) for name, run in work.items()}  # compiles
-    return {**first, **{f"{name}_s": median([timed(run) for _ in range(rounds)]) for name, run in work.items()}}
+    settled = {f"{name}_s": median([timed(run) for _ in range(rounds)]) for name, run in work.items()}
+    return {**first, **settled}
 
 
 def buffer(env_name: str, rounds: int) -> dict:
@@ -117,7 +121,8 @@ def main(env: str = "HalfCheetah-v5", rounds: int = 3, episodes: int = 4, buffer
     rows = flown.pop("episode_rows")
     results = {"env": env, "policy": "mlp 128,128", "flight": flown, "transfer": transfer(rows, rounds),
                "learning": learning(env, rounds, buffer_rows), "buffer": buffer(env, rounds)}
-    record = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
+    machine = platform.processor() or platform.machine()
+    record = {"date": datetime.date.today().isoformat(), "machine": machine,
               "command": f"python benchmarks/bench_learning.py --env {env} --rounds {rounds}", **results}
     RESULTS.write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(results, indent=1))

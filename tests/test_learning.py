@@ -4,9 +4,7 @@ soft updates, the objective gradient by finite differences), the transitions a r
 records, and real runs: the same on 1 and 2 workers, after kill -9 and resume, with the buffer
 holding exactly the episodes flown; without JAX, one line."""
 
-import os
 import pickle
-import signal
 import subprocess
 import sys
 
@@ -21,14 +19,12 @@ from qdsearch.tasks import ENVIRONMENTS, Episode, make_env, rollout
 from qdsearch.tasks.policies import Policy
 from qdsearch.tasks.transitions import Recorder
 from util import (
+    assert_killed_then_resumed_as_its_twin,
     assert_one_line_error,
-    checkpoint_iteration,
-    launch,
     read_checkpoint,
     run_archive,
     run_metrics,
     tiny_flags,
-    wait_for,
 )
 
 SHAPE = (2, 3)  # (actions, observations) of the hand-made cases
@@ -89,7 +85,7 @@ def test_the_buffer_keeps_the_last_rows_in_order_and_its_state():
     rows = np.arange(7 * 5, dtype=np.float32).reshape(7, 5)
     buffer.add(rows[:3])
     buffer.add(rows[3:])
-    assert buffer.size == 5 and buffer.next == 2
+    assert buffer.size == 5 and buffer.next == 2 and buffer.rows.dtype == np.float32  # half a float64's bytes
     assert np.array_equal(buffer.rows[[2, 3, 4, 0, 1]], rows[2:])  # oldest overwritten first
     again = td3.ReplayBuffer.restore(pickle.loads(pickle.dumps(buffer.state())))
     assert np.array_equal(again.rows, buffer.rows) and (again.next, again.size) == (2, 5)
@@ -223,9 +219,13 @@ def test_pga_me_asks_iso_line_then_pg_children_and_noise_around_x0_at_first():
     archive = GridArchive(solution_dim=NET.size(SHAPE), dims=[4], ranges=[(0, 1)], seed=1)
     x0 = NET.start(SHAPE, 1)
     emitter = PGAMEEmitter(archive, x0=x0, batch_size=5, seed=2, iso_sigma=0.005, line_sigma=0.05)
+    twin, other = (PGAMEEmitter(archive, x0=x0, batch_size=5, seed=seed, iso_sigma=0.005, line_sigma=0.05)
+                   for seed in (2, 3))
     first = emitter.ask()
+    assert np.array_equal(twin.ask(), first) and not np.array_equal(other.ask(), first)  # its seed's
     assert first.shape == (5, len(x0))
-    assert np.abs(first[:3] - x0).max() < 0.005 * 6  # iso+line of x0 alone: x0 plus noise of 0.005
+    assert np.all(emitter.genetic.iso_sigma == 0.005) and np.all(emitter.genetic.line_sigma == 0.05)
+    assert 0.8 < np.std(first[:3] - x0) / 0.005 < 1.2  # iso+line of x0 alone: x0 plus noise of 0.005
     assert 0.8 < np.std(first[3:] - x0) / PG_SIGMA0 < 1.2  # x0 plus noise of 0.02
     one = learner(seed=3)
     fill(one)
@@ -334,16 +334,7 @@ def test_a_learning_run_killed_then_resumed_ends_as_its_uninterrupted_twin(tmp_p
     back from it, the emitters are handed the learner again, and the run ends bit for bit as the
     one that never stopped."""
     flags = {**LEARNING, "algorithm": "pga_me", "iterations": 7, "log_every": 1}
-    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
-    run_dir = tmp_path / "killed"
-    process = launch(**{**tiny_flags(dask_cluster, **flags), "outdir": run_dir})
-    wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "a checkpoint past iteration 3")
-    os.killpg(process.pid, signal.SIGKILL)
-    process.communicate(timeout=60)
-    assert 3 <= checkpoint_iteration(run_dir) < 7
-    commands.resume(str(run_dir), scheduler_address=one_worker_cluster.scheduler_address)
-    assert run_archive(run_dir).equals(run_archive(tmp_path / "twin"))
-    assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
+    assert_killed_then_resumed_as_its_twin(tmp_path, dask_cluster, one_worker_cluster, flags)
 
 
 def test_a_learning_row_needs_continuous_actions(run_cli, tmp_path):
@@ -419,3 +410,84 @@ def test_every_results_command_reads_a_learning_run(tmp_path, dask_cluster):
         assert entry["objective_seed3"] == flown[0]
     commands.explore(str(run_dir), scheduler_address=address)
     assert len(page_data(run_dir)["elites"]) == len(saved_archive(run_dir))
+
+
+def test_chunks_items_come_back_in_pair_order_however_dealt():
+    from qdsearch.search.engine import chunk_pairs
+
+    for pairs in (1, 7, 12):
+        for count in range(1, min(pairs, 5) + 1):
+            dealt = [[f"pair {i}" for i in chunk] for chunk in chunk_pairs(pairs, count)]
+            assert in_pair_order(dealt) == [f"pair {i}" for i in range(pairs)]
+
+
+def hopper_learning_run(algorithm="pga_me"):
+    """A learning row's config and scheduler on Hopper (nothing flown), and its Learning."""
+    from qdsearch.algorithms import build_scheduler
+    from qdsearch.config import options, run_config
+    from qdsearch.search.learning import Learning
+
+    config = run_config.check_run_config(options.with_task(dict(
+        options.search_defaults(), algorithm=algorithm, env="Hopper-v5", policy="mlp", hidden=[4], seed=3,
+        n_emitters=1, batch_size=4, grid=5, buffer_size=50)))
+    scheduler = build_scheduler(config)
+    return config, scheduler, Learning.of(config, scheduler)
+
+
+def test_a_runs_learning_holds_an_iterations_transitions_until_it_is_told():
+    from qdsearch.search.learning import Learning
+
+    """The greedy actor after the batch; the chunks' transitions kept in pair order and added at
+    the commit; the checkpoint is the learner as of the last commit, whatever it learns after."""
+    config, scheduler, learning = hopper_learning_run()
+    assert scheduler.emitters[0].learner is learning.learner  # handed over
+    start = learning.checkpoint()  # iteration 0's: the learner as made, the buffer empty
+    assert start["learner"]["steps"] == 0 and len(start["buffer"]["rows"]) == 0
+    assert np.allclose(start["learner"]["actor"], scheduler.emitters[0].x0, atol=1e-6)
+    assert learning.learns.critic_steps == 300 and not learning.learns.objective_gradient
+    batch = scheduler.ask()
+    flown = learning.with_greedy(batch)
+    assert np.array_equal(flown[:-1], batch) and np.array_equal(flown[-1], learning.learner.greedy())
+    width = learning.learner.buffer.rows.shape[1]
+    episodes = [np.full((3, width), float(i), dtype=np.float32) for i in range(5)]  # 5 rollouts' rows
+    chunks = [(np.array([[float(i)]]), [episodes[i] for i in dealt]) for i, dealt in
+              enumerate([[0, 2, 4], [1, 3]])]
+    rows = learning.collect(chunks)
+    assert [r[0, 0] for r in rows] == [0.0, 1.0] and learning.learner.buffer.size == 0
+    learning.commit()
+    assert np.array_equal(learning.learner.buffer.rows[:15, 0], np.repeat(np.arange(5.0), 3))
+    frozen = learning.checkpoint()
+    learning.train()  # the next iteration's steps, while its batch flies
+    assert learning.learner.steps == 300
+    later = learning.checkpoint()
+    assert later["learner"]["steps"] == frozen["learner"]["steps"] == 0
+    assert np.array_equal(later["learner"]["actor"], frozen["learner"]["actor"])
+    assert len(later["buffer"]["rows"]) == 15
+    learning.collect(chunks)  # the next iteration's, after the first
+    learning.commit()
+    assert learning.learner.buffer.size == 30 and learning.checkpoint()["learner"]["steps"] == 300
+    saved = learning.checkpoint()  # a resume: the learner back from the checkpoint, handed over
+    resumed = Learning.of(config, scheduler, pickle.loads(pickle.dumps(saved)))
+    assert scheduler.emitters[0].learner is resumed.learner is not learning.learner
+    assert np.array_equal(resumed.learner.buffer.rows[:30], learning.learner.buffer.rows[:30])
+    assert resumed.learner.steps == 300
+    assert np.array_equal(resumed.learner.greedy(), learning.learner.greedy())
+    measures = np.array([0.5])
+    learning.insert_greedy(scheduler, 12.5, measures)
+    inserted = scheduler.archive.data()
+    assert np.array_equal(inserted["solution"][0], flown[-1]) and inserted["objective"][0] == 12.5
+
+
+def test_cma_mega_td3_es_takes_the_critics_objective_gradients_and_other_rows_learn_nothing():
+    from qdsearch.search.learning import Learning
+
+    config, scheduler, learning = hopper_learning_run("cma_mega_td3_es")
+    assert learning.learns.objective_gradient and learning.learns.critic_steps == 600
+    fill_hopper = np.random.default_rng(0).normal(size=(64, learning.learner.buffer.rows.shape[1]))
+    learning.learner.buffer.add(fill_hopper)
+    points = scheduler.ask_dqd()
+    assert learning.objective_gradients(points).shape == points.shape
+    plain = config.replace(algorithm="cma_mega_es")
+    from qdsearch.algorithms import build_scheduler
+
+    assert Learning.of(plain, build_scheduler(plain)) is None

@@ -2,8 +2,6 @@
 novelty, the ES gradient and Adam step, the draws of a parent, the schedule of phases; and a
 Hopper MLP run that is the same on 1 and 2 workers."""
 
-import os
-import signal
 
 import numpy as np
 import pytest
@@ -12,7 +10,7 @@ from ribs.schedulers import Scheduler
 
 from qdsearch.algorithms import me_es
 from qdsearch.cli import commands
-from util import checkpoint_iteration, launch, run_archive, run_metrics, tiny_flags, wait_for
+from util import assert_killed_then_resumed_as_its_twin, run_archive, run_metrics, tiny_flags
 
 
 def hand_novelty(point, against, skip_self=False):
@@ -264,16 +262,7 @@ def test_me_es_killed_mid_chain_then_resumed_ends_as_its_uninterrupted_twin(tmp_
     it ends bit for bit as the run that never stopped on two."""
     flags = dict(algorithm="me_es", env="Hopper-v5", policy="mlp", hidden="4", episode_length=20,
                  es_samples=6, n_emitters=2, iterations=14, log_every=1, pictures="false")
-    commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "twin"))
-    run_dir = tmp_path / "killed"
-    process = launch(**{**tiny_flags(dask_cluster, **flags), "outdir": run_dir})
-    wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "a checkpoint past iteration 3")
-    os.killpg(process.pid, signal.SIGKILL)
-    process.communicate(timeout=60)
-    assert 3 <= checkpoint_iteration(run_dir) < 14
-    commands.resume(str(run_dir), scheduler_address=one_worker_cluster.scheduler_address)
-    assert run_archive(run_dir).equals(run_archive(tmp_path / "twin"))
-    assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
+    assert_killed_then_resumed_as_its_twin(tmp_path, dask_cluster, one_worker_cluster, flags)
 
 
 def test_a_folded_network_acts_on_raw_observations_as_its_theta_on_normalised_ones():

@@ -73,7 +73,8 @@ def test_a_head_wins_only_when_it_heads_one_choice(typed, choices, meant):
 
 @pytest.mark.parametrize("typed, choices, meant", [
     # - for _ and any case: the head, the whole name or the tail as if typed with _
-    ("CMA-MAEGA", algorithms.ALGORITHMS, "cma_maega_es"), ("Sep-CMA-MAE", algorithms.ALGORITHMS, "sep_cma_mae"),
+    ("CMA-MAEGA", algorithms.ALGORITHMS, "cma_maega_es"),
+    ("Sep-CMA-MAE", algorithms.ALGORITHMS, "sep_cma_mae"),
     ("hopper-V5", tasks.ENVIRONMENTS, "Hopper-v5"),
     # a tail after any underscore, for a head the user may not know; whole names come first
     ("y_vel", tasks.MEASURES, "impact_y_velocity"), ("Y-VELOCITY", tasks.MEASURES, "impact_y_velocity"),

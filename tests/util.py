@@ -229,6 +229,26 @@ def checkpoint_iteration(run_dir: Path) -> int:
         return -1
 
 
+def assert_killed_then_resumed_as_its_twin(tmp_path: Path, cluster, one_worker, flags: dict) -> None:
+    """A search of `flags` (a tiny run's) killed with kill -9 past its checkpoint of iteration 3,
+    then resumed on `one_worker`'s single worker, ends bit for bit as its twin that never stopped
+    on `cluster`."""
+    import signal
+
+    from qdsearch.cli import commands
+
+    commands.search(**tiny_flags(cluster, **flags), outdir=str(tmp_path / "twin"))
+    run_dir = tmp_path / "killed"
+    process = launch(**{**tiny_flags(cluster, **flags), "outdir": run_dir})
+    wait_for(lambda: checkpoint_iteration(run_dir) >= 3, process, "a checkpoint past iteration 3")
+    os.killpg(process.pid, signal.SIGKILL)
+    process.communicate(timeout=60)
+    assert 3 <= checkpoint_iteration(run_dir) < flags["iterations"]
+    commands.resume(str(run_dir), scheduler_address=one_worker.scheduler_address)
+    assert run_archive(run_dir).equals(run_archive(tmp_path / "twin"))
+    assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
+
+
 def local_cluster(workers: int, host: str = "127.0.0.1", threads: int = 1):
     """A real local cluster of `workers` worker processes of `threads` threads on `host`, with the
     housekeeping a search's own local cluster has (cluster.QUIET_CLUSTER)."""
