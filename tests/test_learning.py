@@ -90,6 +90,7 @@ def test_the_buffer_keeps_the_last_rows_in_order_and_its_state():
     again = td3.ReplayBuffer.restore(pickle.loads(pickle.dumps(buffer.state())))
     assert np.array_equal(again.rows, buffer.rows) and (again.next, again.size) == (2, 5)
     drawn = buffer.sample(np.random.default_rng(0), (40,))
+    assert np.array_equal(drawn, buffer.rows[np.random.default_rng(0).integers(0, 5, 40)])  # uniformly
     assert {tuple(row) for row in drawn} <= {tuple(row) for row in rows[2:]}
     big = td3.ReplayBuffer(3, 1, 1)
     big.add(rows)  # more rows than it holds at once: the last three
