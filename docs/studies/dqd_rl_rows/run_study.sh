@@ -11,8 +11,9 @@ STUDY=docs/studies/dqd_rl_rows
 PLAN=docs/presets/dqd_rl_hopper.toml
 if [ "${1:-}" = "calibrate" ]; then  # seed 101 (no study seed), each row, 4,000 evaluations, timed
   began=$(date +%s)
+  mkdir -p "$OUT"  # its progress lines (which show its scores) to a log: only its time is read
   python lunar_lander.py experiment --plan "$PLAN" --seeds 101 --evaluations 4000 --pictures false \
-    --workers 2 --outdir "$OUT/calibration"
+    --workers 2 --outdir "$OUT/calibration" > "$OUT/calibration.log" 2>&1
   took=$(( $(date +%s) - began ))
   # 5 seeds at B evaluations take ~5 B / 4000 times as long: the most thousands that fit in 2 h
   echo "calibration: $took s; BUDGET=$(( 7200 * 4000 / (5 * took) / 1000 * 1000 ))"
