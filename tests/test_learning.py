@@ -331,13 +331,15 @@ def test_the_buffer_holds_every_step_flown_up_to_its_bound(tmp_path, dask_cluste
     whole_episodes(np.roll(bound["rows"], -bound["next"], axis=0), 20, obs)
 
 
-@pytest.mark.slow  # a Hopper search killed and resumed, and its uninterrupted twin
+@pytest.mark.slow  # a search killed and resumed, and its uninterrupted twin
+@pytest.mark.parametrize("algorithm, env", [("pga_me", "Hopper-v5"), ("cma_mega_td3_es", "HalfCheetah-v5")])
 def test_a_learning_run_killed_then_resumed_ends_as_its_uninterrupted_twin(tmp_path, dask_cluster,
-                                                                          one_worker_cluster):
+                                                                          one_worker_cluster, algorithm, env):
     """kill -9 past a checkpoint: the buffer, the networks, their Adam moments and the draws come
     back from it, the emitters are handed the learner again, and the run ends bit for bit as the
     one that never stopped."""
-    flags = {**LEARNING, "algorithm": "pga_me", "iterations": 7, "log_every": 1}
+    samples = {"es_samples": 4} if "cma" in algorithm else {}
+    flags = {**LEARNING, "env": env, "algorithm": algorithm, **samples, "iterations": 7, "log_every": 1}
     assert_killed_then_resumed_as_its_twin(tmp_path, dask_cluster, one_worker_cluster, flags)
 
 

@@ -121,10 +121,11 @@ def test_exploit_takes_the_best_or_one_of_the_two_best_recent_cells():
     assert me_es.best_recent_or_best(cells[:4], scores[:4], discovered, np.random.default_rng(0)) == 0
 
 
-@pytest.mark.slow  # two small Hopper searches
-def test_me_es_on_hopper_with_an_mlp_is_the_same_on_one_and_two_workers(tmp_path, dask_cluster,
-                                                                        one_worker_cluster):
-    flags = dict(algorithm="me_es", env="Hopper-v5", policy="mlp", hidden="4", episode_length=20,
+@pytest.mark.slow  # two small searches
+@pytest.mark.parametrize("env", ["Hopper-v5", "HalfCheetah-v5"])
+def test_me_es_with_an_mlp_is_the_same_on_one_and_two_workers(tmp_path, dask_cluster, one_worker_cluster,
+                                                              env):
+    flags = dict(algorithm="me_es", env=env, policy="mlp", hidden="4", episode_length=20,
                  es_samples=6, n_emitters=2, iterations=3)
     commands.search(**tiny_flags(dask_cluster, **flags), outdir=str(tmp_path / "two"))
     commands.search(**tiny_flags(one_worker_cluster, **flags), outdir=str(tmp_path / "one"))
