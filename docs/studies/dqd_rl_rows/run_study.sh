@@ -4,7 +4,7 @@
 # below as README.md says), each final archive re-evaluated on 5 new resets (the primary metric's
 # corrected archive), and the comparison against pga_me. Run from the repository's root, with
 # requirements-learning.txt installed; everything goes to outputs/dqd_rl_rows/. An experiment
-# stopped (Ctrl-C, a lost machine) goes on with: python lunar_lander.py experiment resume FOLDER
+# stopped (Ctrl-C, a lost machine) goes on with: python lunar_lander.py resume FOLDER
 set -euo pipefail
 OUT=${OUT:-outputs/dqd_rl_rows}
 STUDY=docs/studies/dqd_rl_rows
