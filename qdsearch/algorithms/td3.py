@@ -104,9 +104,6 @@ class ReplayBuffer:
         buffer.size, buffer.next = len(state["rows"]), state["next"]
         return buffer
 
-    def nbytes(self) -> int:
-        return self.rows.nbytes
-
 
 class Learner:
     """The run's TD3: buffer, twin critic and its target, greedy actor and its target, their Adam
