@@ -217,8 +217,11 @@ def test_every_row_asks_and_tells_on_every_task(env):
     """Each row's objects fit each task: its solution size, measures and archive kind (a learning
     row's, each task of continuous actions, with its learner)."""
     for name in ALGORITHMS:
-        if algorithms.ALGORITHMS[name].learns and not tasks.ENVIRONMENTS[env].continuous:
+        row = algorithms.ALGORITHMS[name]
+        if row.learns and not tasks.ENVIRONMENTS[env].continuous:
             continue  # refused (tests/test_learning.py)
+        if row.es_steps and tasks.ENVIRONMENTS[env].function:
+            continue  # ME-ES on a benchmark function: refused (tests/test_functions.py)
         cells = {"cells": 64} if tasks.ENVIRONMENTS[env].archive == "cvt" else {}  # k-means: quick
         config = run_config.check_run_config(options.with_task(dict(
             options.search_defaults(), algorithm=name, env=env, seed=3, n_emitters=2, batch_size=3, **cells)))

@@ -58,6 +58,7 @@ ROWS = {
     "from_archive": ("elsewhere/archive.npz", {}),
     "track": (TRACKER, {}),
     "fast_env": (False, {}),
+    "dim": (20, {"env": "sphere"}),
 }
 FROM_CONFIG = [flag for flag in settings.SEARCH_FLAGS if flag not in run_config.NOT_FROM_CONFIG]
 SEED = 7  # every file's: a run's seed is in its config

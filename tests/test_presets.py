@@ -186,7 +186,9 @@ def test_each_preset_is_a_plan_of_its_papers_settings(path, run_cli, tmp_path):
     below one iteration, so nothing is flown), and says in its comments what still differs."""
     planned = tomllib.loads(path.read_text())
     assert "What still differs" in path.read_text()
-    assert planned["evaluations"] >= 100_000 and planned["seeds"] == "1-5"
+    # the papers' budgets: 1,000,000 evaluations (QD-RL), 10,000 iterations (pyribs' sphere.py)
+    assert planned.get("evaluations", 0) >= 100_000 or planned.get("iterations", 0) >= 10_000
+    assert planned["seeds"] in ("1-5", "1-20")
     result = run_cli("experiment", "--plan", path, "--evaluations", 1, "--outdir", tmp_path / "exp")
     assert_one_line_error(result, "--evaluations 1 is less than one iteration")
 

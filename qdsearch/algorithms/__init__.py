@@ -29,7 +29,7 @@ import numpy as np
 
 from qdsearch.algorithms.me_es import MEESEmitter
 from qdsearch.algorithms.pga_me import PGAMEEmitter
-from qdsearch.tasks import ENVIRONMENTS, MEASURES, returns_of
+from qdsearch.tasks import ENVIRONMENTS, measure_bounds, returns_of, shape_of
 from qdsearch.tasks.family import Environment
 from qdsearch.tasks.transitions import transition_width
 
@@ -308,9 +308,7 @@ def derive_seeds(seed: int, count: int) -> list[int]:
 def archive_shape(config: Any) -> dict[str, Any]:
     """What every archive of the run shares: the solution size (its policy's weights), the
     measures' ranges, the offset."""
-    task = task_of(config)
-    return dict(solution_dim=config.network.size(task.shape),
-                ranges=[MEASURES[name].range for name in config.measures],
+    return dict(solution_dim=config.network.size(shape_of(config)), ranges=measure_bounds(config),
                 qd_score_offset=returns_of(config).offset)
 
 
@@ -424,7 +422,7 @@ def build_scheduler(config: Any, x0: np.ndarray | None = None):
     else:
         result_archive = make(seed=result_seed)
         archive = row.search_archive(config, result_archive, archive_seed)
-    start = config.network.start(task_of(config).shape, config.seed) if x0 is None else x0
+    start = config.network.start(shape_of(config), config.seed) if x0 is None else x0
     sampled = result_archive if row.emitters_on_result else archive
     seeds = iter(emitter_seeds)
     emitters = [emitter_class(group.kind)(sampled, x0=start, batch_size=config.batch_size,

@@ -19,6 +19,7 @@ Map:
 
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 from typing import Any
@@ -32,14 +33,14 @@ from qdsearch.base.plots import save_heatmap
 from qdsearch.base.run_files import check_writable, console_log, write_csv, write_json, write_pickle
 from qdsearch.config.command_settings import EvaluateSettings
 from qdsearch.config.options import check_rollouts, checked
-from qdsearch.config.run_config import RunConfig
+from qdsearch.config.run_config import RunConfig, upgrade
 from qdsearch.config.settings import ClusterSettings
 from qdsearch.search.cluster import dask_client, scheduler_of
 from qdsearch.search.engine import averaged, gather_with_progress, per_terrain, submit_flights
 from qdsearch.search.experiment_folder import read_experiment
 from qdsearch.store.archive_data import write_archive_data
 from qdsearch.store.metrics import iteration_metrics, load_metrics
-from qdsearch.tasks import MEASURES, episode_of, returns_of
+from qdsearch.tasks import MEASURES, episode_of, evaluate_points, returns_of, scored_here
 
 ROBUSTNESS_SEEDS = "0-19"  # the terrains `evaluate` flies on by default
 DEFAULT_REPEATS = 10  # seeds of a corrected archive (QDax's examples re-evaluate 10 to 100 times)
@@ -59,7 +60,10 @@ def fly_elites(solutions: np.ndarray, seeds: list[int], measures: tuple[str, ...
                cluster: ClusterSettings, client: Any = None) -> np.ndarray:
     """Every solution flown on every seed, on `client` (an experiment's runs share one) or the
     Dask cluster `cluster` names (or a local one): (solutions, seeds, 1 + measures), the
-    objective first."""
+    objective first. A benchmark function's points are scored here, the same on every seed."""
+    if scored_here(config.env):
+        rows = evaluate_points(solutions, measures, env_name=config.env)
+        return np.repeat(rows[:, None, :], len(seeds), axis=1)
     if client is None:
         with dask_client(checked("workers", cluster.workers), scheduler_of(cluster), console_log()) as own:
             return fly_elites(solutions, seeds, measures, config, cluster, own)
@@ -176,12 +180,15 @@ def evaluate(path: Path, settings: EvaluateSettings, cluster: ClusterSettings) -
     experiment folder, every run's, on one cluster."""
     if not (path / "experiment.json").is_file():
         return evaluate_run(path, settings, cluster)
-    runs = [path / entry["name"] for entry in read_experiment(path)["runs"]]
+    entries = read_experiment(path)["runs"]
+    runs = [path / entry["name"] for entry in entries]
     missing = [run.name for run in runs if not (run / "config.json").is_file()]
     if missing:
         raise UsageError(f"{path}: run(s) {', '.join(missing[:5])} not started yet; resume the "
                          f"experiment first (python lunar_lander.py resume {path})")
-    with dask_client(checked("workers", cluster.workers), scheduler_of(cluster), console_log()) as client:
+    local = all(scored_here(upgrade(entry["config"])["env"]) for entry in entries)  # no cluster needed
+    with (contextlib.nullcontext() if local else
+          dask_client(checked("workers", cluster.workers), scheduler_of(cluster), console_log())) as client:
         for run in runs:
             print(f"{run.name}:")
             evaluate_run(run, settings, cluster, client)

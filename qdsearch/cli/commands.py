@@ -59,7 +59,7 @@ def search(config: str | None = None, *, given: frozenset[str] = frozenset(), **
     from qdsearch.search import run
 
     settings = search_config(flags, given, None if config is None else Path(str(config)))
-    print(run.where_to_look(run.search(settings), settings.pictures))
+    print(run.where_to_look(run.search(settings), settings))
 
 
 @takes(RESUME_FLAGS)

@@ -48,6 +48,7 @@ from qdsearch.tasks import (
     check_episode,
     episode_of,
     family_measures,
+    shape_of,
 )
 from qdsearch.tasks.policies import POLICIES
 
@@ -158,7 +159,35 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
                              f"needs at least 2^{len(measures)} = {2 ** len(measures)} cells")
     config = {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
     check_episode(env, episode_of(unchecked(config)))
-    return with_budget(with_policy(config))
+    return with_budget(with_policy(with_dim(config)))
+
+
+# What a benchmark function has no use for: the flags of episodes and of networks.
+EPISODE_FLAGS = ("episode_length", "terminate_when_unhealthy")
+
+
+def with_dim(config: dict[str, Any]) -> dict[str, Any]:
+    """A benchmark function's --dim (its own unless given), and what it can't take refused: an
+    episode's flags, a network, a row that learns from episodes (the learning rows' transitions,
+    ME-ES's observations). --dim is refused for a Gymnasium task, whose size its spaces give."""
+    env, dim, task = config["env"], config.get("dim"), ENVIRONMENTS[config["env"]]
+    if not task.function:
+        if dim is not None:
+            raise UsageError(f"{named('dim')} is for the benchmark functions; {named('env')} {env} takes its "
+                             "size from its spaces")
+        return config
+    if dim is not None and dim < 2:
+        raise UsageError(f"{named('dim')} {dim}: a benchmark function takes 2 coordinates at least")
+    if given := [name for name in EPISODE_FLAGS if config.get(name) is not None]:
+        raise UsageError(f"{named(given[0])}: {named('env')} {env} is a benchmark function, with no episode")
+    if (config.get("policy") or "linear") != "linear":
+        raise UsageError(f"{named('policy')} {config['policy']}: a solution of {named('env')} {env} is its "
+                         "point (the linear policy of one constant input)")
+    row = ALGORITHMS.get(config.get("algorithm") or "")
+    if row is not None and (row.es_steps or row.learns is not None):
+        raise UsageError(f"{named('algorithm')} {config['algorithm']} learns from episodes; {named('env')} "
+                         f"{env} is a benchmark function, with none")
+    return {**config, "dim": dim or task.dim}
 
 
 def with_offset(config: dict[str, Any]) -> dict[str, Any]:
@@ -226,7 +255,7 @@ def check_memory(config: dict[str, Any]) -> None:
     """Refuse, before anything is written, a row whose emitters and archives would not fit in the
     machine's memory with this policy (a full CMA-ES covariance grows as the weights squared:
     ~3.5 GB at Ant-v5's 21,000 weights of a 128x128 network), naming the rows that fit."""
-    weights = unchecked(config).network.size(ENVIRONMENTS[config["env"]].shape)
+    weights = unchecked(config).network.size(shape_of(unchecked(config)))
     room = MEMORY_SHARE * physical_memory()
 
     def needs(algorithm: str) -> float:

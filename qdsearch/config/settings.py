@@ -87,6 +87,7 @@ MAX_LAYERS, MAX_UNITS = 8, 4_096  # hidden layers, and units in each
 MAX_EPISODE = 100_000  # steps in an episode (the tasks' own: 1,000 to 2,000)
 MAX_ES_SAMPLES = 10_000  # gradient samples per emitter and iteration
 MAX_EVALUATIONS = 10**12  # --evaluations: solutions flown in a run
+MAX_DIM = 100_000  # a benchmark function's coordinates (a full CMA-ES covariance: check_memory)
 
 
 def layer_widths(name: str, value: Any) -> list[int]:
@@ -120,7 +121,8 @@ def seed_nouns() -> str:
     """What one --env_seed value is, in each family's words: "the terrain for Lunar Lander,
     BipedalWalker; the reset seed for Hopper, ..." (the search's --help is every task's)."""
     titles: dict[str, list[str]] = {}
-    for family in FAMILIES:
+    scored = {task.family for task in ENVIRONMENTS.values() if task.function}  # no seed: points
+    for family in (family for family in FAMILIES if family not in scored):
         titles.setdefault(family.seed_noun, []).append(family.title)
     return "; ".join(f"the {noun} for {', '.join(titled)}" for noun, titled in titles.items())
 
@@ -188,6 +190,15 @@ class TaskSettings:
         seed_list,
         label=1,
         text=True,
+    )
+    dim: int | None = flag(
+        None,
+        "A benchmark function's dimension (the arm's joints), a point's "
+        f"coordinates, 2 to {MAX_DIM:,}; default: the function's own (sphere, "
+        "rastrigin: 100; arm: 12). Gymnasium tasks take their size from their spaces.",
+        whole_number_up_to(MAX_DIM),
+        sweep=True,
+        label=23,
     )
     fast_env: bool = flag(
         True,

@@ -24,7 +24,16 @@ import gymnasium as gym
 import numpy as np
 
 from qdsearch.base.stopping import STOP
-from qdsearch.tasks import TASKS_OWN, Episode, episode_of, make_env, reset_seeds, rollout
+from qdsearch.tasks import (
+    TASKS_OWN,
+    Episode,
+    episode_of,
+    evaluate_points,
+    make_env,
+    reset_seeds,
+    rollout,
+    scored_here,
+)
 from qdsearch.tasks.policies import LINEAR, Policy
 from qdsearch.tasks.transitions import Recorder
 
@@ -192,8 +201,12 @@ def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarr
     """Objectives and measures of `solutions` in the run's setting, flown on the Dask cluster.
 
     Results come back in the order of the solutions whatever the number of workers, so a fixed
-    seed gives the same archive on 1 or 100 workers.
+    seed gives the same archive on 1 or 100 workers. A benchmark function's points are scored
+    here (the client unused: None).
     """
+    if scored_here(config.env):
+        rows = evaluate_points(solutions, config.measures, env_name=config.env)
+        return rows[:, 0], rows[:, 1:]
     seeds = reset_seeds(solutions, config)
     futures = submit_flights(client, solutions, seeds, config.measures, config.fast_env,
                              env_name=config.env, policy=config.network, episode=episode_of(config))

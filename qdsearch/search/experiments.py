@@ -104,7 +104,7 @@ from qdsearch.search.parts import (
     write_part_state,
 )
 from qdsearch.search.run import resume_run, session, where_to_look
-from qdsearch.tasks import check_spaces
+from qdsearch.tasks import check_spaces, scored_here
 
 # Which settings an experiment passes on to every run (PASSED_ON; it sets the others per run) and
 # which may take a list of values, one more axis of the grid (SWEEPS), is said by their entries in
@@ -318,10 +318,11 @@ def run_experiment(folder: Path, plan: dict, workers: int, scheduler_address: st
                f"({len(plan['runs']) // len(plan['seeds'])} settings x {len(plan['seeds'])} seeds)"
                + ("" if part is None else f"; part {part} of {plan['parts']}: {owned} of them"))
     drawing = any(upgrade(entry["config"])["pictures"] for entry in runs_of_part(plan, part))
+    local = all(scored_here(upgrade(entry["config"])["env"]) for entry in runs_of_part(plan, part))
     stopped = f"every run keeps its last checkpoint; continue with: {again}"
     log_path = where / ("experiment.log" if part is None else "part.log")
     with session(log_path, opening, workers, scheduler_address, lambda flags: stopped + flags, (RunsFailed,),
-                 drawing=drawing) as (client, log):
+                 drawing=drawing, local=local) as (client, log):
         Experiment(folder, plan, client, log, part).drive()
 
 
@@ -474,7 +475,7 @@ def resume(path: Path, budget: ResumeSettings, cluster: ClusterSettings, part: s
         return resume_experiment(path, budget, cluster, split)
     if part is not None:
         raise UsageError(f"{named('part')} is for an experiment folder; {path} is a run")
-    print(where_to_look(path, resume_run(path, budget, cluster).pictures))
+    print(where_to_look(path, resume_run(path, budget, cluster)))
 
 
 def check_split(plan: dict, folder: Path, split: tuple[int, int] | None, iterations: int | None) -> None:

@@ -48,7 +48,7 @@ from qdsearch.search.learning import Learning
 from qdsearch.store.metrics import describe_progress, iteration_metrics
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
-from qdsearch.tasks import episode_of, fly, make_env, reset_seeds, returns_of
+from qdsearch.tasks import episode_of, evaluate_points, fly, make_env, reset_seeds, returns_of, scored_here
 
 
 class Run:
@@ -68,7 +68,13 @@ class Run:
                  log: logging.Logger, learned: dict | None = None) -> None:
         self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
         self.name, self.log = run_dir.name, log
-        self.snapshot = compact_pickle.dumps(scheduler)
+        # A run scored here (a benchmark function) is asked, scored and told in one step, and a
+        # stop is acted on between steps only: its scheduler itself is the last told iteration
+        # whenever a checkpoint is taken (`here`), and pickling it after every tell would cost as
+        # much as pyribs' ask and tell.
+        self.here = scored_here(config.env)
+        self.snapshot = None if self.here else compact_pickle.dumps(scheduler)
+        self.open = False  # a run scored here: asked and not yet told (no checkpoint is taken)
         self.saved = self.iteration
         self.pending: Future | None = None  # a save being written by the saver thread
         self.chunks: list = []  # the batch on the cluster: its chunks' results, in order
@@ -155,10 +161,15 @@ class Run:
         return batch if self.learning is None else self.learning.with_greedy(batch)
 
     def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
-        """Ask the next batch and send it to the cluster; the futures of its chunks, in order."""
+        """Ask the next batch and send it to the cluster; the futures of its chunks, in order. A
+        benchmark function's batch is scored here at once (no futures: the batch is whole)."""
         config = self.config
         solutions = self.ask()
         self.seeds = reset_seeds(solutions, config)
+        if self.here:
+            self.open = True
+            self.chunks, self.waiting = [evaluate_points(solutions, config.measures, env_name=config.env)], 0
+            return []
         futures = submit_flights(client, solutions, self.seeds, config.measures,
                                  config.fast_env, sharing=sharing, threads=threads,
                                  env_name=config.env, policy=self.policy, episode=self.episode,
@@ -243,7 +254,9 @@ class Run:
             self.learning.commit()
         else:
             self.scheduler.tell(objectives, measures)
-        self.snapshot = compact_pickle.dumps(self.scheduler)
+        if not self.here:
+            self.snapshot = compact_pickle.dumps(self.scheduler)
+        self.open = False
         last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
         spent, self.sampled = len(objectives) + self.sampled, 0
         self.metrics.append(iteration_metrics(
@@ -258,7 +271,8 @@ class Run:
 
     def checkpoint(self) -> dict:
         """Everything needed to continue the run, as of the last completed iteration."""
-        return {"format": CHECKPOINT_FORMAT, "scheduler": pickle.loads(self.snapshot),
+        scheduler = compact_pickle.dumps(self.scheduler) if self.here else self.snapshot  # a copy
+        return {"format": CHECKPOINT_FORMAT, "scheduler": pickle.loads(scheduler),
                 "metrics": list(self.metrics), "iteration": self.iteration,
                 "config": self.config.to_json(),
                 **({} if self.learning is None else {"learning": self.learning.checkpoint()})}
@@ -269,7 +283,7 @@ class Run:
         try:
             self.settle()
         finally:
-            if force or self.iteration > self.saved:
+            if (force or self.iteration > self.saved) and not self.open:  # (open: a fault mid-step)
                 write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(self.checkpoint()))
                 self.saved = self.iteration
 
@@ -343,10 +357,12 @@ class Driver:
         # machine's cores with the workers: a saver process would gain nothing (measured on 2
         # cores: docs/performance.md) and cost its fork server's start (its imports: 3.2-4.0 s of
         # CPU here, 2026-11-28): one thread draws.
-        self.savers = Savers(0 if shares_this_machine(client) else min(SAVER_PROCESSES, self.limit))
+        self.savers = Savers(0 if client is None or shares_this_machine(client)
+                             else min(SAVER_PROCESSES, self.limit))
+        self.ready: collections.deque[Run] = collections.deque()  # runs whose batch was scored here
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
-        self.finished = as_completed(with_results=True, raise_errors=False)
+        self.finished = None if client is None else as_completed(with_results=True, raise_errors=False)
         self.share = ClusterShare(client)  # the worker threads and the runs sharing them
 
     # ---- what subclasses say ----
@@ -383,11 +399,16 @@ class Driver:
             self.flush()  # the states of the runs just opened, written once
             self.bar.unpause()  # its rate counts from here: opening runs (a CVT's k-means) is no iteration's
             while self.live:
-                with STOP.interruptible():
-                    future, result = self.next_chunk()
-                run, position = self.owner.pop(future.key, (None, 0))
-                if run is not None and run.name in self.live and run.take(position, result):
-                    self.advance(run)  # else a chunk of a run that has failed meanwhile
+                if self.ready:  # a run scored in this process: its next iteration, a stop acted on first
+                    STOP.check()
+                    if (run := self.ready.popleft()).name in self.live:
+                        self.step_here(run)
+                else:
+                    with STOP.interruptible():
+                        future, result = self.next_chunk()
+                    run, position = self.owner.pop(future.key, (None, 0))
+                    if run is not None and run.name in self.live and run.take(position, result):
+                        self.advance(run)  # else a chunk of a run that has failed meanwhile
                 if not self.live:  # the closing lines go under the finished bar, not redrawn after them
                     self.bar.close()
                 self.reap(wait=False)
@@ -460,12 +481,27 @@ class Driver:
                 self.send(run)
 
     def send(self, run: Run) -> None:
-        """The run's next batch, to the cluster."""
+        """The run's next batch, to the cluster (a run scored here waits its turn: `ready`)."""
+        if run.here:
+            self.ready.append(run)
+            return
         self.check_connected()
         threads, sharing = self.share(len(self.live))
         for position, future in enumerate(run.send(self.client, sharing, threads)):
             self.owner[future.key] = (run, position)
             self.finished.add(future)
+
+    def step_here(self, run: Run) -> None:
+        """A run scored in this process: its next iteration (a DQD row's two batches) asked,
+        scored and told in one step. A fault on the way is its own (`fail`): its checkpoint keeps
+        the last iteration saved."""
+        try:
+            run.send(self.client)
+            while (row := run.tell_batch()) is None:
+                run.send(self.client)
+            self.after_tell(run, row)
+        except Exception as error:
+            self.fail(self.entries[run.name], run, error)
 
     def figures(self, row: dict) -> dict[str, str]:
         """What the progress bar shows beside its count, after a run told `row`: that run's
@@ -480,28 +516,33 @@ class Driver:
             if row is None:  # the iteration's next batch (a DQD row's branched solutions)
                 self.send(run)
                 return
-            run.settle(wait=False)  # a fault of the last save (a full disk) stops the run now
-            self.latest[run.name] = row
-            self.told += 1
-            self.bar.update(1)
-            self.bar.set_postfix(self.figures(row), refresh=False)
-            if row["iteration"] >= run.target:
-                self.finish(run)
-            else:
-                self.send(run)
-                if run.due(row):
-                    run.log.info(describe_progress(row, run.target))
-                    run.save(self.savers)
+            self.after_tell(run, row)
         except Exception as error:  # a task that failed, a write
             self.check_scheduler(error)
             self.fail(self.entries[run.name], run, error)
+
+    def after_tell(self, run: Run, row: dict) -> None:
+        """The run has told an iteration (`row`, its metrics): save it at its log interval, send
+        again or finish."""
+        run.settle(wait=False)  # a fault of the last save (a full disk) stops the run now
+        self.latest[run.name] = row
+        self.told += 1
+        self.bar.update(1)
+        self.bar.set_postfix(self.figures(row), refresh=False)
+        if row["iteration"] >= run.target:
+            self.finish(run)
+        else:
+            self.send(run)
+            if run.due(row):
+                run.log.info(describe_progress(row, run.target))
+                run.save(self.savers)
 
     def check_connected(self) -> None:
         """Stop at once when the client has lost its scheduler. While it tries to reconnect
         ("connecting", for up to HANDSHAKE_TIMEOUT) it has already cancelled every future in
         flight, so no run can go on; a batch sent or a question asked then (the chunks' worker
         count) would wait out the whole reconnection, or the closed client's futures for ever."""
-        if self.client.status != "running":
+        if self.client is not None and self.client.status != "running":
             self.check_scheduler(RunError(f"the Dask client is {self.client.status}"))
 
     def check_scheduler(self, error: BaseException) -> None:
@@ -509,6 +550,8 @@ class Driver:
         keeps its checkpoint) rather than failing its runs one by one."""
         if isinstance(error, SchedulerLost):
             raise error
+        if self.client is None:  # a run scored here has no scheduler to lose
+            return
         status = self.client.status
         if status != "running":  # while it reconnects, every fault is the loss's: one cause said
             why = "its connection closed" if status == "connecting" else clipped(fault_text(error))

@@ -35,20 +35,22 @@ from qdsearch.config.run_config import RunConfig, load_archive, load_run_state, 
 from qdsearch.config.settings import ClusterSettings
 from qdsearch.search.cluster import SchedulerLost, dask_client, scheduler_of
 from qdsearch.search.loop import OneRun, Run
+from qdsearch.tasks import scored_here
 
 
 def search(config: RunConfig) -> Path:
     """Start the run `config` describes (a checked config: search_config) on the cluster its
     cluster settings name, drive it to its budget and return its folder."""
     seed_archive = load_archive(Path(config.from_archive), config) if config.from_archive else None
-    address = scheduler_of(config)
+    address = None if scored_here(config.env) else scheduler_of(config)
     with new_folder(config.outdir, f"seed{config.seed}") as run_dir:
         config = config.replace(
             outdir=str(run_dir), created=datetime.datetime.now().isoformat(), command=sys.argv,
             versions=library_versions(),
             from_archive=str(Path(config.from_archive).resolve()) if config.from_archive else None)
         write_config(run_dir, config)
-        with run_session(run_dir, config.workers, address, config.pictures) as (client, log):
+        local = scored_here(config.env)
+        with run_session(run_dir, config.workers, address, config.pictures, local) as (client, log):
             OneRun(client, log, run_dir, config.iterations,
                    lambda: Run.start(run_dir, config, client, log, seed_archive)).drive()
     return run_dir
@@ -63,7 +65,8 @@ def resume_run(path: Path, budget: ResumeSettings, cluster: ClusterSettings) -> 
     found, _ = load_run_state(path, trust)  # refuse a bad folder, or budget, before anything is
     resumed_budget(found.to_json(), budget.iterations, budget.evaluations)  # written in it
     check_learning(found.to_json())
-    scheduler_address = scheduler_of(resumed_cluster(budget, cluster))
+    local = scored_here(found.env)
+    scheduler_address = None if local else scheduler_of(resumed_cluster(budget, cluster))
     with folder_lock(path):
         if trust:
             adopt(path / "checkpoint.pkl")
@@ -84,7 +87,7 @@ def resume_run(path: Path, budget: ResumeSettings, cluster: ClusterSettings) -> 
             *config.resumed, {"at": datetime.datetime.now().isoformat(), "from_iteration": done,
                               "to_iteration": iterations, "workers": workers}])
         write_config(path, config)
-        with run_session(path, workers, scheduler_address, config.pictures) as (client, log):
+        with run_session(path, workers, scheduler_address, config.pictures, local) as (client, log):
             def make() -> Run:
                 run = (Run.start(path, config, client, log, seed_archive) if checkpoint is None
                        else Run.from_checkpoint(path, {**checkpoint, "config": config}, log))
@@ -94,10 +97,14 @@ def resume_run(path: Path, budget: ResumeSettings, cluster: ClusterSettings) -> 
     return config
 
 
-def where_to_look(run_dir: Path, pictures: bool) -> str:
-    """The end of a finished search: where its results are, and the commands that show them."""
+def where_to_look(run_dir: Path, config: RunConfig) -> str:
+    """The end of a finished search: where its results are, and the commands that show them (a
+    benchmark function's points have no episode to watch: its best elites)."""
     folder = shlex.quote(str(run_dir))
-    drawn = "heatmap.png, progress.png, " if pictures else ""
+    drawn = "heatmap.png, progress.png, " if config.pictures else ""
+    if scored_here(config.env):
+        return (f"Results in {run_dir}: {drawn}metrics.json, archive.csv. Its best points:\n"
+                f"  python lunar_lander.py elites {folder} --top 10")
     return (f"Results in {run_dir}: {drawn}metrics.json, archive.csv. Look at "
             f"them with:\n  python lunar_lander.py explore {folder}      # a page to browse the "
             f"archive and watch any elite\n  python lunar_lander.py video {folder} --best   # an "
@@ -107,9 +114,10 @@ def where_to_look(run_dir: Path, pictures: bool) -> str:
 @contextlib.contextmanager
 def session(log_path: Path, opening: str, workers: int, scheduler_address: str | None,
             state: Callable[[str], str], passing: tuple[type[BaseException], ...] = (), *,
-            drawing: bool) -> Iterator[tuple]:
+            drawing: bool, local: bool = False) -> Iterator[tuple]:
     """The Dask client and the log of a command that writes run folders (search, resume,
     experiment), shut down however it ends (`drawing`: whether a run of it draws its pictures).
+    With `local` (runs scored in this process: scored_here), no cluster: the client is None.
 
     A stop or a fault (a full disk, a lost cluster) ends with one line: `state(flags)` says what
     the folders hold and the command that continues them (with `flags`, such as a new cluster's).
@@ -121,7 +129,10 @@ def session(log_path: Path, opening: str, workers: int, scheduler_address: str |
     with logging_redirect_tqdm(loggers=[log]):
         log.info(opening)
         try:
-            with dask_client(workers, scheduler_address, log, drawing) as client:
+            with (contextlib.nullcontext() if local else dask_client(workers, scheduler_address, log,
+                                                                      drawing)) as client:
+                if local:
+                    log.info("Scoring the points in this process: a benchmark function needs no cluster")
                 yield client, log
         except KeyboardInterrupt:
             log.info(f"Stopped; {state('')}")
@@ -133,11 +144,12 @@ def session(log_path: Path, opening: str, workers: int, scheduler_address: str |
             raise RunError(f"{fault_text(error)}; {state(elsewhere)}") from None
 
 
-def run_session(run_dir: Path, workers: int, scheduler_address: str | None, pictures: bool):
+def run_session(run_dir: Path, workers: int, scheduler_address: str | None, pictures: bool,
+                local: bool = False):
     """A run folder's session: its log is run.log, and a stop or a fault says which iteration its
-    checkpoint holds and how to continue."""
+    checkpoint holds and how to continue (`local`: scored in this process, session's)."""
     return session(run_dir / "run.log", f"Run folder: {run_dir}", workers, scheduler_address,
-                   lambda flags: checkpoint_state(run_dir, flags), drawing=pictures)
+                   lambda flags: checkpoint_state(run_dir, flags), drawing=pictures, local=local)
 
 
 def checkpoint_state(run_dir: Path, flags: str = "") -> str:

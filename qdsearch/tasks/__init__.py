@@ -9,9 +9,10 @@ The layer's modules, imports going down the list only (this registry last):
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
 - lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
   each): its rows, its episode, how it is drawn;
+- functions: the benchmark functions (sphere, Rastrigin, the planar arm): points, not episodes;
 - transitions: an episode's steps kept as rows, for the learning rows' replay buffer.
 
-A family lives in a module of its own (lander.py, walker.py, locomotion.py; family.py says what
+A family lives in a module of its own (lander.py, walker.py, locomotion.py, functions.py; family.py says what
 one declares). To add one, write its module and name it in FAMILY_MODULES: its families, tasks
 and measures are gathered from it (docs/extending.md lists every step).
 
@@ -25,7 +26,11 @@ Map:
 - the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (a policy can serve the
   env's spaces); `renderer_missing` (family.py's, for the video command);
 - an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
-  measures), of any policy (policies.py).
+  measures), of any policy (policies.py);
+- a benchmark function's points (functions.py): `dim_of` (a run's --dim), `shape_of` (a run's
+  policy shape, any task), `measure_bounds` (a run's measures' ranges, any task),
+  `scored_here` (a function's run needs no cluster), `evaluate_points` (a batch scored at
+  once, in the caller's process).
 """
 
 from __future__ import annotations
@@ -50,7 +55,8 @@ from qdsearch.tasks.policies import LINEAR, Policy
 # The family modules, by import name: the one place a family is registered. Each declares its
 # ENVIRONMENTS and MEASURES rows (family.py); a module outside the package must be importable
 # wherever the search runs (its driver, its Dask workers and saver processes).
-FAMILY_MODULES = ("qdsearch.tasks.lander", "qdsearch.tasks.walker", "qdsearch.tasks.locomotion")
+FAMILY_MODULES = ("qdsearch.tasks.lander", "qdsearch.tasks.walker", "qdsearch.tasks.locomotion",
+                  "qdsearch.tasks.functions")
 
 # The tables, gathered from FAMILY_MODULES in their order (and each module's rows in theirs).
 FAMILIES: list[Family] = []  # each in the order its module's rows first name it
@@ -159,6 +165,8 @@ def flown_seeds(solutions: np.ndarray, env_seed: int, config: Any) -> list[int]:
 @functools.cache
 def has_unhealthy_state(env_name: str) -> bool:
     """Whether the task's env takes terminate_when_unhealthy (MuJoCo's Hopper, Walker2d, Ant)."""
+    if ENVIRONMENTS[env_name].function:
+        return False
     entry = gym.spec(ENVIRONMENTS[env_name].gym_id).entry_point
     if isinstance(entry, str):
         module, _, name = entry.partition(":")
@@ -205,6 +213,8 @@ def check_spaces(env_name: str) -> None:
     actions a choice among n (Discrete from 0: argmax) or a vector in [-1, 1] (a 1-D box: tanh).
     The env is made through `plain_env` first: a missing simulator is one line naming --env."""
     task = ENVIRONMENTS[env_name]
+    if task.function:  # a point: no spaces
+        return
     plain_env(env_name).close()
     obs, act = task.spaces
 
@@ -216,6 +226,39 @@ def check_spaces(env_name: str) -> None:
     if not (vector(obs) and (choice or box)):
         raise UsageError(f"{named('env')} {env_name}: the policies (an argmax or a tanh of their outputs) "
                          f"can't serve {task.gym_id}'s observations {obs} and actions {act}")
+
+
+def dim_of(config: Any) -> int | None:
+    """A benchmark function's dimension in a run (its --dim, the task's own in a run that recorded
+    none); None for a Gymnasium task."""
+    task = ENVIRONMENTS[config.env]
+    return (getattr(config, "dim", None) or task.dim) if task.function else None
+
+
+def shape_of(config: Any) -> tuple[int, int]:
+    """The policy's shape in a run, (actions, observations): the env's, or a function's (dim, 1)."""
+    return ENVIRONMENTS[config.env].shape_for(dim_of(config))
+
+
+def measure_bounds(config: Any) -> list[tuple[float, float]]:
+    """The ranges of a run's measures (a benchmark function's grow with its dimension)."""
+    return [MEASURES[name].bounds(dim_of(config)) for name in config.measures]
+
+
+def scored_here(env_name: str) -> bool:
+    """Whether a run of the task's solutions are scored in its driver's process, with no cluster:
+    a benchmark function's batch costs less than a round trip to a worker."""
+    return ENVIRONMENTS[env_name].function is not None
+
+
+def evaluate_points(solutions: np.ndarray, measures: tuple[str, ...], *, env_name: str) -> np.ndarray:
+    """Rows of (objective, *measures) of a benchmark function's points, the batch scored at once."""
+    task = ENVIRONMENTS[env_name]
+    points = np.asarray(solutions, dtype=np.float64).reshape(len(solutions), -1)
+    summary = task.function(points)
+    columns = [task.objective(summary), *(MEASURES[name].of(summary) for name in measures)]
+    return np.column_stack([np.asarray(column, dtype=np.float64) for column in columns]).reshape(
+        len(points), 1 + len(measures))
 
 
 def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,

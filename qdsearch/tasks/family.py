@@ -40,6 +40,11 @@ from qdsearch.base.run_files import RunError
 OnStep = Callable[[Any, np.ndarray], None]  # called with each step's action and observation
 
 
+class NoEpisode(UsageError):
+    """What flies an episode (an env, a video, a path) asked of a benchmark function, which has
+    none: its message says which task and what was asked."""
+
+
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class Family:
     """A family of tasks: one episode function, one set of measures, and how it is drawn.
@@ -132,11 +137,22 @@ class Environment:
     archive: str = "grid"  # the default --archive (a CVT for measures too many for a grid)
     objective: Callable[[Any], float] = lambda summary: summary.reward  # of an episode's summary:
     # its total reward, unless the task says otherwise (ant_omni leaves the forward reward out)
+    # A benchmark function (functions.py): a batch of points -> their summary (arrays), scored in
+    # the driver; a solution is the point, of --dim coordinates (`dim`: the default). None: a
+    # Gymnasium task, flown by its family's episode function.
+    function: Callable[[np.ndarray], Any] | None = None
+    dim: int | None = None
 
     @property
     def own_length(self) -> int | None:
-        """The steps of the task's own episode (gym.make's max_episode_steps in its spec)."""
-        return gym.spec(self.gym_id).max_episode_steps
+        """The steps of the task's own episode (gym.make's max_episode_steps in its spec; a
+        function's: none)."""
+        return None if self.function else gym.spec(self.gym_id).max_episode_steps
+
+    def shape_for(self, dim: int | None) -> tuple[int, int]:
+        """W's shape in a run of `dim` (--dim, None: the task's own): a function's point is a
+        linear policy of one constant observation, (dim, 1); a Gymnasium task's is `shape`."""
+        return (dim or self.dim, 1) if self.function else self.shape
 
     def returns(self, length: int | None = None, qd_offset: float | None = None) -> Returns:
         """The range of a run's objectives when its episodes last at most `length` steps (None: the
@@ -151,6 +167,9 @@ class Environment:
         episodes, tasks.Episode's). A simulator that is not installed
         (MuJoCo), or a headless renderer whose library is missing, is one line naming the row
         (`name`, its --env; else its gym id)."""
+        if self.function:
+            raise NoEpisode(f"{named('env')} {name} is a benchmark function: it has no episode to fly or "
+                            "draw")
         try:
             self.family.prepare()
             return gym.make(self.gym_id, render_mode=render_mode, **{**self.kwargs, **rules})
@@ -176,13 +195,15 @@ class Environment:
     @property
     def continuous(self) -> bool:
         """Actions in a box: tanh(W @ obs), each component in [-1, 1]; else (Discrete) the argmax
-        of W @ obs picks one of `action_dim`."""
-        return isinstance(self.spaces[1], gym.spaces.Box)
+        of W @ obs picks one of `action_dim` (a function has no actions: False)."""
+        return not self.function and isinstance(self.spaces[1], gym.spaces.Box)
 
     @property
     def shape(self) -> tuple[int, int]:
         """W's shape: a row per action (a choice, or a component of the box), a column per
-        observation."""
+        observation (a function's default point: its `dim` coordinates of one constant input)."""
+        if self.function:
+            return self.dim, 1
         obs, act = self.spaces
         return int(act.n) if isinstance(act, gym.spaces.Discrete) else int(act.shape[0]), int(obs.shape[0])
 
@@ -234,3 +255,11 @@ class Measure:
     families: tuple[Family, ...]
     descending: bool = False  # its axis drawn from the lower bound at the top (the tutorial puts the
     # fastest impacts, the most negative y-velocities, on top)
+    per_dim: float | None = None  # a benchmark function's: its range is `range` times this times
+    # the run's dimension (sphere.py's +-5.12 dim / 2)
+
+    def bounds(self, dim: int | None) -> tuple[float, float]:
+        """Its range in a run of dimension `dim` (a benchmark function's --dim; else ignored)."""
+        if self.per_dim is None or dim is None:
+            return self.range
+        return self.range[0] * self.per_dim * dim, self.range[1] * self.per_dim * dim

@@ -1,0 +1,189 @@
+"""The benchmark functions (qdsearch/tasks/functions.py): sphere, Rastrigin and the planar arm held
+against their formulas written out here point by point (pyribs' examples/sphere.py and its arm
+tutorial), and real runs of them: scored in the driver with no cluster, every elite's objective and
+measures as the formulas give them, the same whatever --workers, after kill -9 and resume, and every
+results command on them (those that fly an episode: one line)."""
+
+import json
+import math
+import signal
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from qdsearch.cli import commands
+from qdsearch.tasks import ENVIRONMENTS, evaluate_points
+from util import (
+    assert_killed_then_resumed_as_its_twin,
+    assert_one_line_error,
+    assert_same_run,
+    checkpoint_iteration,
+    launch,
+    read_checkpoint,
+    run_archive,
+    run_metrics,
+    saved_archive,
+    tiny_flags,
+    wait_for,
+)
+
+
+def sphere_by_hand(point):
+    """pyribs' sphere.py, one point: shift 2.048, worst at -5.12 everywhere, [0, 100]."""
+    shift, dim = 0.4 * 5.12, len(point)
+    raw = sum((x - shift) ** 2 for x in point)
+    worst = dim * (-5.12 - shift) ** 2
+    return 100.0 * (raw - worst) / (0.0 - worst)
+
+
+def rastrigin_by_hand(point):
+    shift, dim = 0.4 * 5.12, len(point)
+
+    def cost(xs):
+        return 10 * dim + sum((x - shift) ** 2 - 10 * math.cos(2 * math.pi * (x - shift)) for x in xs)
+
+    worst = cost([-5.12] * dim)
+    return 100.0 * (cost(point) - worst) / (0.0 - worst)
+
+
+def halves_by_hand(point):
+    """sphere.py's measures: a coordinate outside [-5.12, 5.12] counts as 5.12 / x."""
+    folded = [x if -5.12 <= x <= 5.12 else 5.12 / x for x in point]
+    half = len(point) // 2
+    return sum(folded[:half]), sum(folded[half:])
+
+
+def arm_by_hand(angles):
+    """pyribs' arm tutorial: minus the angles' variance; the hand at the end of unit links."""
+    mean = sum(angles) / len(angles)
+    x = y = total = 0.0
+    for angle in angles:
+        total += angle
+        x, y = x + math.cos(total), y + math.sin(total)
+    return -sum((a - mean) ** 2 for a in angles) / len(angles), x, y
+
+
+BY_HAND = {
+    "sphere": lambda p: (sphere_by_hand(p), *halves_by_hand(p)),
+    "rastrigin": lambda p: (rastrigin_by_hand(p), *halves_by_hand(p)),
+    "arm": arm_by_hand,
+}
+
+
+@pytest.mark.parametrize("env", list(BY_HAND))
+def test_the_functions_score_points_as_their_formulas(env):
+    """Random points, some far outside the clipping bound, and the optimum: every row as the
+    formula gives it, the batch scored at once."""
+    rng = np.random.default_rng(3)
+    points = np.concatenate([rng.normal(0, 4, size=(20, 7)), rng.uniform(-30, 30, size=(5, 7)),
+                             np.full((1, 7), 2.048)])
+    rows = evaluate_points(points, ENVIRONMENTS[env].measures, env_name=env)
+    assert rows.shape == (26, 3)
+    for point, row in zip(points, rows):
+        np.testing.assert_allclose(row, BY_HAND[env](list(point)), rtol=1e-12, atol=1e-9)
+    if env != "arm":
+        assert rows[-1, 0] == pytest.approx(100.0)  # the optimum
+        assert rows[-1, 1] == pytest.approx(3 * 2.048)  # 7 coordinates: 3 in the first half
+
+
+def test_a_search_of_the_sphere_holds_what_the_formula_gives(tmp_path, run_cli):
+    """A real run, scored in the driver (no cluster started): every elite's stored objective and
+    measures are the formula's for its solution, of --dim coordinates, in a grid of sphere.py's
+    bounds (+-5.12 dim / 2)."""
+    run_dir = tmp_path / "run"
+    result = run_cli("--env", "sphere", "--dim", "10", "--iterations", "5", "--seed", "2",
+                     "--n_emitters", "2", "--batch_size", "8", "--sigma0", "0.5", "--pictures", "false",
+                     "--outdir", str(run_dir))
+    assert result.returncode == 0, result.stderr
+    log = (run_dir / "run.log").read_text()
+    assert "Scoring the points in this process" in log and "Dask" not in log
+    archive = saved_archive(run_dir)
+    assert archive.solution_dim == 10
+    np.testing.assert_allclose(archive.lower_bounds, [-25.6, -25.6])
+    np.testing.assert_allclose(archive.upper_bounds, [25.6, 25.6])
+    data = archive.data()
+    assert len(data["solution"]) > 10
+    for solution, objective, measures in zip(data["solution"], data["objective"], data["measures"]):
+        np.testing.assert_allclose([objective, *measures], BY_HAND["sphere"](list(solution)), rtol=1e-12)
+    metrics = run_metrics(run_dir)
+    assert metrics[-1]["evaluations"] == 5 * 16
+    assert metrics[-1]["qd_score"] == pytest.approx(float(np.sum(data["objective"])))  # offset 0
+
+
+@pytest.mark.parametrize("env", ["arm", "rastrigin"])
+def test_a_function_run_is_the_same_whatever_the_workers(tmp_path, env):
+    """--workers names a cluster the points never go to: 1 and 2 give the same run."""
+    for workers in (1, 2):
+        commands.search(**tiny_flags(env=env, dim=6, workers=workers, iterations=6),
+                        outdir=str(tmp_path / f"w{workers}"))
+    assert_same_run(tmp_path / "w1", tmp_path / "w2")
+
+
+def test_a_function_run_killed_and_resumed_is_its_twin(tmp_path, one_worker_cluster, dask_cluster):
+    """kill -9 past its third iteration's checkpoint, then resume: bit for bit the uninterrupted run."""
+    assert_killed_then_resumed_as_its_twin(tmp_path, dask_cluster, one_worker_cluster,
+                                           dict(env="sphere", dim=8, iterations=300, algorithm="map_elites"))
+
+
+def test_a_function_run_stopped_keeps_its_last_iteration(tmp_path):
+    """Ctrl-C: the stop is acted on between two iterations, and the checkpoint holds the last one
+    told (no snapshot is taken after each tell: the scheduler itself is checkpointed), whatever the
+    log interval; resumed, the run ends as its twin. A DQD row: its two batches are one step."""
+    flags = dict(env="sphere", dim=8, algorithm="cma_mega_es", es_samples=4, log_every=1000)
+    commands.search(**tiny_flags(**flags, iterations=3000), outdir=str(tmp_path / "twin"))
+    run_dir = tmp_path / "stopped"
+    process = launch(**{**tiny_flags(**flags, iterations=100_000), "outdir": run_dir})
+    wait_for(lambda: (run_dir / "checkpoint.pkl").is_file(), process, "the run under way")
+    time.sleep(0.5)  # some iterations past the first checkpoint, none saved
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 130 and "Traceback" not in err, err
+    checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
+    stopped_at = checkpoint_iteration(run_dir)
+    assert 0 < stopped_at < 3000
+    assert [row["iteration"] for row in checkpoint["metrics"]] == list(range(1, stopped_at + 1))
+    commands.resume(str(run_dir), iterations=3000)
+    assert run_archive(run_dir).equals(run_archive(tmp_path / "twin"))
+    assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
+
+
+def test_the_results_commands_read_a_function_run(tmp_path, run_cli):
+    """elites, evaluate (the points scored again: the same) and an experiment compared; video and
+    trajectories, which fly an episode, say in one line there is none."""
+    folder = tmp_path / "exp"
+    result = run_cli("experiment", "--env", "arm", "--dim", "5", "--algorithms", "cma_me,line_map_elites",
+                     "--seeds", "1-2", "--iterations", "4", "--n_emitters", "2", "--batch_size", "6",
+                     "--pictures", "false", "--outdir", str(folder))
+    assert result.returncode == 0, result.stderr
+    runs = [folder / entry["name"] for entry in json.loads((folder / "experiment.json").read_text())["runs"]]
+    assert run_cli("compare", str(folder)).returncode == 0
+    assert (folder / "compare.csv").is_file()
+    run = runs[0]
+    assert run_cli("elites", str(run), "--top", "2").returncode == 0
+    listed = pd.read_csv(run / "elites.csv")
+    archive = run_archive(run).sort_values("objective", ascending=False)
+    assert list(listed.columns) == ["objective", "hand_x", "hand_y", "cell_index"]
+    assert listed["objective"].tolist() == archive["objective"].head(2).tolist()
+    assert run_cli("evaluate", str(folder), "--corrected", "--repeats", "2").returncode == 0
+    for each in runs:
+        corrected = json.loads((each / "corrected.json").read_text())
+        assert corrected["qd_score"] == pytest.approx(corrected["run"]["qd_score"], rel=1e-12)
+        assert corrected["num_elites"] == corrected["run"]["num_elites"]
+    for command in ("video", "trajectories"):
+        assert_one_line_error(run_cli(command, str(run), "--best"), "arm is a benchmark function", code=2)
+
+
+@pytest.mark.parametrize("flags, fragment", [
+    (("--env", "sphere", "--dim", "1"), "2 coordinates at least"),
+    (("--env", "LunarLander-v3", "--dim", "5"), "is for the benchmark functions"),
+    (("--env", "sphere", "--policy", "mlp"), "is its point"),
+    (("--env", "arm", "--algorithm", "pga_me"), "learns from episodes"),
+    (("--env", "rastrigin", "--algorithm", "me_es"), "learns from episodes"),
+    (("--env", "sphere", "--episode_length", "10"), "with no episode"),
+])
+def test_what_a_function_cannot_take_is_one_line(tmp_path, run_cli, flags, fragment):
+    result = run_cli(*flags, "--iterations", "2", "--outdir", str(tmp_path / "run"))
+    assert_one_line_error(result, fragment)
+    assert not (tmp_path / "run").exists()
