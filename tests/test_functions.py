@@ -14,7 +14,8 @@ import pandas as pd
 import pytest
 
 from qdsearch.cli import commands
-from qdsearch.tasks import ENVIRONMENTS, evaluate_points
+from qdsearch.tasks import ENVIRONMENTS, evaluate_points, fly, make_env, scored_here
+from qdsearch.tasks.family import NoEpisode
 from util import (
     assert_killed_then_resumed_as_its_twin,
     assert_one_line_error,
@@ -88,6 +89,28 @@ def test_the_functions_score_points_as_their_formulas(env):
         assert rows[-1, 1] == pytest.approx(3 * 2.048)  # 7 coordinates: 3 in the first half
 
 
+def test_points_on_the_clipping_bound_and_of_integers_score_as_the_formula():
+    """A coordinate of exactly +-5.12 is kept (sphere.py folds only those beyond); integer points,
+    as a notebook may pass them, are scored as floats; one measure alone is one column."""
+    points = np.array([[5, 6, -7, 0, 1, -2], [3, 3, 3, 3, 3, 3]])
+    rows = evaluate_points(points, ("sum_first_half", "sum_second_half"), env_name="sphere")
+    for point, row in zip(points, rows):
+        np.testing.assert_allclose(row, BY_HAND["sphere"]([float(x) for x in point]), rtol=1e-12)
+    edge = np.array([[5.12, -1.0, 5.13, 1.0]])
+    assert evaluate_points(edge, ("sum_first_half",), env_name="rastrigin")[0, 1] == pytest.approx(4.12)
+    assert evaluate_points(edge, ("sum_second_half",), env_name="sphere")[0, 1] == pytest.approx(5.12 / 5.13 + 1)
+    assert evaluate_points(edge, ("sum_second_half",), env_name="sphere").shape == (1, 2)
+
+
+def test_only_the_functions_are_scored_in_the_driver_and_none_flies_an_episode():
+    assert [name for name in ENVIRONMENTS if scored_here(name)] == ["sphere", "rastrigin", "arm"]
+    with pytest.raises(NoEpisode, match="arm is a benchmark function"):
+        make_env(env_name="arm")
+    with pytest.raises(NoEpisode, match="no episode"):
+        fly(np.zeros(12), 0, None, env_name="arm")
+
+
+@pytest.mark.slow  # a real run
 def test_a_search_of_the_sphere_holds_what_the_formula_gives(tmp_path, run_cli):
     """A real run, scored in the driver (no cluster started): every elite's stored objective and
     measures are the formula's for its solution, of --dim coordinates, in a grid of sphere.py's
@@ -112,6 +135,7 @@ def test_a_search_of_the_sphere_holds_what_the_formula_gives(tmp_path, run_cli):
     assert metrics[-1]["qd_score"] == pytest.approx(float(np.sum(data["objective"])))  # offset 0
 
 
+@pytest.mark.slow  # real runs
 @pytest.mark.parametrize("env", ["arm", "rastrigin"])
 def test_a_function_run_is_the_same_whatever_the_workers(tmp_path, env):
     """--workers names a cluster the points never go to: 1 and 2 give the same run."""
@@ -121,12 +145,14 @@ def test_a_function_run_is_the_same_whatever_the_workers(tmp_path, env):
     assert_same_run(tmp_path / "w1", tmp_path / "w2")
 
 
+@pytest.mark.slow  # a real run
 def test_a_function_run_killed_and_resumed_is_its_twin(tmp_path, one_worker_cluster, dask_cluster):
     """kill -9 past its third iteration's checkpoint, then resume: bit for bit the uninterrupted run."""
     assert_killed_then_resumed_as_its_twin(tmp_path, dask_cluster, one_worker_cluster,
                                            dict(env="sphere", dim=8, iterations=300, algorithm="map_elites"))
 
 
+@pytest.mark.slow  # a real run
 def test_a_function_run_stopped_keeps_its_last_iteration(tmp_path):
     """Ctrl-C: the stop is acted on between two iterations, and the checkpoint holds the last one
     told (no snapshot is taken after each tell: the scheduler itself is checkpointed), whatever the
@@ -149,6 +175,7 @@ def test_a_function_run_stopped_keeps_its_last_iteration(tmp_path):
     assert run_metrics(run_dir) == run_metrics(tmp_path / "twin")
 
 
+@pytest.mark.slow  # a real run
 def test_the_results_commands_read_a_function_run(tmp_path, run_cli):
     """elites, evaluate (the points scored again: the same) and an experiment compared; video and
     trajectories, which fly an episode, say in one line there is none."""
@@ -175,15 +202,28 @@ def test_the_results_commands_read_a_function_run(tmp_path, run_cli):
         assert_one_line_error(run_cli(command, str(run), "--best"), "arm is a benchmark function", code=2)
 
 
-@pytest.mark.parametrize("flags, fragment", [
-    (("--env", "sphere", "--dim", "1"), "2 coordinates at least"),
-    (("--env", "LunarLander-v3", "--dim", "5"), "is for the benchmark functions"),
-    (("--env", "sphere", "--policy", "mlp"), "is its point"),
-    (("--env", "arm", "--algorithm", "pga_me"), "learns from episodes"),
-    (("--env", "rastrigin", "--algorithm", "me_es"), "learns from episodes"),
-    (("--env", "sphere", "--episode_length", "10"), "with no episode"),
+@pytest.mark.parametrize("flags, line", [
+    (("--env", "sphere", "--dim", "1"), "--dim 1: a benchmark function takes 2 coordinates at least"),
+    (("--env", "LunarLander-v3", "--dim", "5"),
+     "--dim is for the benchmark functions; --env LunarLander-v3 takes its size from its spaces"),
+    (("--env", "sphere", "--policy", "mlp"),
+     "--policy mlp: a solution of --env sphere is its point (the linear policy of one constant input)"),
+    (("--env", "arm", "--algorithm", "pga_me"),
+     "--algorithm pga_me learns from episodes; --env arm is a benchmark function, with none"),
+    (("--env", "rastrigin", "--algorithm", "me_es"),
+     "--algorithm me_es learns from episodes; --env rastrigin is a benchmark function, with none"),
+    (("--env", "sphere", "--episode_length", "10"),
+     "--episode_length: --env sphere is a benchmark function, with no episode"),
 ])
-def test_what_a_function_cannot_take_is_one_line(tmp_path, run_cli, flags, fragment):
+def test_what_a_function_cannot_take_is_one_line(tmp_path, run_cli, flags, line):
     result = run_cli(*flags, "--iterations", "2", "--outdir", str(tmp_path / "run"))
-    assert_one_line_error(result, fragment)
+    assert_one_line_error(result)
+    assert result.stderr.strip() == f"error: {line}"
     assert not (tmp_path / "run").exists()
+
+
+def test_the_smallest_function_has_two_coordinates(tmp_path, run_cli):
+    result = run_cli("--env", "sphere", "--dim", "2", "--iterations", "1", "--n_emitters", "1", "--batch_size",
+                     "4", "--pictures", "false", "--outdir", str(tmp_path / "run"))
+    assert result.returncode == 0, result.stderr
+    assert saved_archive(tmp_path / "run").solution_dim == 2

@@ -23,7 +23,7 @@ from qdsearch.base.stopping import STOP
 from qdsearch.config.command_settings import WatchSettings
 from qdsearch.config.run_config import RunConfig, load_checked_config
 from qdsearch.store.metrics import load_metrics
-from qdsearch.tasks import MEASURES, returns_of
+from qdsearch.tasks import MEASURES, measure_bounds, returns_of
 
 REFRESH_MS = 2000  # how often the page looks at the folder's files
 # The files the page shows (name: kind of run_files.FILE_BOUNDS)
@@ -87,8 +87,9 @@ def live_document(run_dir: Path, config: RunConfig):
         curve = ColumnDataSource(metric_columns(run_dir), name="metrics")
         title = Div(text=headline(run_dir, config, curve.data, len(elites.data["x"])), name="headline")
         colours = LinearColorMapper(palette=Magma256, low=heat[0], high=heat[1])
-        x_range = axes[0].range
-        y_range = axes[1].range if len(axes) > 1 else (-1.0, 1.0)
+        ranges = measure_bounds(config)  # (a benchmark function's grow with its --dim)
+        x_range = ranges[0]
+        y_range = ranges[1] if len(axes) > 1 else (-1.0, 1.0)
         if len(axes) > 1 and axes[1].descending:  # as heatmap.png and the explorer draw it
             y_range = y_range[::-1]
         archive = figure(title="Archive: elites by objective", width=560, height=460, x_range=x_range,

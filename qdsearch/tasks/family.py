@@ -17,10 +17,12 @@ Map:
 - `Environment`: a task a search can fly (a row of ENVIRONMENTS): `make` (gym.make's env, a
   missing simulator or renderer in one line: `renderer_missing`, GL_PACKAGES) and `spaces`
   (read once, on first use), whence the policy's `shape`, `continuous` and `solution_dim` (of
-  the linear policy);
+  the linear policy); a benchmark function's row (functions.py) sets `function` and `dim`
+  instead (`shape_for`: its shape at a run's --dim), and `make` refuses it (`NoEpisode`);
 - `Returns`: the range of a run's objectives (its QD offset, solved return, CQD's top and the
   heatmaps' colours), `Environment.returns` (a task's, for an episode's length);
-- `Measure`: a behaviour solutions are told apart by (a row of MEASURES).
+- `Measure`: a behaviour solutions are told apart by (a row of MEASURES); `bounds`, its range in a
+  run (a benchmark function's grows with its dimension: `per_dim`).
 """
 
 from __future__ import annotations
