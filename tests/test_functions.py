@@ -14,6 +14,7 @@ import pandas as pd
 import pytest
 
 from qdsearch.cli import commands
+from qdsearch.config import options
 from qdsearch.tasks import ENVIRONMENTS, evaluate_points, fly, make_env, scored_here
 from qdsearch.tasks.family import NoEpisode
 from util import (
@@ -220,6 +221,14 @@ def test_what_a_function_cannot_take_is_one_line(tmp_path, run_cli, flags, line)
     assert_one_line_error(result)
     assert result.stderr.strip() == f"error: {line}"
     assert not (tmp_path / "run").exists()
+
+
+def test_flags_not_yet_set_take_the_functions_own():
+    """An experiment's common flags leave a swept flag unset (None): the policy is then the run's
+    own (linear), the algorithm each run's, the dimension the function's."""
+    common = options.with_dim({"env": "arm", "policy": None, "algorithm": None, "dim": None})
+    assert common["dim"] == 12 and common["policy"] is None
+    assert options.with_dim({"env": "sphere", "dim": 7})["dim"] == 7
 
 
 def test_the_smallest_function_has_two_coordinates(tmp_path, run_cli):
