@@ -14,8 +14,17 @@ import pandas as pd
 import pytest
 
 from qdsearch.cli import commands
-from qdsearch.config import options
-from qdsearch.tasks import ENVIRONMENTS, evaluate_points, fly, make_env, scored_here
+from qdsearch.config import options, run_config
+from qdsearch.tasks import (
+    ENVIRONMENTS,
+    MEASURES,
+    evaluate_points,
+    fly,
+    make_env,
+    measure_bounds,
+    scored_here,
+    shape_of,
+)
 from qdsearch.tasks.family import NoEpisode
 from util import (
     assert_killed_then_resumed_as_its_twin,
@@ -107,7 +116,7 @@ def test_only_the_functions_are_scored_in_the_driver_and_none_flies_an_episode()
     assert [name for name in ENVIRONMENTS if scored_here(name)] == ["sphere", "rastrigin", "arm"]
     with pytest.raises(NoEpisode, match="arm is a benchmark function"):
         make_env(env_name="arm")
-    with pytest.raises(NoEpisode, match="no episode"):
+    with pytest.raises(NoEpisode, match="^a benchmark function has no episode$"):
         fly(np.zeros(12), 0, None, env_name="arm")
 
 
@@ -221,6 +230,18 @@ def test_what_a_function_cannot_take_is_one_line(tmp_path, run_cli, flags, line)
     assert_one_line_error(result)
     assert result.stderr.strip() == f"error: {line}"
     assert not (tmp_path / "run").exists()
+
+
+def test_the_measures_ranges_grow_with_the_dimension():
+    """sphere.py's bounds, +-5.12 dim / 2 for each half's sum; the arm's reach, its joints; a
+    Gymnasium task's measures keep their ranges."""
+    assert MEASURES["sum_first_half"].bounds(10) == pytest.approx((-25.6, 25.6))
+    assert MEASURES["sum_second_half"].bounds(100) == pytest.approx((-256.0, 256.0))
+    assert MEASURES["hand_y"].bounds(12) == pytest.approx((-12.0, 12.0))
+    assert MEASURES["impact_x"].bounds(None) == (-1.0, 1.0)
+    config = run_config.check_run_config(options.with_task(dict(options.search_defaults(), env="arm", dim=5,
+                                                                seed=1)))
+    assert measure_bounds(config) == [pytest.approx((-5.0, 5.0))] * 2 and shape_of(config) == (5, 1)
 
 
 def test_flags_not_yet_set_take_the_functions_own():
