@@ -252,6 +252,17 @@ def test_flags_not_yet_set_take_the_functions_own():
     assert options.with_dim({"env": "sphere", "dim": 7})["dim"] == 7
 
 
+def test_env_seeds_and_resets_change_nothing_of_a_function(tmp_path, run_cli):
+    """A point has no resets: several --env_seed values and --reset each give the run of one seed."""
+    tiny = ("--env", "sphere", "--dim", "4", "--iterations", "3", "--n_emitters", "2", "--batch_size", "5",
+            "--seed", "3", "--pictures", "false")
+    for name, extra in (("one", ()), ("many", ("--env_seed", "0-4", "--reset", "each"))):
+        result = run_cli(*tiny, *extra, "--outdir", str(tmp_path / name))
+        assert result.returncode == 0, result.stderr
+    assert run_archive(tmp_path / "many").equals(run_archive(tmp_path / "one"))
+    assert run_metrics(tmp_path / "many") == run_metrics(tmp_path / "one")
+
+
 def test_the_smallest_function_has_two_coordinates(tmp_path, run_cli):
     result = run_cli("--env", "sphere", "--dim", "2", "--iterations", "1", "--n_emitters", "1",
                      "--batch_size", "4", "--pictures", "false", "--outdir", str(tmp_path / "run"))

@@ -165,11 +165,11 @@ class Run:
         benchmark function's batch is scored here at once (no futures: the batch is whole)."""
         config = self.config
         solutions = self.ask()
-        self.seeds = reset_seeds(solutions, config)
-        if self.here:
-            self.open = True
+        if self.here:  # a point has no resets: a row per solution, whatever --env_seed and --reset
+            self.open, self.seeds = True, np.zeros((len(solutions), 1), dtype=np.int64)
             self.chunks, self.waiting = [evaluate_points(solutions, config.measures, env_name=config.env)], 0
             return []
+        self.seeds = reset_seeds(solutions, config)
         futures = submit_flights(client, solutions, self.seeds, config.measures,
                                  config.fast_env, sharing=sharing, threads=threads,
                                  env_name=config.env, policy=self.policy, episode=self.episode,
