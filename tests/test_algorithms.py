@@ -42,7 +42,9 @@ from util import (
     write_checkpoint,
 )
 
-ALGORITHMS = list(algorithms.ALGORITHMS)  # every row: a run folder each, and their resumes
+# Every row that flies episodes: a run folder each, and their resumes (the rows of exact gradients
+# run on the benchmark functions alone: tests/test_functions.py)
+ALGORITHMS = [name for name, row in algorithms.ALGORITHMS.items() if not row.exact]
 RUN_FILES = {"config.json", "checkpoint.pkl", "archive.csv", "metrics.json",
              "heatmap.png", "progress.png", "run.log"}
 
@@ -216,12 +218,13 @@ def test_each_algorithm_is_its_pyribs_setup_with_the_same_batch():
 def test_every_row_asks_and_tells_on_every_task(env):
     """Each row's objects fit each task: its solution size, measures and archive kind (a learning
     row's, each task of continuous actions, with its learner)."""
-    for name in ALGORITHMS:
-        row = algorithms.ALGORITHMS[name]
+    for name, row in algorithms.ALGORITHMS.items():
         if row.learns and not tasks.ENVIRONMENTS[env].continuous:
             continue  # refused (tests/test_learning.py)
         if row.es_steps and tasks.ENVIRONMENTS[env].function:
             continue  # ME-ES on a benchmark function: refused (tests/test_functions.py)
+        if row.exact and not tasks.ENVIRONMENTS[env].function:
+            continue  # exact gradients on an episode: refused (tests/test_functions.py)
         cells = {"cells": 64} if tasks.ENVIRONMENTS[env].archive == "cvt" else {}  # k-means: quick
         config = run_config.check_run_config(options.with_task(dict(
             options.search_defaults(), algorithm=name, env=env, seed=3, n_emitters=2, batch_size=3, **cells)))

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from qdsearch.algorithms import build_scheduler
 from qdsearch.cli import commands
 from qdsearch.config import options, run_config
 from qdsearch.tasks import (
@@ -20,8 +21,10 @@ from qdsearch.tasks import (
     MEASURES,
     evaluate_points,
     fly,
+    has_gradients,
     make_env,
     measure_bounds,
+    point_gradients,
     scored_here,
     shape_of,
 )
@@ -97,6 +100,56 @@ def test_the_functions_score_points_as_their_formulas(env):
     if env != "arm":
         assert rows[-1, 0] == pytest.approx(100.0)  # the optimum
         assert rows[-1, 1] == pytest.approx(3 * 2.048)  # 7 coordinates: 3 in the first half
+
+
+@pytest.mark.parametrize("env", list(BY_HAND))
+def test_the_exact_gradients_are_the_formulas_slopes(env):
+    """Each point's Jacobian (objective, then each measure) against central differences of the
+    formulas written out above, coordinates inside and beyond the clipping bound alike."""
+    rng = np.random.default_rng(5)
+    points = np.concatenate([rng.normal(0, 3, size=(6, 7)), rng.uniform(-20, 20, size=(3, 7))])
+    points = points[np.all(np.abs(np.abs(points) - 5.12) > 1e-3, axis=1)]  # not on the fold's kink
+    jacobians = point_gradients(points, ENVIRONMENTS[env].measures, env_name=env)
+    assert jacobians.shape == (len(points), 3, 7) and has_gradients(env)
+    step = 1e-6
+    for point, jacobian in zip(points, jacobians):
+        for j in range(7):
+            up, down = point.copy(), point.copy()
+            up[j] += step
+            down[j] -= step
+            slope = (np.array(BY_HAND[env](list(up))) - np.array(BY_HAND[env](list(down)))) / (2 * step)
+            np.testing.assert_allclose(jacobian[:, j], slope, rtol=1e-5, atol=1e-6)
+    one = point_gradients(points, ("sum_second_half",) if env != "arm" else ("hand_y",), env_name=env)
+    np.testing.assert_array_equal(one, jacobians[:, [0, 2]])  # the measures asked, in their order
+    assert not has_gradients("LunarLander-v3")
+
+
+@pytest.mark.slow  # real runs
+@pytest.mark.parametrize("algorithm", ["cma_mega", "cma_maega"])
+def test_a_run_on_exact_gradients_is_pyribs_told_the_formulas_and_resumes_as_its_twin(tmp_path, algorithm):
+    """sphere.py's loop by hand (ask_dqd, tell_dqd of the points' values and Jacobians, then ask
+    and tell) on the run's own config gives the run's archive; each iteration counts its points
+    and its batch; a run stopped at 3 iterations and resumed to 6 ends as the straight run."""
+    flags = dict(env="sphere", dim=6, algorithm=algorithm, n_emitters=2, batch_size=5, sigma0=1.0,
+                 log_every=3)
+    commands.search(**tiny_flags(**flags, iterations=6), outdir=str(tmp_path / "run"))
+    scheduler = build_scheduler(run_config.load_run_config(tmp_path / "run"))
+    measures = ENVIRONMENTS["sphere"].measures
+    for _ in range(6):
+        points = scheduler.ask_dqd()
+        rows = np.array([BY_HAND["sphere"](list(point)) for point in points])
+        scheduler.tell_dqd(rows[:, 0], rows[:, 1:], point_gradients(points, measures, env_name="sphere"))
+        batch = scheduler.ask()
+        rows = np.array([BY_HAND["sphere"](list(point)) for point in batch])
+        scheduler.tell(rows[:, 0], rows[:, 1:])
+    data = scheduler.result_archive.data(return_type="pandas")
+    run = run_archive(tmp_path / "run")
+    assert len(run) == len(data) > 10
+    np.testing.assert_allclose(np.sort(run["objective"]), np.sort(data["objective"]), rtol=1e-12)
+    assert [row["evaluations"] for row in run_metrics(tmp_path / "run")] == [12 * i for i in range(1, 7)]
+    commands.search(**tiny_flags(**flags, iterations=3), outdir=str(tmp_path / "resumed"))
+    commands.resume(str(tmp_path / "resumed"), iterations=6)
+    assert_same_run(tmp_path / "run", tmp_path / "resumed")
 
 
 def test_points_on_the_clipping_bound_and_of_integers_score_as_the_formula():
@@ -224,6 +277,9 @@ def test_the_results_commands_read_a_function_run(tmp_path, run_cli):
      "--algorithm me_es learns from episodes; --env rastrigin is a benchmark function, with none"),
     (("--env", "sphere", "--episode_length", "10"),
      "--episode_length: --env sphere is a benchmark function, with no episode"),
+    (("--env", "Hopper-v5", "--algorithm", "cma_maega"),
+     "--algorithm cma_maega takes a benchmark function's exact gradients; --env Hopper-v5 has none "
+     "(cma_maega_es estimates them)"),
 ])
 def test_what_a_function_cannot_take_is_one_line(tmp_path, run_cli, flags, line):
     result = run_cli(*flags, "--iterations", "2", "--outdir", str(tmp_path / "run"))

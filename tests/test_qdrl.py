@@ -250,6 +250,7 @@ def test_an_iteration_costs_its_rows_evaluations():
     for name, row in ALGORITHMS.items():
         config.algorithm = name
         expected = 3 * 21 if row.es_steps else 21 + (3 * 21 if row.dqd else 0)  # ME-ES: samples, offspring
+        expected -= 3 * 20 if row.exact else 0  # exact gradients: each point alone, no samples
         expected += row.learns is not None  # a learning row's greedy actor
         assert evaluations_per_iteration(config) == expected, name
 

@@ -48,24 +48,24 @@ def test_a_refused_size_names_the_flags_that_made_it(run_cli, tmp_path, args, li
 
 
 @pytest.mark.parametrize("args, line", [
-    (["--algorithm", "cma_maega"], "error: --algorithm 'cma_maega' is unknown; did you mean cma_maega_es?"),
-    (["experiment", "--algorithms", "[cma_me, CMA-MAEGA]"],
-     "error: --algorithms 'CMA-MAEGA' is unknown; did you mean cma_maega_es?"),
+    (["--algorithm", "line"], "error: --algorithm 'line' is unknown; did you mean line_map_elites?"),
+    (["experiment", "--algorithms", "[cma_me, LINE]"],
+     "error: --algorithms 'LINE' is unknown; did you mean line_map_elites?"),
     (["--env", "Hopper"], "error: --env 'Hopper' is unknown; did you mean Hopper-v5?"),
 ])
 def test_a_name_that_heads_one_choice_is_taken_for_it(run_cli, tmp_path, args, line):
-    """difflib alone takes cma_maega for the shorter cma_mae; its words are cma_maega_es's head."""
+    """difflib alone takes line for map_elites; its word is line_map_elites's head."""
     result = run_cli(*args)
     assert_one_line_error(result)
     assert result.stderr.strip() == line
 
 
 @pytest.mark.parametrize("typed, choices, meant", [
-    ("cma_maega", algorithms.ALGORITHMS, "cma_maega_es"), ("from", settings.SEARCH_FLAGS, "from_archive"),
+    ("line", algorithms.ALGORITHMS, "line_map_elites"), ("from", settings.SEARCH_FLAGS, "from_archive"),
     ("max", tasks.MEASURES, "max_tilt"),
     # a head of several choices names none of them: difflib's nearest whole name, as before
     ("impact", tasks.MEASURES, "impact_x"), ("seeds", settings.SEARCH_FLAGS, "seed"),
-    ("cma_mega", algorithms.ALGORITHMS, "cma_me"),  # cma_mega_es and cma_mega_td3_es
+    ("cma_mega_", algorithms.ALGORITHMS, "cma_mega"),  # cma_mega_es and cma_mega_td3_es
 ])
 def test_a_head_wins_only_when_it_heads_one_choice(typed, choices, meant):
     assert flags.nearest(typed, choices) == meant

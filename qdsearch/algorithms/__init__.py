@@ -75,13 +75,14 @@ class Algorithm:
     bandit: bool = False  # pyribs' BanditScheduler picks n_emitters of the pool (UCB1)
     flags: tuple[str, ...] = ()  # the flags of SEARCH_FLAGS only this row (and others) use
     dqd: bool = False  # its emitters need gradients: ask_dqd and tell_dqd, estimated (gradients.py)
+    exact: bool = False  # a DQD row's gradients are the task's own (a benchmark function's)
     es_steps: bool = False  # its emitters step on their own ES samples first (ME-ES: me_es.py)
     learns: Learns | None = None  # it learns a TD3 critic from every flown transition (td3.py)
 
     @property
     def samples(self) -> bool:
         """Whether an iteration flies ES samples (--es_samples) before its batch."""
-        return self.dqd or self.es_steps
+        return (self.dqd and not self.exact) or self.es_steps
 
 
 def evolution_strategy(ranker: str, selection_rule: str = "filter", restart_rule: str = "no_improvement",
@@ -220,6 +221,12 @@ ALGORITHMS["cma_mega_es"] = Algorithm(
 ALGORITHMS["cma_maega_es"] = Algorithm(
     "CMA-MAEGA (ES gradients)", (gradient_arborescence("imp", "basic", "filter"),), archive=soft_archive,
     result_archive=True, flags=("learning_rate", "es_samples", "es_sigma"), dqd=True)
+# sphere.py's cma_mega and cma_maega themselves: the same emitters on the task's exact gradients
+# (a benchmark function's: tasks.point_gradients), each point scored and told before the batch.
+ALGORITHMS["cma_mega"] = dataclasses.replace(
+    ALGORITHMS["cma_mega_es"], summary="CMA-MEGA (exact gradients)", flags=(), exact=True)
+ALGORITHMS["cma_maega"] = dataclasses.replace(
+    ALGORITHMS["cma_maega_es"], summary="CMA-MAEGA (exact gradients)", flags=("learning_rate",), exact=True)
 
 
 def first_layer(config: Any) -> tuple[int, int] | None:
@@ -261,8 +268,8 @@ def evaluations_per_iteration(config: Any) -> int:
     row, emitters = ALGORITHMS[config.algorithm], config.n_emitters
     if row.es_steps:
         return emitters * (1 + config.es_samples)
-    return (emitters * config.batch_size + (emitters * (1 + config.es_samples) if row.dqd else 0)
-            + (row.learns is not None))
+    return (emitters * config.batch_size + (emitters * (1 + config.es_samples) if row.samples else 0)
+            + (emitters if row.exact else 0) + (row.learns is not None))
 
 
 # Bytes of memory an emitter's evolution strategy holds at its peak, as a function of the

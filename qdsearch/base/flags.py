@@ -145,7 +145,7 @@ def one_of(choices: dict) -> Check:
 def nearest(name: str, choices: Iterable[str]) -> str | None:
     """The choice a mistyped name most likely meant, or None if none is near: case and - against _
     aside (sep-cma-mae: sep_cma_mae), the one choice the name is the head of, its words before an
-    underscore (cma_mega: cma_mega_es, which difflib would take for the shorter cma_me); else
+    underscore (line: line_map_elites, which difflib would take for map_elites); else
     difflib's closest match to a choice or to the tail of one after an underscore (y_vel:
     impact_y_velocity, whose head a user may not know)."""
     def fold(text: str) -> str:

@@ -105,7 +105,7 @@ def solutions_per_iteration(config: dict) -> tuple[int, str]:
         samples = config["es_samples"]
         return n_emitters * samples, f"{named('n_emitters')} {n_emitters} x {named('es_samples')} {samples}"
     made = {f"{named('n_emitters')} {n_emitters} x {named('batch_size')} {batch}": n_emitters * batch}
-    if row.dqd:
+    if row.samples:
         samples = config["es_samples"]
         gradients = f"{named('n_emitters')} {n_emitters} x (1 + {named('es_samples')} {samples})"
         made[gradients] = n_emitters * (1 + samples)
@@ -169,12 +169,18 @@ EPISODE_FLAGS = ("episode_length", "terminate_when_unhealthy")
 def with_dim(config: dict[str, Any]) -> dict[str, Any]:
     """A benchmark function's --dim (its own unless given), and what it can't take refused: an
     episode's flags, a network, a row that learns from episodes (the learning rows' transitions,
-    ME-ES's observations). --dim is refused for a Gymnasium task, whose size its spaces give."""
+    ME-ES's observations). --dim is refused for a Gymnasium task, whose size its spaces give, and
+    so is a row of exact gradients, which it has not."""
     env, dim, task = config["env"], config.get("dim"), ENVIRONMENTS[config["env"]]
+    row = ALGORITHMS.get(config.get("algorithm") or "")
     if not task.function:
         if dim is not None:
             raise UsageError(f"{named('dim')} is for the benchmark functions; {named('env')} {env} takes its "
                              "size from its spaces")
+        if row is not None and row.exact:
+            algorithm = config["algorithm"]
+            raise UsageError(f"{named('algorithm')} {algorithm} takes a benchmark function's exact "
+                             f"gradients; {named('env')} {env} has none ({algorithm}_es estimates them)")
         return config
     if dim is not None and dim < 2:
         raise UsageError(f"{named('dim')} {dim}: a benchmark function takes 2 coordinates at least")
@@ -183,7 +189,6 @@ def with_dim(config: dict[str, Any]) -> dict[str, Any]:
     if (config.get("policy") or "linear") != "linear":
         raise UsageError(f"{named('policy')} {config['policy']}: a solution of {named('env')} {env} is its "
                          "point (the linear policy of one constant input)")
-    row = ALGORITHMS.get(config.get("algorithm") or "")
     if row is not None and (row.es_steps or row.learns is not None):
         raise UsageError(f"{named('algorithm')} {config['algorithm']} learns from episodes; {named('env')} "
                          f"{env} is a benchmark function, with none")

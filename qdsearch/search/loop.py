@@ -48,7 +48,16 @@ from qdsearch.search.learning import Learning
 from qdsearch.store.metrics import describe_progress, iteration_metrics
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
-from qdsearch.tasks import episode_of, evaluate_points, fly, make_env, reset_seeds, returns_of, scored_here
+from qdsearch.tasks import (
+    episode_of,
+    evaluate_points,
+    fly,
+    make_env,
+    point_gradients,
+    reset_seeds,
+    returns_of,
+    scored_here,
+)
 
 
 class Run:
@@ -144,6 +153,8 @@ class Run:
         row = ALGORITHMS[self.config.algorithm]
         if not self.sampled:  # the iteration's first batch
             self._asked_at = time.perf_counter()  # elapsed_s counts from here to the tell
+            if row.exact:
+                self.tell_exact_gradients()
         if not self.sampled and row.samples:
             points = (self.scheduler.ask_dqd() if row.dqd else
                       [emitter.es_point() for emitter in self.scheduler.emitters])
@@ -213,6 +224,15 @@ class Run:
             jacobians[:, 0] = self.learning.objective_gradients(self.points)
         self.scheduler.tell_dqd(values, points_measures, jacobians)
         self.points = None
+
+    def tell_exact_gradients(self) -> None:
+        """A DQD row of exact gradients (a benchmark function's, scored here): its points, their
+        values and Jacobians told at once, counted as the iteration's first evaluations."""
+        config, points = self.config, self.scheduler.ask_dqd()
+        flown = evaluate_points(points, config.measures, env_name=config.env)
+        jacobians = point_gradients(points, config.measures, env_name=config.env)
+        self.scheduler.tell_dqd(flown[:, 0], flown[:, 1:], jacobians)
+        self.sampled = len(points)
 
     def chains_networks(self, samples: np.ndarray) -> np.ndarray:
         """ME-ES: each chain's samples (in its emitter's order) as the networks its normaliser

@@ -30,7 +30,7 @@ Map:
 - a benchmark function's points (functions.py): `dim_of` (a run's --dim), `shape_of` (a run's
   policy shape, any task), `measure_bounds` (a run's measures' ranges, any task),
   `scored_here` (a function's run needs no cluster), `evaluate_points` (a batch scored at
-  once, in the caller's process).
+  once, in the caller's process), `has_gradients` and `point_gradients` (their exact Jacobians).
 """
 
 from __future__ import annotations
@@ -259,6 +259,21 @@ def evaluate_points(solutions: np.ndarray, measures: tuple[str, ...], *, env_nam
     columns = [task.objective(summary), *(MEASURES[name].of(summary) for name in measures)]
     return np.column_stack([np.asarray(column, dtype=np.float64) for column in columns]).reshape(
         len(points), 1 + len(measures))
+
+
+def has_gradients(env_name: str) -> bool:
+    """Whether the task gives its values' exact gradients (a benchmark function's)."""
+    return ENVIRONMENTS[env_name].gradients is not None
+
+
+def point_gradients(solutions: np.ndarray, measures: tuple[str, ...], *, env_name: str) -> np.ndarray:
+    """The Jacobians of a benchmark function's (objective, *measures) at each point: (points, 1 +
+    measures, dim), the objective's gradient first (pyribs' tell_dqd's order)."""
+    task = ENVIRONMENTS[env_name]
+    points = np.asarray(solutions, dtype=np.float64).reshape(len(solutions), -1)
+    summary = task.gradients(points)
+    rows = [task.objective(summary), *(MEASURES[name].of(summary) for name in measures)]
+    return np.stack([np.asarray(row, dtype=np.float64) for row in rows], axis=1)
 
 
 def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,

@@ -17,8 +17,8 @@ Map:
 - `Environment`: a task a search can fly (a row of ENVIRONMENTS): `make` (gym.make's env, a
   missing simulator or renderer in one line: `renderer_missing`, GL_PACKAGES) and `spaces`
   (read once, on first use), whence the policy's `shape`, `continuous` and `solution_dim` (of
-  the linear policy); a benchmark function's row (functions.py) sets `function` and `dim`
-  instead (`shape_for`: its shape at a run's --dim), and `make` refuses it (`NoEpisode`);
+  the linear policy); a benchmark function's row (functions.py) sets `function`, `dim` and
+  `gradients` instead (`shape_for`: its shape at a run's --dim), and `make` refuses it (`NoEpisode`);
 - `Returns`: the range of a run's objectives (its QD offset, solved return, CQD's top and the
   heatmaps' colours), `Environment.returns` (a task's, for an episode's length);
 - `Measure`: a behaviour solutions are told apart by (a row of MEASURES); `bounds`, its range in a
@@ -144,6 +144,9 @@ class Environment:
     # Gymnasium task, flown by its family's episode function.
     function: Callable[[np.ndarray], Any] | None = None
     dim: int | None = None
+    # A function's exact gradients: a batch of points -> a summary whose values are each value's
+    # gradient (the DQD rows that take a task's own read it: cma_mega, cma_maega). None: none.
+    gradients: Callable[[np.ndarray], Any] | None = None
 
     @property
     def own_length(self) -> int | None:

@@ -9,6 +9,9 @@ Map:
 - the functions: `sphere_points`, `rastrigin_points` (pyribs' shift, clipping and objective
   normalisation to [0, 100]), `arm_points` (pyribs' arm tutorial: the joints' variance to
   minimise, the hand's position); `Points` (what they return: a batch's arrays);
+- their exact gradients, for the DQD rows that take a task's own (cma_mega, cma_maega, as
+  sphere.py's): `sphere_gradients`, `rastrigin_gradients`, `arm_gradients` (a `Points` whose
+  arrays are each value's gradient, a row per point);
 - `no_episode` (a function family's `fly`: there is none to fly);
 - the declarations: SPHERE, RASTRIGIN, ARM (the families), their ENVIRONMENTS and MEASURES rows.
 """
@@ -34,6 +37,7 @@ class Points:
     objective: np.ndarray
     first: np.ndarray  # the sphere's measures: the clipped coordinates' sums over each half
     second: np.ndarray
+    # (A gradients function's Points holds each value's gradient: arrays of (points, dim).)
 
 
 def clipped_halves(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +82,47 @@ def arm_points(points: np.ndarray) -> Points:
     return Points(-np.var(points, axis=1), np.cos(angles).sum(axis=1), np.sin(angles).sum(axis=1))
 
 
+def clipped_halves_gradients(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gradients of `clipped_halves`' two sums: 1 for a coordinate inside [-5.12, 5.12], the
+    derivative of 5.12 / x outside, each sum's in its half and 0 in the other."""
+    slope = np.ones_like(points)
+    outside = np.abs(points) > BOUND
+    slope[outside] = -BOUND / np.square(points[outside])
+    half = points.shape[1] // 2
+    first, second = slope.copy(), slope
+    first[:, half:], second[:, :half] = 0.0, 0.0
+    return first, second
+
+
+def normalised_slope(raw_gradient: np.ndarray, worst: float) -> np.ndarray:
+    """The gradient of `normalised` from the cost's."""
+    return raw_gradient * (-100.0 / worst)
+
+
+def sphere_gradients(points: np.ndarray) -> Points:
+    """The gradients of `sphere_points`' objective and measures."""
+    worst = (-BOUND - SHIFT) ** 2 * points.shape[1]
+    return Points(normalised_slope(2.0 * (points - SHIFT), worst), *clipped_halves_gradients(points))
+
+
+def rastrigin_gradients(points: np.ndarray) -> Points:
+    """The gradients of `rastrigin_points`' objective and measures."""
+    dim, z = points.shape[1], points - SHIFT
+    z_worst = -BOUND - SHIFT
+    worst = dim * (10.0 + z_worst ** 2 - 10.0 * math.cos(2.0 * math.pi * z_worst))
+    raw = 2.0 * z + 20.0 * math.pi * np.sin(2.0 * math.pi * z)
+    return Points(normalised_slope(raw, worst), *clipped_halves_gradients(points))
+
+
+def arm_gradients(points: np.ndarray) -> Points:
+    """The gradients of `arm_points`' objective and hand: joint j turns every link from j on, so
+    the hand's x moves by minus the sum of sin over those links' angles, its y by the cos's."""
+    angles = np.cumsum(points, axis=1)
+    from_joint = lambda values: np.cumsum(values[:, ::-1], axis=1)[:, ::-1]  # noqa: E731 (sums over i >= j)
+    variance = -2.0 * (points - points.mean(axis=1, keepdims=True)) / points.shape[1]
+    return Points(variance, -from_joint(np.sin(angles)), from_joint(np.cos(angles)))
+
+
 def objective_of(points: Points) -> np.ndarray:
     """A function task's objective: the function's value, normalised as its row says."""
     return points.objective
@@ -101,16 +146,17 @@ ENVIRONMENTS: dict[str, Environment] = {
     # sphere.py's: 100 dimensions, objectives in [0, 100], QD score counted from 0.
     "sphere": Environment(gym_id="", family=SPHERE, measures=("sum_first_half", "sum_second_half"),
                           qd_offset=0.0, env_seed=SEED, solved=99.0, heat=(0.0, 100.0),
-                          objective_max=100.0, function=sphere_points, dim=100, objective=objective_of),
+                          objective_max=100.0, function=sphere_points, dim=100, objective=objective_of,
+                          gradients=sphere_gradients),
     "rastrigin": Environment(gym_id="", family=RASTRIGIN, measures=("sum_first_half", "sum_second_half"),
                              qd_offset=0.0, env_seed=SEED, solved=99.0, heat=(0.0, 100.0),
                              objective_max=100.0, function=rastrigin_points, dim=100,
-                             objective=objective_of),
+                             objective=objective_of, gradients=rastrigin_gradients),
     # pyribs' arm tutorial: 12 joints. Minus a variance: the offset is that of angles spread
     # evenly over [-pi, pi] (pi^2 / 3), which every search starting at 0 stays above.
     "arm": Environment(gym_id="", family=ARM, measures=("hand_x", "hand_y"), qd_offset=-math.pi ** 2 / 3,
                        env_seed=SEED, solved=-0.01, heat=(-1.0, 0.0), objective_max=0.0,
-                       function=arm_points, dim=12, objective=objective_of),
+                       function=arm_points, dim=12, objective=objective_of, gradients=arm_gradients),
 }
 
 # The ranges grow with the dimension: sphere.py's +-5.12 dim / 2 for each half's sum, and the
