@@ -10,7 +10,11 @@ its heatmap pictures). Our side is the command a user types, writing its folder 
 farm-bench (paired A/B runs, medians, the ratio A/B pair by pair), on one core, one after the other;
 a second, quicker process start-up of pyribs' is in its times too.
 
-    python benchmarks/bench_functions.py --rows map_elites,cma_me --iterations 1000 --runs 3
+pyribs' loop runs twice against ours: as pyribs runs once installed (numba compiling its CMA-ES
+code), and like for like (numba off and numpy's kernels held, as the command line runs every
+search: docs/performance.md says why).
+
+    python benchmarks/bench_functions.py bench --rows map_elites,cma_me --iterations 1000 --runs 3
 
 One result file, benchmarks/functions_results.json (each row's farm-bench report, and the command).
 """
@@ -31,6 +35,19 @@ OUR_FLAGS = {
     "map_elites": "--algorithm map_elites --n_emitters 1 --batch_size 540 --sigma0 0.5",
     "cma_me": "--algorithm cma_me --n_emitters 15 --batch_size 36 --sigma0 0.5",  # (cma_me_imp)
 }
+
+
+
+
+def pyribs_variants() -> dict[str, str]:
+    """How pyribs' loop is started: as installed, and with the settings the command line holds
+    for ours (qdsearch.base.kernels: numba off, numpy's and OpenBLAS's kernels)."""
+    sys.path.insert(0, str(ROOT))
+    from qdsearch.base.kernels import settings
+
+    held = " ".join(f"{name}={value}" for name, (value, library) in settings().items()
+                    if library in ("numba", "numpy"))
+    return {"as installed (numba on)": "", "like for like (numba off, kernels held)": f"env {held} "}
 
 
 def pyribs_scheduler(row: str, dim: int, seed: int):
@@ -82,25 +99,35 @@ def pyribs_loop(row: str, iterations: int, outdir: str, dim: int = 100, seed: in
     print(json.dumps({name: float(values[-1]) for name, values in metrics.items()}))
 
 
-def bench(rows: str = "map_elites,cma_me", iterations: int = 1000, runs: int = 3,
+def without_paths(text: str, tmp: str) -> str:
+    """The result file's text with no path of this machine: the repository's root, the
+    interpreter and the temporary folder as a reader types them."""
+    return text.replace(f"{ROOT}/", "").replace(sys.executable, "python").replace(tmp, "$TMP")
+
+
+def bench(rows: str | tuple = "map_elites,cma_me", iterations: int = 1000, runs: int = 3,
           out: str = str(ROOT / "benchmarks" / "functions_results.json")) -> None:
     """Each row: our run (A) against pyribs' loop (B), farm-bench's paired report."""
     results = {"date": datetime.date.today().isoformat(), "command": " ".join(sys.argv),
                "iterations": iterations, "rows": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        for row in str(rows).split(","):
+        # Fire reads "a,b" as a tuple
+        for row in (rows.split(",") if isinstance(rows, str) else rows):
             ours = (f"{sys.executable} {ROOT / 'lunar_lander.py'} --env sphere --dim 100 --grid 100 "
                     f"{OUR_FLAGS[row]} --iterations {iterations} --log_every {iterations} --pictures false "
                     f"--seed 1 --outdir {tmp}/ours_{row}")
-            theirs = f"{sys.executable} {__file__} loop {row} {iterations} {tmp}/pyribs_{row}"
             # each run a new folder: ours must be new or empty
-            ours = f"sh -c 'rm -rf {tmp}/ours_{row}; exec {ours}'"
-            report = subprocess.run(["farm-bench", "-n", str(runs), "--timeout", "3600", "--vs", theirs,
-                                     "--", "sh", "-c", ours[len("sh -c '"):-1]],
-                                    capture_output=True, text=True, check=True).stdout
-            print(f"== {row}\n{report}")
-            results["rows"][row] = {"ours": ours, "pyribs": theirs, "report": report}
-    Path(out).write_text(json.dumps(results, indent=1) + "\n")
+            ours = f"rm -rf {tmp}/ours_{row}; exec {ours}"
+            results["rows"][row] = {"ours": ours}
+            for variant, environment in pyribs_variants().items():
+                loop = f"{sys.executable} {__file__} loop {row} {iterations} {tmp}/pyribs_{row}"
+                theirs = f"{environment}{loop}"
+                report = subprocess.run(["farm-bench", "-n", str(runs), "--timeout", "3600",
+                                         "--vs", f"sh -c '{theirs}'", "--", "sh", "-c", ours],
+                                        capture_output=True, text=True, check=True).stdout
+                print(f"== {row}, pyribs {variant}\n{report}", flush=True)
+                results["rows"][row][variant] = {"pyribs": theirs, "report": report}
+    Path(out).write_text(without_paths(json.dumps(results, indent=1), tmp) + "\n")
     print(f"wrote {out}")
 
 

@@ -80,7 +80,8 @@ def test_each_run_equals_its_lone_search_twin(experiment_dir, tmp_path, dask_clu
 
 def test_every_row_runs_and_sweeps_only_its_own_flags(tmp_path, dask_cluster):
     folder = tmp_path / "rows"
-    episode_rows = [name for name, row in algorithms.ALGORITHMS.items() if not row.exact]  # (functions': there)
+    # every row of episodes (those of exact gradients run on the functions: tests/test_functions.py)
+    episode_rows = [name for name, row in algorithms.ALGORITHMS.items() if not row.exact]
     commands.experiment(algorithms=episode_rows, seeds="1-2", iterations=1,
                            env="LunarLanderContinuous-v3",  # a box of actions: the learning rows' too
                            novelty_threshold=[0.02, 0.05], bandwidth=[0.1], outdir=str(folder),

@@ -179,3 +179,83 @@ def test_after_evaluate_hover_shows_other_terrains_and_the_switch_recolours(
     page.check("input[value=robust]")
     assert page.evaluate("document.getElementById('heatmap').toDataURL()") != before
     page.close()
+
+
+@pytest.fixture(scope="module")
+def explored_points(tmp_path_factory):
+    """An arm run and a sphere run, each explored: a point has no episode, so no cluster."""
+    from util import tiny_flags
+
+    folders = {}
+    for env, dim in (("arm", 7), ("sphere", 10)):
+        run_dir = tmp_path_factory.mktemp("points") / env
+        commands.search(**tiny_flags(env=env, dim=dim, iterations=8, sigma0=1.0), outdir=str(run_dir))
+        commands.explore(str(run_dir))
+        folders[env] = run_dir
+    return folders
+
+
+def point_page(browser, run_dir):
+    page = browser.new_page(viewport={"width": 1300, "height": 1000})
+    page.errors = []
+    page.on("pageerror", lambda error: page.errors.append(str(error)))
+    page.on("console", lambda message: message.type == "error" and page.errors.append(message.text))
+    page.goto((run_dir / "explorer.html").as_uri())
+    page.wait_for_function("window.explorerReady > 0", timeout=20000)
+    return page
+
+
+def solution_of(run_dir, index: int) -> np.ndarray:
+    archive = saved_archive(run_dir)
+    return dict(zip(archive.data("index"), archive.data("solution")))[index]
+
+
+def pixel_at(page, x: float, y: float) -> list[int]:
+    return page.evaluate(f"Array.from(fg.getImageData({round(x)}, {round(y)}, 1, 1).data)")[:3]
+
+
+@pytest.mark.parametrize("env", ["arm", "sphere"])
+def test_a_function_page_holds_each_elites_point_and_no_episode(explored_points, env):
+    run_dir = explored_points[env]
+    data, archive = page_data(run_dir), saved_archive(run_dir)
+    assert data["poses"] == "" and data["point"]["dim"] == archive.solution_dim
+    assert data["point"]["kind"] == ("arm" if env == "arm" else "bars")
+    packed = np.frombuffer(base64.b64decode(data["point"]["values"]), dtype="<f4")
+    points = packed.reshape(-1, archive.solution_dim)
+    assert len(points) == len(data["elites"]) == len(archive) > 5
+    for elite in data["elites"]:
+        assert elite["steps"] == 0
+        expected = solution_of(run_dir, elite["index"]).astype("<f4")
+        np.testing.assert_array_equal(points[elite["offset"]], expected)
+
+
+def test_a_click_draws_the_arm_with_its_hand_where_the_angles_put_it(browser, explored_points):
+    """The hand's place computed here from the elite's angles (a link of 1 per joint, each turning
+    by its angle from the last): the page's hand colour is there."""
+    run_dir = explored_points["arm"]
+    page = point_page(browser, run_dir)
+    elite = best_elite(run_dir)
+    page.mouse.click(*cell_centre(page, elite["index"]))
+    angles = np.cumsum(solution_of(run_dir, elite["index"]))
+    hand = page.evaluate(f"armXY({np.cos(angles).sum()}, {np.sin(angles).sum()})")
+    assert pixel_at(page, *hand) == [214, 39, 40]  # the hand, #d62728
+    info = page.inner_text("#info")
+    assert f"cell {elite['index']}" in info and "joint angles: 7 values" in info
+    headers = page.locator("#elites th").all_inner_texts()
+    assert not any(header.startswith("steps") for header in headers) and page.errors == []
+    assert not page.locator("#play").is_visible()  # nothing to play
+    page.close()
+
+
+def test_a_click_draws_the_spheres_point_as_bars_of_its_halves(browser, explored_points):
+    run_dir = explored_points["sphere"]
+    page = point_page(browser, run_dir)
+    elite = best_elite(run_dir)
+    page.locator("#elites tbody tr").nth(0).click()  # the best
+    point = solution_of(run_dir, elite["index"])
+    top = max(5.12, float(np.abs(point).max()))
+    for i in (0, 4, 5, 9):  # each half's first and last coordinate: its colour halfway up its bar
+        x, y = page.evaluate(f"barXY({i}, {point[i] / 2}, {top})")
+        assert pixel_at(page, x, y) == ([31, 119, 180] if i < 5 else [255, 127, 14])  # blue, orange
+    assert page.evaluate("current.index") == elite["index"] and page.errors == []
+    page.close()

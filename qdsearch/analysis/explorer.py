@@ -1,12 +1,14 @@
 """The explorer: one self-contained page (explorer_page.html, filled in here) to browse a run's
-archive and watch any elite's episode, played from poses recorded on the cluster.
+archive and watch any elite's episode, played from poses recorded on the cluster; a benchmark
+function's elite, which has no episode, is shown as its point (bars, or the arm it bends).
 
 Map:
 - `explorer_page`: the page with the run's data in a JSON block and a policy that lets only its
   own script run;
 - poses (each task family says what they hold), recorded on the workers by `record_poses`
-  (`record_flight`);
-- `explorer_data` (the page's JSON) and the `explore` command.
+  (`record_flight`), gathered by `flown_flights`; a function's points: `point_flights`;
+- `explorer_data` (the page's JSON; `shown_flights`: poses and scene, or points) and the
+  `explore` command.
 """
 
 from __future__ import annotations
@@ -105,12 +107,35 @@ def page_cells(archive, indices: np.ndarray) -> tuple[list[int], np.ndarray]:
     return [PAGE_BINS] * min(2, archive.measure_dim), bins
 
 
-def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarray], env_seed: int,
-                  run_dir: Path, metrics: list[dict]) -> dict:
-    """What the page shows, as JSON: cells with their elites, packed flights, the seed they were
-    flown on (named as the task's family names it), curves."""
+def packed(values: np.ndarray) -> str:
+    """An array's bytes in base64, as the page decodes them into a typed array."""
     import base64
 
+    return base64.b64encode(values.tobytes()).decode()
+
+
+def point_flights(rows: dict) -> list[np.ndarray]:
+    """A benchmark function's elites as the page draws them: no episode, each a 'flight' of one
+    pose, the point itself (float32: what the page draws)."""
+    return [np.asarray(solution, dtype="<f4")[None, :] for solution in rows["solution"]]
+
+
+def shown_flights(task, flights: list[np.ndarray], env_seed: int) -> dict:
+    """The page's data of what it draws: an episode's packed poses and its scene, or a benchmark
+    function's points and how its family draws one (`point_view`)."""
+    if task.function:
+        points = np.concatenate(flights)
+        return {"poses": "", "pose_scale": [], "world": {"episode": "The elite's point"},
+                "point": {**task.family.point_view, "dim": int(points.shape[1]), "values": packed(points)}}
+    return {"poses": packed(np.concatenate(flights)), "pose_scale": list(task.family.pose_scale),
+            "world": task.family.scene(env_seed, task)}
+
+
+def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarray], env_seed: int,
+                  run_dir: Path, metrics: list[dict]) -> dict:
+    """What the page shows, as JSON: cells with their elites, packed flights (a benchmark
+    function's: its points), the seed they were flown on (named as the task's family names it),
+    curves."""
     import matplotlib
 
     offsets = np.cumsum([0, *(len(poses) for poses in flights)])
@@ -139,13 +164,22 @@ def explorer_data(archive, config: RunConfig, rows: dict, flights: list[np.ndarr
                      for name, lo, hi in zip(config.measures, archive.lower_bounds, archive.upper_bounds)],
         "dims": dims, "heat_range": list(returns_of(config).heat),
         "colormap": [matplotlib.colors.to_hex(magma(i / 255)) for i in range(256)],
-        "elites": elites, "pose_scale": list(task.family.pose_scale),
-        "poses": base64.b64encode(np.concatenate(flights).tobytes()).decode(),
-        "world": task.family.scene(env_seed, task),
+        "elites": elites, **shown_flights(task, flights, env_seed),
         "metrics": [{k: row.get(k) for k in ("iteration", "evaluations", "qd_score", "coverage",
                                              "best_objective")} for row in metrics],
         "robustness": bool(robust),
     }
+
+
+def flown_flights(rows: dict, config: RunConfig, shown: int, workers: int,
+                  scheduler_address: str | None) -> list[np.ndarray]:
+    """Every elite flown again on the cluster, on the env seed shown, its poses recorded."""
+    with dask_client(workers, scheduler_address, console_log()) as client:
+        chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
+        futures = [client.submit(record_poses, chunk, flown_seeds(chunk, shown, config), config.env,
+                                 config.network, episode_of(config), pure=False, retries=3)
+                   for chunk in chunks]
+        return [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
 
 
 def explore(run_dir: Path, terrain: Terrain, cluster: ClusterSettings) -> None:
@@ -153,24 +187,21 @@ def explore(run_dir: Path, terrain: Terrain, cluster: ClusterSettings) -> None:
     the env seed `terrain` names, to record its poses: one self-contained page to browse the
     archive and watch any elite's episode."""
     archive, config = load_run(run_dir)
-    require_drawing(task_of(config).family, "explore")
-    require_one_world(task_of(config).family, config.reset, "explore")
+    task = task_of(config)
+    require_drawing(task.family, "explore", points=bool(task.function))
+    require_one_world(task.family, config.reset, "explore")
     shown = shown_terrain(config, terrain.env_seed)
     workers, run = checked("workers", cluster.workers), run_dir
     metrics = load_metrics(run)  # a corrupt file is refused before the elites are flown
     check_writable(run)
     scheduler_address = scheduler_of(cluster)
     rows = elite_rows(archive)
-    with dask_client(workers, scheduler_address, console_log()) as client:
-        chunks = np.array_split(rows["solution"], max(1, min(len(rows["solution"]) // 25, 64)))
-        futures = [client.submit(record_poses, chunk, flown_seeds(chunk, shown, config), config.env,
-                                 config.network,
-                                 episode_of(config), pure=False, retries=3)
-                   for chunk in chunks]
-        flights = [flight for chunk in gather_with_progress(client, futures) for flight in chunk]
+    flights = (point_flights(rows) if task.function  # a point: no episode, no cluster
+               else flown_flights(rows, config, shown, workers, scheduler_address))
     data = explorer_data(archive, config, rows, flights, shown, run, metrics)
     page = explorer_page(data)
     atomic_write(run / "explorer.html", lambda f: f.write(page), mode="w")
     size = (run / "explorer.html").stat().st_size
-    print(f"{len(rows['index'])} elites, {sum(len(poses) for poses in flights):,} poses: wrote "
-          f"{run / 'explorer.html'} ({size / 1e6:.1f} MB); open it in a browser")
+    shown_as = "each its point" if task.function else f"{sum(len(poses) for poses in flights):,} poses"
+    print(f"{len(rows['index'])} elites, {shown_as}: wrote {run / 'explorer.html'} ({size / 1e6:.1f} MB); "
+          "open it in a browser")

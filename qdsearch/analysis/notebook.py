@@ -51,8 +51,10 @@ def read_run(folder: Any) -> RunData:
         archive = ArchiveDataFrame(pd.read_csv(io.BytesIO(read_regular(table, "archive.csv"))))
     except ValueError as error:
         raise UsageError(f"{table}: unreadable ({error}); has the run saved yet?") from None
-    for place, name in enumerate(config["measures"]):  # (after pyribs' own columns: its fields)
-        archive[name] = archive[f"measures_{place}"]
+    # each measure by its name, after pyribs' own columns (its fields), joined at once: added one
+    # at a time to a point's hundred columns and more, they would fragment the frame
+    named = pd.DataFrame({name: archive[f"measures_{i}"] for i, name in enumerate(config["measures"])})
+    archive = ArchiveDataFrame(pd.concat([archive, named], axis=1))
     return RunData(path, config, archive, pd.DataFrame(load_metrics(path)))
 
 

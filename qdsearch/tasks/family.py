@@ -81,6 +81,10 @@ class Family:
     pose_angles: tuple[int, ...] = ()  # the pose's columns that are angles (wrapped to [-pi, pi])
     scene: Callable[[int, Environment], dict] | None = None  # the page's world and bodies
     # (explorer_page.html)
+    # what `explore` draws a benchmark function's point as (it has no episode): {"kind": "bars"}
+    # (each coordinate a bar; "bound": the dashed lines; "halves": the measures' halves coloured)
+    # or {"kind": "arm"} (the planar arm of unit links, its joints at the point's angles)
+    point_view: dict[str, Any] | None = None
 
     def undeclared(self, command: str) -> list[str]:
         """The fields `command` (a key of DRAWN_BY) draws the family with that it leaves unset."""
@@ -92,13 +96,14 @@ class Family:
 
 # What each command that draws a family's episodes needs the family to declare.
 DRAWN_BY = {"trajectories": ("position", "marked_step", "draw_paths"),
-            "explore": ("pose", "pose_scale", "scene")}
+            "explore": ("pose", "pose_scale", "scene"), "explore points": ("point_view",)}
 
 
-def require_drawing(family: Family, command: str) -> None:
+def require_drawing(family: Family, command: str, points: bool = False) -> None:
     """Refuse, in one line, a command that draws (`trajectories`, `explore`) a family that does not
-    declare how; called before any episode is flown."""
-    if missing := family.undeclared(command):
+    declare how (`points`: a benchmark function's points, explored without an episode); called
+    before any episode is flown."""
+    if missing := family.undeclared(command + " points" if points else command):
         raise UsageError(f"{command}: the {family.title} family cannot be drawn (it declares no "
                          f"{', '.join(missing)}; docs/extending.md)")
 

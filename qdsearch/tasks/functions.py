@@ -134,12 +134,15 @@ def no_episode(*args: Any) -> Any:
     raise NoEpisode("a benchmark function has no episode")
 
 
+# The explorer draws a point of the sphere or Rastrigin as its coordinates' bars (the halves that
+# make the two measures apart, the clipping bound dashed), an arm's as the arm.
+BARS = {"kind": "bars", "bound": BOUND, "halves": True}
 SPHERE = Family(name="sphere", title="Sphere", fly=no_episode, seed_noun="seed",
-                solved_words="points within 1 of the optimum")
+                solved_words="points within 1 of the optimum", point_view=BARS)
 RASTRIGIN = Family(name="rastrigin", title="Rastrigin", fly=no_episode, seed_noun="seed",
-                   solved_words="points within 1 of the optimum")
+                   solved_words="points within 1 of the optimum", point_view=BARS)
 ARM = Family(name="arm", title="Planar arm", fly=no_episode, seed_noun="seed",
-             solved_words="arms bent with a variance of 0.01 or less")
+             solved_words="arms bent with a variance of 0.01 or less", point_view={"kind": "arm"})
 
 SEED = "nothing (a function has no randomness)"
 ENVIRONMENTS: dict[str, Environment] = {

@@ -27,7 +27,8 @@ OUTSIDE = 3.0  # |z| beyond which a row falls outside pyribs' (README.md)
 
 # sphere.py's name of each of our settings, by (algorithm, archive); None: not in its table.
 SPHERE_PY = {("map_elites", "grid"): "map_elites", ("map_elites", "cvt"): "cvt_map_elites",
-             ("line_map_elites", "grid"): "line_map_elites", ("line_map_elites", "cvt"): "line_cvt_map_elites",
+             ("line_map_elites", "grid"): "line_map_elites",
+             ("line_map_elites", "cvt"): "line_cvt_map_elites",
              ("me_map_elites", "grid"): "me_map_elites", ("cma_me", "grid"): "cma_me_imp",
              ("cma_me_mu", "grid"): "cma_me_imp_mu", ("cma_me_rd", "grid"): "cma_me_rd",
              ("cma_mae", "grid"): "cma_mae", ("ns_cma", "grid"): "ns_cma", ("nslc", "grid"): "nslc",
@@ -61,16 +62,14 @@ def row_line(setting: str, runs: pd.DataFrame, published: pd.DataFrame) -> dict:
     first = runs.iloc[0]
     line = {"row": first["algorithm"] + (" (CVT)" if first["archive"] == "cvt" else ""),
             "sphere.py": first["sphere_py"] or "(not in its table)", "trials": len(runs)}
-    for metric, scale, unit in (("qd_score", 1, ""), ("coverage", 100, "%")):
-        values = runs[metric] * scale
-        line[f"ours: {metric}"] = f"{values.mean():,.0f}{unit} [{values.min():,.0f}, {values.max():,.0f}]" if (
-            metric == "qd_score") else f"{values.mean():.2f}{unit} [{values.min():.2f}, {values.max():.2f}]"
+    for metric, scale, digits in (("qd_score", 1, ",.0f"), ("coverage", 100, ".2f")):
+        values = runs[metric] * scale  # the mean, and the range of our trials
+        low, mean, high = (f"{value:{digits}}" for value in (values.min(), values.mean(), values.max()))
+        line[f"ours: {metric}"] = f"{mean} [{low}, {high}]"
         if first["sphere_py"]:
             theirs = published.loc[first["sphere_py"]]
             mean, sd = theirs[f"{metric}_mean"], theirs[f"{metric}_sd"]
-            shown = f"{mean * scale:,.0f} ± {sd * scale:,.0f}" if metric == "qd_score" else (
-                f"{mean * scale:.2f} ± {sd * scale:.2f}%")
-            line[f"pyribs: {metric}"] = shown
+            line[f"pyribs: {metric}"] = f"{mean * scale:{digits}} ± {sd * scale:{digits}}"
             line[f"z: {metric}"] = round(z_score(runs[metric], mean, sd), 1)
     if first["sphere_py"]:
         outside = max(abs(line["z: qd_score"]), abs(line["z: coverage"])) > OUTSIDE
@@ -90,8 +89,8 @@ def main(folder: str) -> None:
     published = pd.read_csv(HERE / "pyribs_table.csv", index_col="row")
     table = pd.DataFrame([row_line(setting, runs, published)
                           for setting, runs in lines.groupby("setting", sort=False)])
-    (HERE / "table.md").write_text(markdown(table.fillna("")))
-    print(table.fillna("").to_string(index=False))
+    (HERE / "table.md").write_text(markdown(table.astype(object).fillna("")))
+    print(table.astype(object).fillna("").to_string(index=False))
 
 
 if __name__ == "__main__":
