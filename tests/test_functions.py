@@ -124,6 +124,27 @@ def test_the_exact_gradients_are_the_formulas_slopes(env):
     assert not has_gradients("LunarLander-v3")
 
 
+def test_an_iteration_of_exact_gradients_counts_no_samples():
+    """The size check and the evaluations count each point, not the --es_samples it never flies."""
+    from qdsearch.algorithms import evaluations_per_iteration
+
+    config = {**options.search_defaults(), "algorithm": "cma_mega", "n_emitters": 1000, "batch_size": 1}
+    assert options.solutions_per_iteration(config) == (1000, "--n_emitters 1000 x --batch_size 1")
+    row = type("Config", (), {**config, "es_samples": 100})
+    assert evaluations_per_iteration(row) == 2000  # each point, and its one branched solution
+
+
+def test_the_gradients_at_the_clipping_bound_and_of_integer_points():
+    """At exactly +-5.12 a coordinate is kept, so its slope is 1 (sphere.py's clip mask is strict
+    too); integer points, as a notebook may pass them, get the float slopes of 5.12 / x beyond."""
+    jacobian = point_gradients(np.array([[5.12, -5.12, 6, -8]]), ("sum_first_half", "sum_second_half"),
+                               env_name="sphere")[0]
+    np.testing.assert_allclose(jacobian[1], [1.0, 1.0, 0.0, 0.0])
+    integers = point_gradients(np.array([[6, 1, -7, 0]]), ("sum_first_half", "sum_second_half"),
+                               env_name="rastrigin")[0]
+    np.testing.assert_allclose(integers[1:], [[-5.12 / 36, 1, 0, 0], [0, 0, -5.12 / 49, 1]], rtol=1e-12)
+
+
 @pytest.mark.slow  # real runs
 @pytest.mark.parametrize("algorithm", ["cma_mega", "cma_maega"])
 def test_a_run_on_exact_gradients_is_pyribs_told_the_formulas_and_resumes_as_its_twin(tmp_path, algorithm):

@@ -12,7 +12,7 @@ import qdsearch
 from qdsearch import algorithms, tasks
 from qdsearch.base import flags
 from qdsearch.base.flags import UsageError
-from qdsearch.config import settings
+from qdsearch.config import options, settings
 from util import LANDER, assert_one_line_error
 
 
@@ -28,12 +28,31 @@ def help_entry(page: str, flag: str) -> str:
     return " ".join(part for part in entry if not part.startswith("Default: "))
 
 
+@pytest.mark.parametrize("algorithm, flags, made", [
+    ("cma_mega_es", dict(n_emitters=20, es_samples=10000),
+     (200_020, "--n_emitters 20 x (1 + --es_samples 10000)")),
+    ("cma_mega_es", dict(n_emitters=20, batch_size=6000), (120_000, "--n_emitters 20 x --batch_size 6000")),
+    ("cma_mega_es", dict(n_emitters=3, batch_size=101, es_samples=100),  # equal: the batch's words
+     (303, "--n_emitters 3 x --batch_size 101")),
+    ("me_es", dict(n_emitters=20, es_samples=10000), (200_000, "--n_emitters 20 x --es_samples 10000")),
+    ("cma_mega", dict(n_emitters=1000, batch_size=1), (1000, "--n_emitters 1000 x --batch_size 1")),
+    ("cma_me", dict(n_emitters=7, batch_size=9, es_samples=10000), (63, "--n_emitters 7 x --batch_size 9")),
+])
+def test_the_solutions_of_an_iteration_and_the_flags_that_make_them(algorithm, flags, made):
+    """The larger of the batch and a DQD row's points with their samples (the first of equals: the
+    batch); ME-ES's samples alone; no samples for a row that flies none."""
+    config = {**options.search_defaults(), "algorithm": algorithm, **flags}
+    assert options.solutions_per_iteration(config) == made
+
+
 @pytest.mark.parametrize("args, line", [
     (["--algorithm", "cma_mega_es", "--n_emitters", 20, "--es_samples", 10000],
      "error: --n_emitters 20 x (1 + --es_samples 10000) asks 200,020 solutions per iteration; at most "
      "100,000"),
     (["--algorithm", "cma_mega_es", "--n_emitters", 20, "--batch_size", 6000],
      "error: --n_emitters 20 x --batch_size 6000 asks 120,000 solutions per iteration; at most 100,000"),
+    (["--algorithm", "me_es", "--n_emitters", 20, "--es_samples", 10000],  # its samples, no batch
+     "error: --n_emitters 20 x --es_samples 10000 asks 200,000 solutions per iteration; at most 100,000"),
     (["experiment", "--algorithms", "cma_me,cma_maega_es", "--n_emitters", 20, "--es_samples", 10000],
      "error: --n_emitters 20 x (1 + --es_samples 10000) asks 200,020 solutions per iteration; at most "
      "100,000"),

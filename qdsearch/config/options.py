@@ -48,6 +48,7 @@ from qdsearch.tasks import (
     check_episode,
     episode_of,
     family_measures,
+    has_gradients,
     shape_of,
 )
 from qdsearch.tasks.policies import POLICIES
@@ -170,17 +171,17 @@ def with_dim(config: dict[str, Any]) -> dict[str, Any]:
     """A benchmark function's --dim (its own unless given), and what it can't take refused: an
     episode's flags, a network, a row that learns from episodes (the learning rows' transitions,
     ME-ES's observations). --dim is refused for a Gymnasium task, whose size its spaces give, and
-    so is a row of exact gradients, which it has not."""
+    a row of exact gradients for a task that has none."""
     env, dim, task = config["env"], config.get("dim"), ENVIRONMENTS[config["env"]]
     row = ALGORITHMS.get(config.get("algorithm") or "")
+    if row is not None and row.exact and not has_gradients(env):
+        algorithm = config["algorithm"]
+        raise UsageError(f"{named('algorithm')} {algorithm} takes a benchmark function's exact "
+                         f"gradients; {named('env')} {env} has none ({algorithm}_es estimates them)")
     if not task.function:
         if dim is not None:
             raise UsageError(f"{named('dim')} is for the benchmark functions; {named('env')} {env} takes its "
                              "size from its spaces")
-        if row is not None and row.exact:
-            algorithm = config["algorithm"]
-            raise UsageError(f"{named('algorithm')} {algorithm} takes a benchmark function's exact "
-                             f"gradients; {named('env')} {env} has none ({algorithm}_es estimates them)")
         return config
     if dim is not None and dim < 2:
         raise UsageError(f"{named('dim')} {dim}: a benchmark function takes 2 coordinates at least")
