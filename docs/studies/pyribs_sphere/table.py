@@ -60,18 +60,20 @@ def z_score(ours: pd.Series, mean: float, sd: float) -> float:
 
 def row_line(setting: str, runs: pd.DataFrame, published: pd.DataFrame) -> dict:
     first = runs.iloc[0]
+    # sphere.py's name of the row (None, read back from the frame as NaN: not in its table)
+    theirs_name = first["sphere_py"] if isinstance(first["sphere_py"], str) else None
     line = {"row": first["algorithm"] + (" (CVT)" if first["archive"] == "cvt" else ""),
-            "sphere.py": first["sphere_py"] or "(not in its table)", "trials": len(runs)}
+            "sphere.py": theirs_name or "(not in its table)", "trials": len(runs)}
     for metric, scale, digits in (("qd_score", 1, ",.0f"), ("coverage", 100, ".2f")):
         values = runs[metric] * scale  # the mean, and the range of our trials
         low, mean, high = (f"{value:{digits}}" for value in (values.min(), values.mean(), values.max()))
         line[f"ours: {metric}"] = f"{mean} [{low}, {high}]"
-        if first["sphere_py"]:
-            theirs = published.loc[first["sphere_py"]]
+        if theirs_name:
+            theirs = published.loc[theirs_name]
             mean, sd = theirs[f"{metric}_mean"], theirs[f"{metric}_sd"]
             line[f"pyribs: {metric}"] = f"{mean * scale:{digits}} ± {sd * scale:{digits}}"
             line[f"z: {metric}"] = round(z_score(runs[metric], mean, sd), 1)
-    if first["sphere_py"]:
+    if theirs_name:
         outside = max(abs(line["z: qd_score"]), abs(line["z: coverage"])) > OUTSIDE
         line["verdict"] = "outside" if outside else "within"
     return line
