@@ -259,3 +259,17 @@ def test_a_click_draws_the_spheres_point_as_bars_of_its_halves(browser, explored
         assert pixel_at(page, x, y) == ([31, 119, 180] if i < 5 else [255, 127, 14])  # blue, orange
     assert page.evaluate("current.index") == elite["index"] and page.errors == []
     page.close()
+
+
+def test_a_narrow_curve_keeps_its_ends_apart(browser, explored_points):
+    """A function's best objective climbs from below 100 to 100: its axis reads two numbers, not
+    "100" twice."""
+    page = point_page(browser, explored_points["sphere"])
+    curve = [row["best_objective"] for row in page_data(explored_points["sphere"])["metrics"]]
+    assert max(curve) - min(curve) < 10
+    labels = page.evaluate("""(() => {
+        const seen = [], g = document.getElementById('curves').getContext('2d'), text = g.fillText.bind(g);
+        g.fillText = (t, ...rest) => { seen.push(String(t)); text(t, ...rest); };
+        drawCurves(); return seen; })()""")
+    assert f"{max(curve):.2f}" in labels and f"{min(curve):.2f}" in labels
+    page.close()
