@@ -35,6 +35,7 @@ from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.base import run_files  # noqa: E402
 from qdsearch.config import options, run_config  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+from qdsearch.tasks import policies  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -53,7 +54,7 @@ def serial_search(env_name: str, iterations: int) -> dict:
         rows = []
         for solution in scheduler.ask():
             start = time.perf_counter()
-            flight = tasks.fly(solution, 52, env, env_name=env_name)
+            flight = policies.fly(solution, 52, env, env_name=env_name)
             flying += time.perf_counter() - start
             steps, episodes = steps + flight.steps, episodes + 1
             rows.append([tasks.ENVIRONMENTS[env_name].objective(flight),

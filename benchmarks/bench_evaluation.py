@@ -41,7 +41,10 @@ from qdsearch.base import run_files  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
 from qdsearch.config.options import search_defaults, with_task  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
-from qdsearch.tasks import fast_lander  # noqa: E402
+from qdsearch.tasks import (
+    fast_lander,  # noqa: E402
+    policies,
+)
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -87,7 +90,7 @@ def serial_evaluate(rollout: Callable) -> Callable:
 
 
 def streamlined_rollout(solution: np.ndarray, seed: int, env) -> tuple[float, ...]:
-    return tasks.rollout(solution, seed, env, env_name=CONFIG.env)
+    return policies.rollout(solution, seed, env, env_name=CONFIG.env)
 
 
 def engine_evaluate(client, solutions: np.ndarray, env_seed: int):
@@ -116,7 +119,7 @@ def count_steps(iterations: int) -> int:
         solutions, results = scheduler.ask(), []
         for solution in solutions:
             path: list = []
-            results.append(tasks.rollout(solution, 52, env, trajectory=path, env_name=CONFIG.env))
+            results.append(policies.rollout(solution, 52, env, trajectory=path, env_name=CONFIG.env))
             steps += len(path)
         results = np.array(results)
         scheduler.tell(results[:, 0], results[:, 1:])

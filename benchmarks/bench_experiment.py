@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 import qdsearch  # noqa: E402
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
+from qdsearch.tasks import policies  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -59,7 +60,7 @@ def serial_rollout_seconds(configs: list[dict]) -> float:
         for _ in range(config.iterations):
             solutions = scheduler.ask()
             tic = time.perf_counter()
-            rows = np.array([tasks.rollout(s, config.env_seed[0], env, config.measures,
+            rows = np.array([policies.rollout(s, config.env_seed[0], env, config.measures,
                                            env_name=config.env) for s in solutions])
             total += time.perf_counter() - tic
             scheduler.tell(rows[:, 0], rows[:, 1:])

@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import qdsearch
 from qdsearch import tasks  # noqa: E402
+from qdsearch.tasks import policies  # noqa: E402
 from qdsearch.tasks.policies import Policy  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
@@ -41,12 +42,12 @@ def time_policy(env_name: str, policy: Policy, episodes: int, rounds: int, lengt
     solution = (policy.start(task.shape, 1) if policy.kind != "linear"  # the linear start is zeros
                 else np.random.default_rng(1).normal(0.0, 0.1, policy.size(task.shape)))
     act, observations = policy.act(solution, task.shape, task.continuous), []
-    tasks.fly(solution, 0, env, on_step=lambda action, obs: observations.append(obs), env_name=env_name,
+    policies.fly(solution, 0, env, on_step=lambda action, obs: observations.append(obs), env_name=env_name,
               policy=policy)
     flown, acting = [], []
     for _ in range(rounds):
         start = time.perf_counter()
-        steps = sum(tasks.fly(solution, seed, env, env_name=env_name, policy=policy).steps
+        steps = sum(policies.fly(solution, seed, env, env_name=env_name, policy=policy).steps
                     for seed in range(episodes))
         flown.append((time.perf_counter() - start) / steps)
         start = time.perf_counter()

@@ -30,13 +30,13 @@ sys.path.insert(0, str(ROOT))
 
 import qdsearch  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
-from qdsearch.search import loop  # noqa: E402
+from qdsearch.search.run import Run  # noqa: E402
 from qdsearch.store import saving  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
 
-def timed_saves(run: loop.Run, saves: int, processes: int) -> dict[str, float]:
+def timed_saves(run: Run, saves: int, processes: int) -> dict[str, float]:
     """The driver process's CPU and the wall time per save, in ms, medians over `saves` (after
     one left out), with a saver process or none."""
     cpu, wall = [], []
@@ -58,7 +58,7 @@ def main(run: str = "outputs/seed42", saves: int = 10, out: str = "benchmarks/sa
     checkpoint = run_config.load_checkpoint(Path(run) / "checkpoint.pkl")  # signed with your key
     config = checkpoint["config"]
     with tempfile.TemporaryDirectory() as tmp:
-        saved = loop.Run.from_checkpoint(Path(tmp), {**checkpoint, "config": config},
+        saved = Run.from_checkpoint(Path(tmp), {**checkpoint, "config": config},
                                          logging.getLogger("bench_saves"))
         in_thread = timed_saves(saved, saves, processes=0)
         in_process = timed_saves(saved, saves, processes=1)

@@ -18,7 +18,7 @@ from qdsearch import tasks
 from qdsearch.analysis import results
 from qdsearch.cli import commands
 from qdsearch.search import engine
-from qdsearch.tasks import family, lander, walker
+from qdsearch.tasks import family, lander, policies, walker
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -48,7 +48,7 @@ def words_of(env_name: str) -> tuple[str, str]:
     return FAMILY_WORDS.get(tasks.ENVIRONMENTS[env_name].family.name, ROBOT_WORDS)
 
 
-def policies(env_name: str, count: int = 4) -> np.ndarray:
+def random_solutions(env_name: str, count: int = 4) -> np.ndarray:
     return RNG.normal(size=(count, tasks.ENVIRONMENTS[env_name].solution_dim)) * 0.5
 
 
@@ -56,23 +56,23 @@ def policies(env_name: str, count: int = 4) -> np.ndarray:
 def test_an_episode_is_the_same_wherever_it_is_flown(env_name, dask_client):
     """A fresh env, a reused one (another order), a rendering one and a Dask worker agree."""
     tasks.check_spaces(env_name)
-    task, solutions = tasks.ENVIRONMENTS[env_name], policies(env_name)
-    fresh = [tasks.rollout(s, 3, tasks.make_env(env_name=env_name), env_name=env_name) for s in solutions]
+    task, solutions = tasks.ENVIRONMENTS[env_name], random_solutions(env_name)
+    fresh = [policies.rollout(s, 3, tasks.make_env(env_name=env_name), env_name=env_name) for s in solutions]
     env = tasks.make_env(env_name=env_name)
-    reused = [tasks.rollout(s, 3, env, env_name=env_name) for s in solutions[::-1]][::-1]
+    reused = [policies.rollout(s, 3, env, env_name=env_name) for s in solutions[::-1]][::-1]
     rendering = tasks.make_env(False, "rgb_array", env_name=env_name)
     rendering.reset(seed=0)
     rendering.render()  # a frame drawn before the episode changes nothing
     remote = dask_client.submit(engine.fly_chunk, engine.Chunk(solutions, np.full(len(solutions), 3),
                                                                task.measures, env_name), pure=False).result()
     assert fresh == reused
-    assert tasks.rollout(solutions[0], 3, rendering, env_name=env_name) == fresh[0]
+    assert policies.rollout(solutions[0], 3, rendering, env_name=env_name) == fresh[0]
     assert remote.tolist() == [list(row) for row in fresh]
     assert len({row[0] for row in fresh}) == len(fresh)  # the policies do differ
 
 
 def test_walker_measures_match_a_hand_made_trace():
-    for solution in policies(WALKER, 3):
+    for solution in random_solutions(WALKER, 3):
         env = gym.make(WALKER)  # a fresh one: a reused walker env drifts (walker.renew_world)
         obs, _ = env.reset(seed=5)
         start, done, trace = env.unwrapped.hull.position.x, False, []
@@ -81,7 +81,7 @@ def test_walker_measures_match_a_hand_made_trace():
             trace.append((obs, reward))
             done = terminated or truncated
         names = tasks.family_measures(walker.WALKER)
-        result = tasks.rollout(solution, 5, tasks.make_env(env_name=WALKER), names, env_name=WALKER)
+        result = policies.rollout(solution, 5, tasks.make_env(env_name=WALKER), names, env_name=WALKER)
         steps = len(trace)
         expected = {
             "foot1_contact": sum(o[8] == 1 for o, _ in trace) / steps,
@@ -96,7 +96,7 @@ def test_walker_measures_match_a_hand_made_trace():
 
 def test_the_continuous_landers_fuel_weighs_each_firing_by_its_power():
     env, name = gym.make("LunarLander-v3", continuous=True), "LunarLanderContinuous-v3"
-    for solution in policies(name, 3):  # (a reused lander env flies the same episodes)
+    for solution in random_solutions(name, 3):  # (a reused lander env flies the same episodes)
         obs, _ = env.reset(seed=9)
         done, fuel, steps = False, 0.0, 0
         while not done:
@@ -105,7 +105,7 @@ def test_the_continuous_landers_fuel_weighs_each_firing_by_its_power():
             fuel += 0.1 * np.clip(abs(side), 0.5, 1) if abs(side) > 0.5 else 0.0  # its s_power
             obs, _, terminated, truncated, _ = env.step(np.array([main, side]))
             done, steps = terminated or truncated, steps + 1
-        result = tasks.rollout(solution, 9, tasks.make_env(env_name=name), ("fuel",), env_name=name)
+        result = policies.rollout(solution, 9, tasks.make_env(env_name=name), ("fuel",), env_name=name)
         assert result[1] == pytest.approx(fuel, rel=1e-12) and result[1] > 0
 
 
@@ -186,7 +186,7 @@ def test_a_video_has_a_frame_per_step_and_its_elite_reflies_exactly(env_name, ta
     index = pd.read_csv(run_dir / "videos" / "index.csv")
     assert index["reproduced"].tolist() == [True]
     solution = run_archive(run_dir).sort_values("objective").iloc[-1].filter(like="solution_").to_numpy()
-    steps = tasks.fly(solution, 52, tiny_env(env_name), env_name=env_name).steps
+    steps = policies.fly(solution, 52, tiny_env(env_name), env_name=env_name).steps
     frames, _ = imageio_ffmpeg.count_frames_and_secs(str(run_dir / "videos" / index["video"][0]))
     assert frames == steps + 1
     assert "warning" not in capsys.readouterr().err
@@ -225,14 +225,14 @@ def test_walker_trajectories_are_its_hull_paths(task_runs, tmp_path):
     env = tiny_env(WALKER)
     paths = results.fly_paths(chosen, 52, WALKER, episode=tiny_episode(WALKER))
     for elite, (path, end) in zip(chosen, paths):
-        walk = tasks.fly(elite["solution"], 52, env, env_name=WALKER)
+        walk = policies.fly(elite["solution"], 52, env, env_name=WALKER)
         assert len(path) == walk.steps and end == walk.steps - 1
         assert path[-1, 0] - path[0, 0] == pytest.approx(walk.distance, abs=0.2)  # one step's move
 
 
 def action_trace(solution: np.ndarray, env: gym.Env, env_name: str) -> list:
     actions: list = []
-    tasks.fly(solution, 52, env, on_step=lambda action, obs: actions.append(action), env_name=env_name)
+    policies.fly(solution, 52, env, on_step=lambda action, obs: actions.append(action), env_name=env_name)
     return actions
 
 
@@ -251,7 +251,7 @@ def test_explore_draws_every_row(env_name, task_runs, tmp_path, dask_cluster, br
     env = tiny_env(env_name)
     for elite in data["elites"][:3]:
         path: list = []
-        tasks.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
+        policies.fly(solutions[elite["index"]], 52, env, path, env_name=env_name)
         actions = action_trace(solutions[elite["index"]], env, env_name)
         flown = poses[elite["offset"] + 1:elite["offset"] + 1 + elite["steps"]]
         if task.family is lander.LANDER:  # the throttles: the main engine's flame whenever it fires
@@ -300,7 +300,7 @@ def test_evaluate_a_walkers_elites_on_other_terrains(task_runs, tmp_path, dask_c
     assert len(table) == 2
     for row in table.to_dict("records"):
         solution = solutions[row["cell_index"]]
-        direct = [tasks.rollout(solution, seed, env, env_name=WALKER)[0] for seed in (3, 4)]
+        direct = [policies.rollout(solution, seed, env, env_name=WALKER)[0] for seed in (3, 4)]
         assert row["objective_seed3"] == direct[0] and row["objective_seed4"] == direct[1]
         assert row["solved_share"] == np.mean(np.array(direct) >= 300)
 

@@ -11,6 +11,7 @@ import pytest
 
 from qdsearch import tasks
 from qdsearch.search import engine
+from qdsearch.tasks import policies
 from util import HOVER_W, LANDER
 
 TERRAIN = 52  # HOVER_W hovers the whole 1,000 steps here: any shorter limit cuts its episode
@@ -44,7 +45,7 @@ def test_the_hover_runs_its_whole_episode():
 def test_an_episode_length_cuts_the_lander_with_or_without_the_streamlined_env(fast):
     """--episode_length on LunarLander: the streamlined env flies only the task's own rules."""
     env = tasks.make_env(fast, env_name=LANDER, episode=tasks.Episode(60))
-    flight = tasks.fly(np.array(HOVER_W), TERRAIN, env, env_name=LANDER)
+    flight = policies.fly(np.array(HOVER_W), TERRAIN, env, env_name=LANDER)
     total, steps = hand_flown(HOVER_W, 60)
     assert (flight.steps, flight.reward) == (steps, total) == (60, total)
 

@@ -14,7 +14,7 @@ from qdsearch import tasks
 from qdsearch.base import run_files
 from qdsearch.cli import commands
 from qdsearch.store import archive_data
-from qdsearch.tasks import fast_lander, lander
+from qdsearch.tasks import fast_lander, lander, policies
 from util import DATA_BLOCK, LANDER, folder_state, page_data, saved_archive, small_disk
 
 LANDER_FILL = [128, 102, 230]  # the page's lander colour, #8066e6
@@ -47,7 +47,7 @@ def test_the_page_is_one_file_with_every_elite_and_its_flight(explored):
     env = tasks.make_env(fast=False, env_name=LANDER)
     for elite in data["elites"][:5]:
         trajectory = []
-        objective, *measures = tasks.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory,
+        objective, *measures = policies.rollout(solutions[elite["index"]], 52, env, trajectory=trajectory,
                                                env_name=LANDER)
         assert elite["objective"] == objective and elite["measures"] == measures
         assert elite["steps"] == len(trajectory)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from qdsearch import tasks
-from qdsearch.tasks import fast_lander
+from qdsearch.tasks import fast_lander, policies
 from util import HOVER_W, LANDER, LANDER_W, SEEDS
 
 pytestmark = pytest.mark.slow  # ~450 episodes of gym.make's lander, each flown again by the fast env
@@ -38,7 +38,7 @@ def plain_rollout(solution, env_seed, env):
 
 def fast_rollout(solution, env_seed, env):
     path = []
-    return (*tasks.rollout(solution, env_seed, env, trajectory=path, env_name=LANDER), len(path), path)
+    return (*policies.rollout(solution, env_seed, env, trajectory=path, env_name=LANDER), len(path), path)
 
 
 RANDOM_PER_SCALE = 16

@@ -20,7 +20,6 @@ from qdsearch.tasks import (
     ENVIRONMENTS,
     MEASURES,
     evaluate_points,
-    fly,
     has_gradients,
     make_env,
     measure_bounds,
@@ -29,6 +28,7 @@ from qdsearch.tasks import (
     shape_of,
 )
 from qdsearch.tasks.family import NoEpisode
+from qdsearch.tasks.policies import fly
 from util import (
     assert_killed_then_resumed_as_its_twin,
     assert_one_line_error,

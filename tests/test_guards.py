@@ -19,7 +19,7 @@ import pytest
 from qdsearch import tasks
 from qdsearch.analysis import results
 from qdsearch.cli import commands
-from qdsearch.tasks import walker
+from qdsearch.tasks import policies, walker
 from util import assert_one_line_error, folder_state, page_data, tiny_flags
 
 HARDCORE, WALKER = "BipedalWalkerHardcore-v3", "BipedalWalker-v3"
@@ -39,14 +39,14 @@ def test_the_hardcore_walker_flies_a_course_with_obstacles_the_plain_one_lacks()
     """Each row's own env, after episodes of its own episode function: the hardcore course has
     obstacles, the plain one none; on the same env seed the same policies walk differently there,
     and the explorer draws another ground, with the obstacles."""
-    policies = np.random.default_rng(3).normal(size=(3, tasks.ENVIRONMENTS[HARDCORE].solution_dim)) * 0.5
+    solutions = np.random.default_rng(3).normal(size=(3, tasks.ENVIRONMENTS[HARDCORE].solution_dim)) * 0.5
     walks, counts = {}, {}
     for name in (HARDCORE, WALKER):
         env = tasks.make_env(env_name=name)
         walks[name] = []
-        for solution in policies:
+        for solution in solutions:
             path: list = []
-            walk = tasks.fly(solution, 52, env, path, env_name=name)
+            walk = policies.fly(solution, 52, env, path, env_name=name)
             walks[name].append((walk.reward, walk.steps, path))
         counts[name] = obstacles(env)
     assert counts[WALKER] == 0 and counts[HARDCORE] >= 3, counts
@@ -89,7 +89,7 @@ def exhaust_sides(solution: np.ndarray) -> list[tuple[float, float]]:
             particle = env.unwrapped.particles[-1].position
             side = float(np.sign(body_x(lander, particle.x, particle.y)))
         steps.append((float(action[1]), side))
-    tasks.fly(solution, 52, env, on_step=on_step, env_name=CONTINUOUS)
+    policies.fly(solution, 52, env, on_step=on_step, env_name=CONTINUOUS)
     env.close()
     return steps
 

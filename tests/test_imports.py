@@ -46,13 +46,15 @@ LAYERS = [names[0] for names in map_lines(PACKAGE / "__init__.py", "Map,")]
 
 def module_places() -> dict[str, tuple[int, int]]:
     """Each module's place: its layer's, then its place in its layer's map; a layer whose
-    __init__ holds code (the tasks' registry, the algorithms' table) has it last."""
+    __init__ holds code (the tasks' registry, the algorithms' table) has it where its map
+    names `__init__`, or last."""
     places = {}
     for layer_place, layer in enumerate(LAYERS):
         lines = map_lines(PACKAGE / layer / "__init__.py", "imports going down the list only")
-        for place, names in enumerate(lines):
-            places |= {f"qdsearch.{layer}.{name}": (layer_place, place) for name in names}
         places[f"qdsearch.{layer}"] = (layer_place, len(lines))
+        for place, names in enumerate(lines):
+            places |= {f"qdsearch.{layer}" + ("" if name == "__init__" else f".{name}"): (layer_place, place)
+                       for name in names}
     return places
 
 

@@ -15,8 +15,8 @@ from qdsearch.algorithms import td3
 from qdsearch.algorithms.pga_me import PG_SIGMA0, PGAMEEmitter
 from qdsearch.cli import commands
 from qdsearch.search.engine import in_pair_order, per_terrain, submit_flights
-from qdsearch.tasks import ENVIRONMENTS, Episode, make_env, rollout
-from qdsearch.tasks.policies import Policy
+from qdsearch.tasks import ENVIRONMENTS, Episode, make_env
+from qdsearch.tasks.policies import Policy, rollout
 from qdsearch.tasks.transitions import Recorder
 from util import (
     assert_killed_then_resumed_as_its_twin,

@@ -18,7 +18,7 @@ from qdsearch import tasks
 from qdsearch.analysis import results
 from qdsearch.cli import commands
 from qdsearch.config import run_config
-from qdsearch.tasks import locomotion
+from qdsearch.tasks import locomotion, policies
 from util import (
     assert_one_line_error,
     assert_same_run,
@@ -90,7 +90,7 @@ def test_locomotion_measures_match_a_hand_made_trace(env_name):
     touched = feet_apart = 0
     for solution in np.random.default_rng(5).normal(size=(3, task.solution_dim)) * 0.5:
         trace = hand_trace(env_name, solution, 11)
-        objective, *values = tasks.rollout(solution, 11, env, names, env_name=env_name)
+        objective, *values = policies.rollout(solution, 11, env, names, env_name=env_name)
         measured = dict(zip(names, values))
         feet = [name for name in names if "_foot" in name]
         assert [measured[name] for name in feet] == trace["shares"]
@@ -108,8 +108,8 @@ def test_locomotion_measures_match_a_hand_made_trace(env_name):
 
 def test_ant_omni_leaves_the_forward_reward_out_of_the_objective():
     solution = np.random.default_rng(2).normal(size=tasks.ENVIRONMENTS["Ant-v5"].solution_dim) * 0.5
-    uni = tasks.rollout(solution, 4, tasks.make_env(env_name="Ant-v5"), env_name="Ant-v5")
-    omni = tasks.rollout(solution, 4, tasks.make_env(env_name="ant_omni"), env_name="ant_omni")
+    uni = policies.rollout(solution, 4, tasks.make_env(env_name="Ant-v5"), env_name="Ant-v5")
+    omni = policies.rollout(solution, 4, tasks.make_env(env_name="ant_omni"), env_name="ant_omni")
     trace = hand_trace("Ant-v5", solution, 4)
     assert uni[0] - omni[0] == pytest.approx(trace["forward"]) and trace["forward"] != 0
 

@@ -12,6 +12,7 @@ from matplotlib.image import imread
 from qdsearch import tasks
 from qdsearch.base.flags import UsageError
 from qdsearch.cli import commands
+from qdsearch.tasks import policies
 from util import (
     LANDER,
     assert_one_line_error,
@@ -56,7 +57,7 @@ def test_the_archive_holds_the_mean_over_the_terrains(fuel_run):
     data = saved_archive(fuel_run).data()
     env = tasks.make_env(env_name=LANDER)
     for solution, objective, measures in list(zip(data["solution"], data["objective"], data["measures"]))[:3]:
-        flights = np.array([tasks.rollout(solution, seed, env, ["fuel", "flight_time"], env_name=LANDER)
+        flights = np.array([policies.rollout(solution, seed, env, ["fuel", "flight_time"], env_name=LANDER)
                             for seed in range(5)])
         assert objective == pytest.approx(flights[:, 0].mean(), rel=1e-12)
         assert measures.tolist() == pytest.approx(flights[:, 1:].mean(axis=0).tolist(), rel=1e-12)

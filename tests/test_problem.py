@@ -10,7 +10,7 @@ import pytest
 from qdsearch import tasks
 from qdsearch.config import options, run_config
 from qdsearch.search import engine
-from qdsearch.tasks import lander
+from qdsearch.tasks import lander, policies
 from qdsearch.tasks.policies import Policy
 from util import LANDER, LANDER_W, local_cluster
 
@@ -59,12 +59,12 @@ def test_every_measure_matches_a_hand_made_trace(weights):
     expected = expected_measures(trace)
     names = tuple(tasks.family_measures(lander.LANDER))
 
-    result = tasks.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names, env_name=LANDER)
+    result = policies.rollout(weights.ravel(), 52, gym.make("LunarLander-v3"), names, env_name=LANDER)
 
     assert result[0] == sum(reward for _, _, reward in trace)
     assert dict(zip(names, result[1:])) == pytest.approx(expected, rel=1e-12, abs=0)
     streamlined = tasks.make_env(env_name=LANDER)
-    assert tasks.rollout(weights.ravel(), 52, streamlined, names, env_name=LANDER) == result
+    assert policies.rollout(weights.ravel(), 52, streamlined, names, env_name=LANDER) == result
 
 
 def test_the_traces_cover_what_the_measures_tell_apart():
@@ -81,22 +81,22 @@ def test_measures_at_first_leg_contact():
     trace = step_trace(DO_NOTHING, 52)
     first_contact = next(i for i, (_, obs, _) in enumerate(trace) if obs[6] or obs[7])
     assert 0 < first_contact < len(trace) - 1  # the contact is not simply the last step
-    result = tasks.rollout(DO_NOTHING.ravel(), 52, gym.make("LunarLander-v3"), env_name=LANDER)
+    result = policies.rollout(DO_NOTHING.ravel(), 52, gym.make("LunarLander-v3"), env_name=LANDER)
     assert result[1:] == (float(trace[first_contact][1][0]), float(trace[first_contact][1][3]))
     assert result[2] != float(trace[-1][1][3])  # measured at contact, not at the end
 
 
 def test_terrain_seed_changes_the_episode():
     env = gym.make("LunarLander-v3")
-    assert tasks.rollout(DO_NOTHING.ravel(), 52, env, env_name=LANDER) != (
-        tasks.rollout(DO_NOTHING.ravel(), 7, env, env_name=LANDER))
+    assert policies.rollout(DO_NOTHING.ravel(), 52, env, env_name=LANDER) != (
+        policies.rollout(DO_NOTHING.ravel(), 7, env, env_name=LANDER))
 
 
 def test_worker_chunk_matches_single_rollouts():
     solutions = RNG.normal(size=(5, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
     seeds = np.array([52, 52, 7, 7, 3])
     env = gym.make("LunarLander-v3")
-    expected = [tasks.rollout(s, int(seed), env, ("fuel",), env_name=LANDER)
+    expected = [policies.rollout(s, int(seed), env, ("fuel",), env_name=LANDER)
                 for s, seed in zip(solutions, seeds)]
     flown = engine.fly_chunk(engine.Chunk(solutions, seeds, ("fuel",), LANDER))
     assert flown.tolist() == [list(row) for row in expected]
@@ -107,7 +107,7 @@ def test_a_chunk_flies_its_policy_by_its_episodes_rules():
     network, short = Policy("mlp", (4,)), tasks.Episode(30)
     solutions = RNG.normal(size=(3, network.size(tasks.ENVIRONMENTS[LANDER].shape)))
     env = tasks.plain_env(LANDER, episode=short)
-    expected = [tasks.rollout(s, 52, env, ("flight_time",), env_name=LANDER, policy=network)
+    expected = [policies.rollout(s, 52, env, ("flight_time",), env_name=LANDER, policy=network)
                 for s in solutions]
     chunk = engine.Chunk(solutions, np.full(3, 52), ("flight_time",), LANDER, network, short)
     assert engine.fly_chunk(chunk).tolist() == [list(row) for row in expected]
@@ -119,7 +119,7 @@ def test_dask_evaluation_keeps_order_and_averages_terrains(dask_client, terrains
     solutions = np.random.default_rng(1).normal(size=(11, tasks.ENVIRONMENTS[tasks.DEFAULT_ENV].solution_dim))
     measures = ["impact_x", "flight_time", "max_tilt"]
     env = gym.make("LunarLander-v3")
-    direct = np.array([[tasks.rollout(s, seed, env, measures, env_name=LANDER) for seed in terrains]
+    direct = np.array([[policies.rollout(s, seed, env, measures, env_name=LANDER) for seed in terrains]
                        for s in solutions])
     config = run_config.check_run_config(options.with_task(
         {**options.search_defaults(), "seed": 1, "env_seed": terrains, "measures": measures}))

@@ -16,6 +16,7 @@ from qdsearch.algorithms import ALGORITHMS, evaluations_per_iteration, gradients
 from qdsearch.cli import commands
 from qdsearch.config import run_config, settings
 from qdsearch.config.run_config import load_run_config
+from qdsearch.tasks import policies
 from qdsearch.tasks.policies import LINEAR, POLICIES, Policy
 from util import assert_one_line_error, run_archive, run_metrics, saved_archive, tiny_flags
 
@@ -202,12 +203,12 @@ def test_a_dqd_run_flies_its_samples_at_es_sigma(tmp_path):
 
     from qdsearch import algorithms
     from qdsearch.config import options, run_config
-    from qdsearch.search import loop
+    from qdsearch.search import run
 
     config = run_config.check_run_config(options.with_task(
         {**options.search_defaults(), "algorithm": "cma_mega_es", "n_emitters": 2, "batch_size": 2,
          "es_samples": 6, "es_sigma": 0.03, "sigma0": 0.5, "seed": 9}))
-    one = loop.Run(tmp_path, config, algorithms.build_scheduler(config), [], logging.getLogger("dqd"))
+    one = run.Run(tmp_path, config, algorithms.build_scheduler(config), [], logging.getLogger("dqd"))
     batch = one.ask()
     points, eps = batch[:2], gradients.noise(9, 0, 2, 6, batch.shape[1])
     offsets = (batch[2:].reshape(2, 6, -1) - points[:, None, :]) / 0.03
@@ -283,7 +284,7 @@ def test_episodes_follow_the_rules_gym_makes_them_with(length, unhealthy):
     solution = policy.start(task.shape, 3)
     rules = tasks.Episode(length, unhealthy)
     env = tasks.make_env(env_name=HOPPER, episode=rules)
-    flight = tasks.fly(solution, 5, env, env_name=HOPPER, policy=policy)
+    flight = policies.fly(solution, 5, env, env_name=HOPPER, policy=policy)
     env = rules_env(HOPPER, length, unhealthy)
     obs, _ = env.reset(seed=5)
     total, steps, done = 0.0, 0, False

@@ -15,7 +15,7 @@ from qdsearch.analysis import evaluation, results
 from qdsearch.base.flags import UsageError, seed_list
 from qdsearch.cli import app as ll
 from qdsearch.cli import commands
-from qdsearch.tasks import fast_lander, lander
+from qdsearch.tasks import fast_lander, lander, policies
 from util import LANDER, assert_one_line_error, folder_state, saved_archive, tiny_flags
 
 TUTORIAL = list(tasks.TUTORIAL_MEASURES)  # the measures of the run the tests look at
@@ -59,7 +59,7 @@ def test_video_of_a_cell_has_every_frame_and_reproduces_the_elite(run_dir, archi
     lengths = []
     for solution in data["solution"]:  # the shortest episode makes the quickest video
         path = []
-        tasks.rollout(solution, 52, tasks.make_env(env_name=LANDER), trajectory=path, env_name=LANDER)
+        policies.rollout(solution, 52, tasks.make_env(env_name=LANDER), trajectory=path, env_name=LANDER)
         lengths.append(len(path))
     shortest = int(np.argmin(lengths))
     point = tuple(data["measures"][shortest])
@@ -175,7 +175,7 @@ def test_robustness_on_two_terrains_matches_direct_rollouts(run_dir, archive, da
     env, data = tasks.make_env(fast=False, env_name=LANDER), archive.data()
     solutions = dict(zip(data["index"], data["solution"]))
     for row in table.to_dict("records"):
-        direct = np.array([tasks.rollout(solutions[row["cell_index"]], seed, env, env_name=LANDER)[0]
+        direct = np.array([policies.rollout(solutions[row["cell_index"]], seed, env, env_name=LANDER)[0]
                            for seed in (3, 4)])
         assert [row["objective_seed3"], row["objective_seed4"]] == direct.tolist()
         assert row["mean_objective"] == pytest.approx(direct.mean(), abs=1e-9)
@@ -207,7 +207,7 @@ def test_corrected_metrics_of_a_run_searched_on_several_terrains(tmp_path, dask_
     env, best = tasks.make_env(fast=False, env_name=LANDER), {}
     low, high = np.array(archive.lower_bounds), np.array(archive.upper_bounds)
     for solution in archive.data()["solution"]:
-        flights = [tasks.rollout(solution, seed, env, env_name=LANDER) for seed in range(3, 7)]
+        flights = [policies.rollout(solution, seed, env, env_name=LANDER) for seed in range(3, 7)]
         mean = np.array(flights).mean(axis=0)
         if kind == "cvt":
             cell = int(np.argmin(np.linalg.norm(np.load(run_dir / "centroids.npy") - mean[1:], axis=1)))
@@ -235,7 +235,7 @@ def test_corrected_archive_equals_a_hand_recomputation(run_dir, archive, dask_cl
     env, data = tasks.make_env(fast=False, env_name=LANDER), archive.data()
     best: dict[int, float] = {}
     for solution in data["solution"]:
-        flights = np.array([tasks.rollout(solution, seed, env, env_name=LANDER) for seed in seeds])
+        flights = np.array([policies.rollout(solution, seed, env, env_name=LANDER) for seed in seeds])
         objective, measures = flights.mean(axis=0)[0], flights.mean(axis=0)[1:]
         # the grid cell, clipped to the edges as pyribs does for measures out of its ranges
         scaled = (measures - archive.lower_bounds) / (archive.upper_bounds - archive.lower_bounds)

@@ -17,6 +17,7 @@ from qdsearch.base import signing
 from qdsearch.cli import commands
 from qdsearch.config import run_config
 from qdsearch.store import archive_data
+from qdsearch.tasks import policies
 from util import (
     LANDER,
     REFERENCE_ITERATIONS,
@@ -138,7 +139,7 @@ def test_warm_start_from_an_archive_on_another_terrain(tmp_path, dask_cluster, r
 
     elites = source.data(["solution"])["solution"]
     env = gym.make("LunarLander-v3")
-    flown = np.array([tasks.rollout(solution, 7, env, env_name=LANDER) for solution in elites])
+    flown = np.array([policies.rollout(solution, 7, env, env_name=LANDER) for solution in elites])
     expected = GridArchive(solution_dim=32, dims=(50, 50), ranges=TUTORIAL_RANGES)
     expected.add(elites, flown[:, 0], flown[:, 1:])
 

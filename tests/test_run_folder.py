@@ -146,15 +146,17 @@ def test_a_second_writer_is_refused_and_readers_go_on(tmp_path, dask_cluster, ca
 def test_a_save_whose_saver_process_died_is_written_by_its_thread(tmp_path, tiny_run):
     """A saver process killed (out of memory, say) between two saves: the saver thread writes
     the folder itself, whole."""
+    import logging
+
     from qdsearch.config import run_config
-    from qdsearch.search import loop
+    from qdsearch.search.run import Run
     from qdsearch.store import saving
 
     run_dir = tmp_path / "run"
     shutil.copytree(tiny_run, run_dir)
     checkpoint = read_checkpoint(run_dir / "checkpoint.pkl")
-    run = loop.Run.from_checkpoint(run_dir, {**checkpoint, "config": run_config.check_run_config(
-        checkpoint["config"])}, loop.logging.getLogger("test"))
+    run = Run.from_checkpoint(run_dir, {**checkpoint, "config": run_config.check_run_config(
+        checkpoint["config"])}, logging.getLogger("test"))
     savers = saving.Savers(processes=1)
     try:
         run.save(savers)  # in the saver process it starts

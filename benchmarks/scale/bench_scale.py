@@ -88,6 +88,8 @@ from qdsearch.base import run_files  # noqa: E402
 from qdsearch.cli import commands  # noqa: E402
 from qdsearch.config import run_config  # noqa: E402
 from qdsearch.search import engine, loop  # noqa: E402
+from qdsearch.search import run as one_run  # noqa: E402
+from qdsearch.tasks import policies  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -106,7 +108,7 @@ def measure_rollouts(iterations: int, env_name: str) -> tuple[list[int], float]:
         solutions, rows = scheduler.ask(), []
         for solution in solutions:
             start = time.perf_counter()
-            flight = tasks.fly(solution, 52, env, env_name=env_name)
+            flight = policies.fly(solution, 52, env, env_name=env_name)
             steps_time += time.perf_counter() - start
             lengths.append(flight.steps)
             rows.append([tasks.ENVIRONMENTS[env_name].objective(flight),
@@ -177,7 +179,7 @@ class Recorder:
 
     def __init__(self, pool: list[int], step_s: float) -> None:
         self.pool, self.step_s, self.batches, self.tells, self.run = pool, step_s, [], [], ""
-        self.original, self.launch, self.tell = engine.submit_flights, loop.Driver.send, loop.Run.tell
+        self.original, self.launch, self.tell = engine.submit_flights, loop.Driver.send, one_run.Run.tell
         self.waits, self.landed = [], {}
         recorder = self
 
@@ -206,11 +208,12 @@ class Recorder:
         return futures
 
     def __enter__(self) -> Recorder:
-        loop.submit_flights, loop.Driver.send, loop.Run.tell = self, self.patched_launch, self.patched_tell
+        one_run.submit_flights, loop.Driver.send = self, self.patched_launch
+        one_run.Run.tell = self.patched_tell
         return self
 
     def __exit__(self, *exc) -> None:
-        loop.submit_flights, loop.Driver.send, loop.Run.tell = self.original, self.launch, self.tell
+        one_run.submit_flights, loop.Driver.send, one_run.Run.tell = self.original, self.launch, self.tell
 
 
 def start_cluster(folder: Path, workers: int, processes: int):

@@ -25,6 +25,7 @@ import qdsearch
 from qdsearch import algorithms, tasks  # noqa: E402
 from qdsearch.config import options, run_config  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+from qdsearch.tasks import policies  # noqa: E402
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -39,7 +40,7 @@ def record(iterations: int, env_name: str, seed: int) -> tuple[list[np.ndarray],
         rows, lengths = [], []
         for solution in scheduler.ask():
             start = time.perf_counter()
-            flight = tasks.fly(solution, config.env_seed[0], env, env_name=env_name)
+            flight = policies.fly(solution, config.env_seed[0], env, env_name=env_name)
             seconds += time.perf_counter() - start
             lengths.append(flight.steps)
             rows.append([task.objective(flight), *(tasks.MEASURES[m].of(flight) for m in config.measures)])

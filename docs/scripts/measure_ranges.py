@@ -27,6 +27,7 @@ import qdsearch
 from qdsearch import tasks  # noqa: E402
 from qdsearch.analysis.results import load_run  # noqa: E402
 from qdsearch.search import engine  # noqa: E402
+from qdsearch.tasks import policies
 
 qdsearch.hold_kernels()  # what the command line sets: numba off, the AVX2 kernels, drawing to files
 
@@ -44,7 +45,7 @@ def main(*run_dirs: str, random: int = 0, env_seed: int = 52, env: str = tasks.D
     solutions.append(np.random.default_rng(0).normal(size=(random, task.solution_dim)))
     solutions = np.concatenate(solutions)
     names = tuple(tasks.family_measures(task.family))
-    flown = np.array([tasks.rollout(solution, env_seed, engine.worker_env(env), names, env_name=env)
+    flown = np.array([policies.rollout(solution, env_seed, engine.worker_env(env), names, env_name=env)
                       for solution in solutions])
     best = flown[:, 0] > good
     print(f"{len(flown)} policies on terrain {env_seed} of {env} ({best.sum()} scoring over "

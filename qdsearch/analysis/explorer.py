@@ -37,11 +37,10 @@ from qdsearch.tasks import (
     Episode,
     episode_of,
     flown_seeds,
-    fly,
     returns_of,
 )
 from qdsearch.tasks.family import require_drawing, require_one_world
-from qdsearch.tasks.policies import LINEAR, Policy
+from qdsearch.tasks.policies import LINEAR, Policy, fly
 
 # The explorer's page: plain HTML, CSS and JavaScript, no library, nothing fetched; `explore`
 # fills in its /*DATA*/ (the run's data) and /*POLICY*/ (its Content-Security-Policy).

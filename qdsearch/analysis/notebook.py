@@ -19,7 +19,8 @@ from qdsearch.base.run_files import read_regular
 from qdsearch.config.run_config import check_run_config, load_run_config
 from qdsearch.search.experiment_folder import read_experiment as read_plan
 from qdsearch.store.metrics import load_metrics
-from qdsearch.tasks import episode_of, make_env, reset_seeds, rollout
+from qdsearch.tasks import episode_of, make_env, reset_seeds
+from qdsearch.tasks.policies import rollout
 
 
 @dataclasses.dataclass

@@ -42,15 +42,13 @@ from qdsearch.tasks import (
     Episode,
     episode_of,
     flown_seeds,
-    fly,
     make_env,
     renderer_missing,
     reset_seeds,
     returns_of,
-    rollout,
 )
 from qdsearch.tasks.family import require_one_world
-from qdsearch.tasks.policies import LINEAR, Policy
+from qdsearch.tasks.policies import LINEAR, Policy, fly, rollout
 
 
 def is_number(value: Any) -> bool:

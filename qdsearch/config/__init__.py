@@ -5,8 +5,8 @@ Map, imports going down the list only:
   default, help and check), and RunConfig, all of them; the search's flag tables made from them;
 - command_settings: the other commands' settings (resume, video, elites, evaluate, experiment,
   compare, watch...), declared the same way, and their tables;
-- options: the checks of what a run's flags make together (a config's task, policy, budget,
-  sizes and memory);
+- options: the checks of what a run's flags make together (a config's task, budget, sizes and
+  memory);
 - run_config: a RunConfig made from flags (`search_config`, with --config's file: `settings_of`)
   or a recorded config (`check_run_config`, every value checked once; `upgrade` of old folders),
   config.json and the checkpoint read back.

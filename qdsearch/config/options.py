@@ -5,8 +5,8 @@ Map:
   `refuse_unused_row_flags` (an algorithm's or a policy's own flag given where no row uses it);
 - `check_sizes` (`solutions_per_iteration`) and `check_rollouts` (the sizes flags make together);
 - `checked` (a value through its flag's check), `with_task` (a config's measures, checked
-  against its task, and its archive's cells), `with_offset`, `legacy_offset`, `with_policy`,
-  `for_policy` (less what its policy ignores), `resumed_budget`, `with_budget`, `check_memory`,
+  against its task, and its archive's cells), `with_offset`, `legacy_offset`,
+  `resumed_budget`, `with_budget`, `check_memory`,
   `check_learning` (a learning row's task and library);
   `search_defaults` and `before_the_flags` (what runs recorded before a flag existed ran with).
 """
@@ -31,12 +31,10 @@ from qdsearch.config.settings import (
     BUDGETS,
     DEFAULT_CVT_CELLS,
     DEFAULT_GRID,
-    DEFAULT_HIDDEN,
     MAX_GRID_MEASURES,
     MAX_ITERATIONS,
     MAX_ROLLOUTS,
     MAX_SOLUTIONS,
-    POLICY_FLAGS,
     ROW_FLAGS,
     SEARCH_FLAGS,
     unchecked,
@@ -160,7 +158,7 @@ def with_task(config: dict[str, Any]) -> dict[str, Any]:
                              f"needs at least 2^{len(measures)} = {2 ** len(measures)} cells")
     config = {**config, "env": env, "measures": measures, "archive": archive, "grid": grid, "cells": cells}
     check_episode(env, episode_of(unchecked(config)))
-    return with_budget(with_policy(with_dim(config)))
+    return with_budget(with_dim(config))
 
 
 # What a benchmark function has no use for: the flags of episodes and of networks.
@@ -210,25 +208,6 @@ def legacy_offset(recorded: dict[str, Any]) -> dict[str, Any]:
     episode length, whatever its --episode_length (the offsets did not follow the episode then)."""
     env = recorded.get("env", DEFAULT_ENV)  # (a recorded qd_offset is laid over this: upgrade)
     return {"qd_offset": ENVIRONMENTS[env].returns().offset} if env in ENVIRONMENTS else {}
-
-
-def with_policy(config: dict[str, Any]) -> dict[str, Any]:
-    """The config's --hidden: DEFAULT_HIDDEN for a network unless given, refused for a policy
-    without hidden layers (it would be recorded and change nothing)."""
-    kind, hidden = config.get("policy") or "linear", config.get("hidden")
-    if "hidden" not in POLICIES[kind].flags:
-        if hidden is not None:
-            raise UsageError(f"{named('hidden')} is a flag of {named('policy')} mlp; {named('policy')} "
-                             f"{kind} has no hidden layers")
-        return config
-    return {**config, "hidden": list(DEFAULT_HIDDEN if hidden is None else hidden)}
-
-
-def for_policy(config: dict[str, Any]) -> dict[str, Any]:
-    """The config less the flags its policy has no use for (each unset): an experiment's --hidden
-    in its settings of a policy without hidden layers, which record what search alone does."""
-    kind = config.get("policy") or "linear"
-    return {**config, **{flag: None for flag in POLICY_FLAGS if flag not in POLICIES[kind].flags}}
 
 
 def resumed_budget(config: dict[str, Any], iterations: int | None, evaluations: int | None) -> dict[str, Any]:

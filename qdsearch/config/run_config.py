@@ -4,11 +4,11 @@ against the flags, each other and the archive. Nothing here unpickles a file tha
 with the user's key (signing.py): the results commands read the archive as data (archive_data.py).
 
 Map:
-- `upgrade`, `check_run_config` (every value checked: the one way a RunConfig, settings.py's, is
-  made from flags or a record), `write_config`;
-- `search_config`: the RunConfig a search runs with, from its flags, or with --config from a
-  run's recorded settings (`recorded_settings`) with the flags given beside it in their place
-  (`settings_of`: NOT_FROM_CONFIG, FOLLOWS);
+- the two constructors of a RunConfig (settings.py's), each checking every value once:
+  `check_run_config` from a record (`upgrade` of old folders first) and `search_config` from a
+  search's flags, or with --config from a run's recorded settings (`recorded_settings`) with the
+  flags given beside it in their place (`settings_of`: NOT_FROM_CONFIG, FOLLOWS); what they
+  share: `refuse_nulls`, `completed` (what the flags make together); `write_config`;
 - CHECKPOINT_FORMAT; `load_checkpoint` (signed, or trusted: resume --trust);
 - `load_run_config`, `load_checked_config` (what the results commands read: config.json checked
   against archive.npz's config), `load_run_state` (what resume reads), `check_same_config`,
@@ -43,7 +43,15 @@ from qdsearch.config.options import (
     with_offset,
     with_task,
 )
-from qdsearch.config.settings import BUDGETS, CLUSTER_FLAGS, RECORDS, SEARCH_FLAGS, RunConfig, RunRecords
+from qdsearch.config.settings import (
+    BUDGETS,
+    CLUSTER_FLAGS,
+    RECORDS,
+    SEARCH_FLAGS,
+    RunConfig,
+    RunRecords,
+    with_policy,
+)
 from qdsearch.store.archive_data import archive_from_csv, empty_archive, read_archive_data, recorded_config
 from qdsearch.store.metrics import check_metrics
 from qdsearch.tasks import check_spaces
@@ -216,8 +224,8 @@ def load_archive(path: Path, config: RunConfig):
 
 
 def check_run_config(recorded: Any) -> RunConfig:
-    """A run's config from what was recorded (config.json, a checkpoint) or given (a search's
-    flags), upgraded and with every value checked (a UsageError says which is not)."""
+    """A run's config from what was recorded (config.json, a checkpoint, an archive's data),
+    upgraded (`upgrade`) and with every value checked once (a UsageError says which is not)."""
     if not isinstance(recorded, dict):
         raise UsageError(f"holds a {type(recorded).__name__}, not the flags of a run")
     # A field this version does not know (a later version's flag) may change what the run flies:
@@ -227,18 +235,32 @@ def check_run_config(recorded: Any) -> RunConfig:
         raise UsageError(f"holds {', '.join(map(shown, unknown[:3]))}{more}, not a field of this "
                          f"version's runs (written by a later version?)")
     config = upgrade(recorded)
-    for name, flag in SEARCH_FLAGS.items():
-        if config[name] is None and flag.default is not None:  # a check passes None: refuse it here
-            raise UsageError(f"{named(name)} is null")
-        if flag.check is None and not isinstance(config[name], (str, type(None))):
-            raise UsageError(f"{named(name)} is {shown(config[name])}, not a path or an address")
+    refuse_nulls(config)
     config.update(check_flags(SEARCH_FLAGS, {name: config[name] for name in SEARCH_FLAGS}))
+    # A record names its archive and its cells (upgrade: those from before the flags); a search's
+    # flags may leave them to the task (with_task).
     if config["archive"] is None or config[size := ARCHIVES[config["archive"]]["size"]] is None:
         raise UsageError(f"{named('archive' if config['archive'] is None else size)} is null")
     for field in dataclasses.fields(RunRecords):
         if config.get(field.name) is not None and not isinstance(config[field.name], RECORDS[field.name]):
             raise UsageError(f"{field.name} is {shown(config[field.name])}, not a {field.type}")
-    config = with_offset(with_task(config))
+    return completed(config)
+
+
+def refuse_nulls(config: dict[str, Any]) -> None:
+    """A flag's value may be None only where None is its default (a check passes None on), and a
+    path or an address (a flag with no check) is text."""
+    for name, flag in SEARCH_FLAGS.items():
+        if config[name] is None and flag.default is not None:
+            raise UsageError(f"{named(name)} is null")
+        if flag.check is None and not isinstance(config[name], (str, type(None))):
+            raise UsageError(f"{named(name)} is {shown(config[name])}, not a path or an address")
+
+
+def completed(config: dict[str, Any]) -> RunConfig:
+    """The RunConfig of checked values, with what the flags make together made and checked once:
+    the task's measures and archive, the policy's layers, the offset, the budget and the sizes."""
+    config = with_offset(with_policy(with_task(config)))
     seed_number("seed", config["seed"])
     check_sizes(config)
     return RunConfig(**{name: config[name] for name in SEARCH_FLAGS},
@@ -273,17 +295,19 @@ def load_checkpoint(path: Path, trust: bool = False) -> dict:
 def search_config(flags: dict[str, Any], given: Collection[str] = (), path: Path | None = None) -> RunConfig:
     """The checked config a search runs with (nothing is written): its flags, or with --config
     (`path`) the file's settings with the flags `given` beside it in their place (settings_of);
-    a seed drawn if none is set."""
+    a seed drawn if none is set. Each value is checked once."""
     if path is not None:
         flags = settings_of(path, flags, given)
-    flags = with_task(check_flags(SEARCH_FLAGS, flags))
-    check_spaces(flags["env"])
+    # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
+    typed = {name: value if value is None or SEARCH_FLAGS[name].check else str(value)
+             for name, value in flags.items()}
+    flags = check_flags(SEARCH_FLAGS, typed)
+    refuse_nulls(flags)
     if flags["seed"] is None:
         flags["seed"] = secrets.randbelow(2**31)
-    # Fire reads a folder named 2024 as a number: a path flag is the text as typed.
-    config = check_run_config({name: value if value is None or SEARCH_FLAGS[name].check else str(value)
-                               for name, value in flags.items()})
-    check_memory(config.to_json())  # after the sizes' own bounds (check_run_config's)
+    config = completed(flags)
+    check_spaces(config.env)
+    check_memory(config.to_json())  # after the sizes' own bounds (completed's)
     check_learning(config.to_json())
     return config
 

@@ -1,17 +1,18 @@
 """A run's settings, declared once, in one place: a frozen dataclass per concern (the run, the task,
 the policy, the episode, the archive, the algorithm, the output, the cluster), each flag a typed
 field with its default, its --help line, its check and its part in experiments. A RunConfig
-(run_config.py) is all of them; the commands' tables (SEARCH_FLAGS, CLUSTER_FLAGS) are made from
-them, and so are --help and the commands' signatures.
+is all of them (made by run_config.py's two constructors); the commands' tables (SEARCH_FLAGS,
+CLUSTER_FLAGS) are made from them, and so are --help and the commands' signatures.
 
 Map:
 - the bounds on sizes: MAX_ITERATIONS, MAX_EMITTERS, MAX_SOLUTIONS, MAX_ROLLOUTS, MAX_WORKERS, ...;
 - the checks of their own (`layer_widths`, `even_samples`) and the help's words (`seed_nouns`,
   `default_measures`);
-- the settings: RunSettings, TaskSettings, PolicySettings, EpisodeSettings, ArchiveSettings,
-  AlgorithmSettings, OutputSettings, ClusterSettings (`PolicySettings.network`: the policy they
-  make); the tables made from them: CLUSTER_FLAGS, SEARCH_FLAGS (the command line's), and what
-  the search layer reads of them: SETTINGS, PASSED_ON, SWEEPS, LABELLED, `checked_settings`;
+- the settings: RunSettings, TaskSettings, PolicySettings (its `network`, the policy they make,
+  made once with them; `with_policy` and `for_policy`, its flags checked together),
+  EpisodeSettings, ArchiveSettings, AlgorithmSettings, OutputSettings, ClusterSettings; the
+  tables made from them: CLUSTER_FLAGS, SEARCH_FLAGS (the command line's), and what the search
+  layer reads of them: SETTINGS, PASSED_ON, SWEEPS, LABELLED, `checked_settings`;
 - `RunConfig`: all of them, then `RunRecords` (what a run notes about itself; RECORDS: the JSON
   type of each); `unchecked` (a config's typed view while its checks run).
 """
@@ -242,12 +243,33 @@ class PolicySettings:
         text=True,
     )
 
-    @property
-    def network(self) -> Policy:
-        """The policy these settings make, as every rollout flies it (linear: no hidden layers):
-        its kind, its hidden layers and its start (a checked config: only a policy with hidden
-        layers has them, options.with_policy). Runs from before --start start as their row does."""
-        return Policy(self.policy, tuple(self.hidden or ()), self.start or "")
+    network: typing.ClassVar[Policy]  # (each instance's own, made by __post_init__; not a flag)
+
+    def __post_init__(self) -> None:
+        """`network`: the policy these settings make, made once with them, as every rollout flies
+        it (linear: no hidden layers): its kind, its hidden layers and its start (a checked
+        config: only a policy with hidden layers has them, `with_policy`). Runs from before
+        --start start as their row does."""
+        object.__setattr__(self, "network", Policy(self.policy, tuple(self.hidden or ()), self.start or ""))
+
+
+def with_policy(config: dict[str, Any]) -> dict[str, Any]:
+    """The config's --hidden: DEFAULT_HIDDEN for a network unless given, refused for a policy
+    without hidden layers (it would be recorded and change nothing)."""
+    kind, hidden = config.get("policy") or "linear", config.get("hidden")
+    if "hidden" not in POLICIES[kind].flags:
+        if hidden is not None:
+            raise UsageError(f"{named('hidden')} is a flag of {named('policy')} mlp; {named('policy')} "
+                             f"{kind} has no hidden layers")
+        return config
+    return {**config, "hidden": list(DEFAULT_HIDDEN if hidden is None else hidden)}
+
+
+def for_policy(config: dict[str, Any]) -> dict[str, Any]:
+    """The config less the flags its policy has no use for (each unset): an experiment's --hidden
+    in its settings of a policy without hidden layers, which record what search alone does."""
+    kind = config.get("policy") or "linear"
+    return {**config, **{flag: None for flag in POLICY_FLAGS if flag not in POLICIES[kind].flags}}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -570,8 +592,9 @@ RECORDS: dict[str, type] = {name: json_type(hint) for name, hint in typing.get_t
 class RunConfig(RunRecords, ClusterSettings, OutputSettings, AlgorithmSettings, ArchiveSettings,
                 EpisodeSettings, PolicySettings, TaskSettings, RunSettings):
     """A run's settings, read everywhere as config.<flag>: every field of the settings classes
-    above, from RunSettings to ClusterSettings in this order, then RunRecords. Made by
-    run_config.check_run_config, every value checked (`unchecked`: while the checks run)."""
+    above, from RunSettings to ClusterSettings in this order, then RunRecords, and the policy they
+    make (`network`). Made by run_config.py, from a record (check_run_config) or a search's flags
+    (search_config), every value checked (`unchecked`: while the checks run)."""
 
     def to_json(self) -> dict[str, Any]:
         """The config as config.json and the checkpoint hold it: a plain dict, flags first."""

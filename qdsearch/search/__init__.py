@@ -8,8 +8,9 @@ Map, imports going down the list only:
 - engine: chunks of rollouts on the workers, sized by what shares the cluster, back in order;
 - learning: a learning row's TD3 learner in its run: the greedy actor, the critic's steps while a
   batch flies, the transitions into the buffer once an iteration is told;
-- loop: the one run loop (`Run`, `Driver`);
-- run: `search` and `resume` of a run folder;
+- loop: the one run loop (`Driver`, `OneRun`): any number of runs sent, taken back and told;
+- run: one run (`Run`: its ask, its batch on the cluster, its tell, its checkpoint and folder),
+  `search` and `resume` of a run folder;
 - parts: an experiment split into parts, each its own process: the plan written once, a state
   file per part;
 - experiment_folder: experiment.json read and checked, a setting's label (what compare reads);

@@ -31,10 +31,9 @@ from qdsearch.tasks import (
     evaluate_points,
     make_env,
     reset_seeds,
-    rollout,
     scored_here,
 )
-from qdsearch.tasks.policies import LINEAR, Policy
+from qdsearch.tasks.policies import LINEAR, Policy, rollout
 from qdsearch.tasks.transitions import Recorder
 
 _WORKER_ENVS: dict[tuple[str, bool, Episode, int], gym.Env] = {}  # per worker thread, reused across tasks

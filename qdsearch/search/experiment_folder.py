@@ -19,7 +19,7 @@ from qdsearch.base.flags import UsageError, shown
 from qdsearch.base.run_files import read_run_json
 from qdsearch.config.options import checked, ignores, own_flags, search_defaults, with_task
 from qdsearch.config.run_config import upgrade
-from qdsearch.config.settings import LABELLED, checked_settings
+from qdsearch.config.settings import LABELLED, checked_settings, with_policy
 from qdsearch.search.parts import merge_part_states, part_of
 
 EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
@@ -33,8 +33,8 @@ def run_setting(config: dict) -> str:
     defaults, changed = checked_settings(search_defaults()), []
     config = upgrade(config)  # a config.json from before a flag: what it ran with
     with contextlib.suppress(KeyError, TypeError, UsageError):  # measures: the task's default
-        defaults = with_task({**defaults, "env": config["env"]})
-        config = with_task(config)
+        defaults = with_policy(with_task({**defaults, "env": config["env"]}))
+        config = with_policy(with_task(config))
     algorithm = config.get("algorithm")
     own = own_flags(algorithm) if algorithm in ALGORITHMS else ()
     for flag in (flag for flag in LABELLED if flag in config):

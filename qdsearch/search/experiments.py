@@ -67,7 +67,6 @@ from qdsearch.config.options import (
     check_memory,
     check_sizes,
     checked,
-    for_policy,
     ignores,
     refuse_unused_row_flags,
     resumed_budget,
@@ -85,6 +84,8 @@ from qdsearch.config.settings import (
     SWEEPS,
     ClusterSettings,
     checked_settings,
+    for_policy,
+    with_policy,
 )
 from qdsearch.search.cluster import scheduler_of
 from qdsearch.search.experiment_folder import (
@@ -94,7 +95,7 @@ from qdsearch.search.experiment_folder import (
     run_setting,
     shortened,
 )
-from qdsearch.search.loop import Driver, Run
+from qdsearch.search.loop import Driver
 from qdsearch.search.parts import (
     claim_plan,
     parse_part,
@@ -103,7 +104,7 @@ from qdsearch.search.parts import (
     runs_of_part,
     write_part_state,
 )
-from qdsearch.search.run import resume_run, session, where_to_look
+from qdsearch.search.run import Run, resume_run, session, where_to_look
 from qdsearch.tasks import check_spaces, scored_here
 
 # Which settings an experiment passes on to every run (PASSED_ON; it sets the others per run) and
@@ -265,10 +266,10 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
     # With --policy an axis, a policy's own flags (--hidden) are each setting's to take or leave
     # (for_policy), as an algorithm's own are each run's (ignores).
     swept = {flag: checked_flags[flag] for flag in POLICY_FLAGS} if "policy" in axes else {}
-    common = {**with_task({**checked_flags, **dict.fromkeys(swept)}), **swept}
+    common = {**with_policy(with_task({**checked_flags, **dict.fromkeys(swept)})), **swept}
     check_spaces(common["env"])
     for setting in itertools.product(*axes.values()):  # each run's archive and memory too (swept --cells)
-        config = with_task(for_policy({**common, **dict(zip(axes, setting))}))
+        config = with_policy(with_task(for_policy({**common, **dict(zip(axes, setting))})))
         check_sizes(config)
         check_memory(config)
         check_learning(config)

@@ -1,6 +1,6 @@
 """The one run loop: runs ask, have their batches flown on the cluster, and tell, any number of
-them at once on one Dask client. `search` and `resume` drive one run through it, `experiment`
-many.
+them at once on one Dask client. `search` and `resume` drive one run through it (run.py),
+`experiment` many (experiments.py). A run itself, what it asks and tells, is run.py's `Run`.
 
 A run's results depend on its own asks and tells only, so a run ends bit for bit the same
 whether it is driven alone or among others, whatever the order its chunks come back in.
@@ -8,11 +8,8 @@ The driver runs in a process's main thread: its saves start saver processes with
 signals ignored (saving.py's `Savers`), which only the main thread may set.
 
 Map:
-- `Run`: one run between two iterations: `ask`, `send` (its batch to the cluster), `take` (a
-  chunk back), `tell` (a DQD row's gradients: `tell_gradients`; ME-ES's samples:
-  `chains_networks`, `es_steps`, their collected episodes flown again here: `observations`; a
-  learning row's learner: learning.py), the checkpoint (built and written here only, signed
-  with the user's key: signing.py) and `save` (its folder's files: saving.py's `save_outputs`);
+- `DrivenRun`: what the loop asks of a run (run.py's `Run` is one): `send` its batch to the
+  cluster, `take` a chunk back, `tell_batch`, `save` its folder, and where it stands;
 - `Driver`: the loop. Chunks come back in whatever order they finish (Dask's as_completed); a run
   goes on as soon as its own batch is whole: it tells, saves at its log interval, and sends its
   next batch or finishes. Its subclasses say how runs are opened and recorded (experiments.py's
@@ -26,307 +23,45 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
-import pickle
 import time
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
-import numpy as np
-
-from qdsearch.algorithms import ALGORITHMS, ARCHIVES, build_scheduler
-from qdsearch.algorithms.gradients import estimate, noise, sample_points
-from qdsearch.base import compact_pickle
 from qdsearch.base.flags import UsageError, clipped
-from qdsearch.base.run_files import RunError, atomic_write, fault_text
-from qdsearch.base.signing import user_key, write_signed
+from qdsearch.base.run_files import RunError, fault_text
+from qdsearch.base.signing import user_key
 from qdsearch.base.stopping import STOP
-from qdsearch.config.run_config import CHECKPOINT_FORMAT, RunConfig
 from qdsearch.search.cluster import SchedulerLost, shares_this_machine
-from qdsearch.search.engine import ClusterShare, averaged, evaluate_batch, per_terrain, submit_flights
-from qdsearch.search.learning import Learning
-from qdsearch.store.metrics import describe_progress, iteration_metrics
+from qdsearch.search.engine import ClusterShare
+from qdsearch.store.metrics import describe_progress
 from qdsearch.store.saving import SAVER_PROCESSES, Savers
 from qdsearch.store.trackers import Tracking, wait_for_trackers
-from qdsearch.tasks import (
-    episode_of,
-    evaluate_points,
-    fly,
-    make_env,
-    point_gradients,
-    reset_seeds,
-    returns_of,
-    scored_here,
-)
 
 
-class Run:
-    """One run between two iterations, and the folder it is saved to.
+class DrivenRun(Protocol):
+    """What the loop reads and calls of a run between two iterations (run.py's `Run`): its batch
+    sent, taken back chunk by chunk and told, its folder saved, and where it stands."""
 
-    The checkpoint is built and written here only. It always holds the last completed iteration:
-    ask() moves the emitters on, so the scheduler is snapshotted (pickled, ~1 ms) after every tell,
-    and a stop or a fault while the cluster evaluates writes that snapshot. The iteration in flight
-    is abandoned, never half-recorded. The scheduler is pickled as one object (its emitters share
-    its archive; CMA-ES state and RNGs come along), so a resumed run asks exactly the same.
-
-    The folder's files may be written in a thread while the run goes on (`save(saver)`): they are
-    built from that snapshot, so nothing the run does next can change them.
-    """
-
-    def __init__(self, run_dir: Path, config: RunConfig, scheduler, metrics: list[dict],
-                 log: logging.Logger, learned: dict | None = None) -> None:
-        self.dir, self.config, self.scheduler, self.metrics = run_dir, config, scheduler, metrics
-        self.name, self.log = run_dir.name, log
-        # A run scored here (a benchmark function) is asked, scored and told in one step, and a
-        # stop is acted on between steps only: its scheduler itself is the last told iteration
-        # whenever a checkpoint is taken (`here`), and pickling it after every tell would cost as
-        # much as pyribs' ask and tell.
-        self.here = scored_here(config.env)
-        self.snapshot = None if self.here else compact_pickle.dumps(scheduler)
-        self.open = False  # a run scored here: asked and not yet told (no checkpoint is taken)
-        self.saved = self.iteration
-        self.pending: Future | None = None  # a save being written by the saver thread
-        self.chunks: list = []  # the batch on the cluster: its chunks' results, in order
-        self.seeds: np.ndarray | None = None  # its solutions' reset seeds (tasks.reset_seeds)
-        self.waiting = 0  # chunks of that batch not back yet
-        self.leaving = contextlib.ExitStack()  # what the run holds while it is driven (lock, log)
-        self.target = config.iterations  # where this drive stops (resume may stop it sooner)
-        self.tracking = Tracking(run_dir, config, log)  # --track: fed after each save (trackers.py)
-        self._asked_at = 0.0
-        self.policy, self.episode = config.network, episode_of(config)
-        self.gradients: np.ndarray | None = None  # a DQD row's sample draws, while its gradients fly
-        self.sampled = 0  # solutions flown for this iteration's gradients (told: its branches fly)
-        self.flown: np.ndarray | None = None  # ME-ES: the networks its samples flew
-        self.points: np.ndarray | None = None  # a DQD row's points, while their gradients fly
-        self.learning = Learning.of(config, scheduler, learned)  # a learning row's (learning.py)
-
-    @classmethod
-    def start(cls, run_dir: Path, config: RunConfig, client, log: logging.Logger,
-              seed_archive=None) -> Run:
-        """Iteration 0 of a new run, checkpointed at once so the folder always holds one.
-
-        With `seed_archive` (a warm start), its elites are first flown again in this run's setting
-        (another terrain, say) and inserted, and the emitters start from the best of them.
-        """
-        if making := ARCHIVES[config.archive]["making"]:  # a CVT's k-means: seconds, said first
-            log.info(making(config))
-        if seed_archive is None:
-            run = cls(run_dir, config, build_scheduler(config), [], log)
-        else:
-            elites = seed_archive.data(["solution"])["solution"]
-            objectives, measures = evaluate_batch(client, elites, config)
-            scheduler = build_scheduler(config, x0=elites[int(np.argmax(objectives))])
-            for archive in {id(a): a for a in (scheduler.archive, scheduler.result_archive)}.values():
-                archive.add(elites, objectives, measures)
-            run = cls(run_dir, config, scheduler,
-                      [iteration_metrics(scheduler.result_archive, 0, len(elites), 0.0)], log)
-            log.info(f"Warm start: {len(elites)} elites re-evaluated, {len(scheduler.result_archive)} "
-                     f"kept; emitters start from the best (objective {objectives.max():.1f})")
-        run.write_centroids()
-        run.save_checkpoint(force=True)
-        return run
-
-    @classmethod
-    def from_checkpoint(cls, run_dir: Path, checkpoint: dict, log: logging.Logger) -> Run:
-        run = cls(run_dir, checkpoint["config"], checkpoint["scheduler"], checkpoint["metrics"], log,
-                  checkpoint.get("learning"))
-        if not (run_dir / "centroids.npy").exists():  # deleted: resume's check refused an edited one
-            run.write_centroids()
-        return run
-
-    def write_centroids(self) -> None:
-        """A CVT archive's cells in centroids.npy, for a reader to see (a grid's need no file)."""
-        kept = self.scheduler.result_archive
-        if hasattr(kept, "centroids"):
-            atomic_write(self.dir / "centroids.npy", lambda f: np.save(f, kept.centroids))
+    name: str
+    here: bool  # scored in this process (a benchmark function): no batch on the cluster
+    metrics: list[dict]
+    target: int  # where this drive stops
+    saved: int  # the iteration of its last checkpoint
+    log: logging.Logger
+    tracking: Tracking
+    leaving: contextlib.ExitStack
+    pending: Future | None  # a save being written
 
     @property
-    def iteration(self) -> int:
-        return self.metrics[-1]["iteration"] if self.metrics else 0  # a warm start has iteration 0
-
-    def ask(self) -> np.ndarray:
-        """The next batch to fly. A DQD row's iteration has two: first its emitters' points with
-        the samples that estimate their gradients (gradients.py), then the solutions branched
-        along those gradients (pyribs' ask_dqd, tell_dqd, then ask and tell). ME-ES's too: first
-        the samples around each chain's theta, as the networks its normaliser makes them
-        (me_es.py: its ES step), then the stepped thetas (its first iteration flies x0 alone)."""
-        row = ALGORITHMS[self.config.algorithm]
-        if not self.sampled:  # the iteration's first batch
-            self._asked_at = time.perf_counter()  # elapsed_s counts from here to the tell
-            if row.exact:
-                self.tell_exact_gradients()
-        if not self.sampled and row.samples:
-            points = (self.scheduler.ask_dqd() if row.dqd else
-                      [emitter.es_point() for emitter in self.scheduler.emitters])
-            if not any(point is None for point in points):
-                points = np.asarray(points)
-                self.gradients = noise(self.config.seed, self.iteration, len(points),
-                                       self.config.es_samples, points.shape[1])
-                batch = sample_points(points, self.gradients, self.config.es_sigma)
-                if row.dqd:
-                    self.points = points
-                    return batch
-                self.flown = self.chains_networks(batch[len(points):])  # ME-ES flies no point
-                return self.flown
-        batch = self.scheduler.ask()
-        return batch if self.learning is None else self.learning.with_greedy(batch)
-
-    def send(self, client, sharing: int = 1, threads: int | None = None) -> list:
-        """Ask the next batch and send it to the cluster; the futures of its chunks, in order. A
-        benchmark function's batch is scored here at once (no futures: the batch is whole)."""
-        config = self.config
-        solutions = self.ask()
-        if self.here:  # a point has no resets: a row per solution, whatever --env_seed and --reset
-            self.open, self.seeds = True, np.zeros((len(solutions), 1), dtype=np.int64)
-            self.chunks, self.waiting = [evaluate_points(solutions, config.measures, env_name=config.env)], 0
-            return []
-        self.seeds = reset_seeds(solutions, config)
-        futures = submit_flights(client, solutions, self.seeds, config.measures,
-                                 config.fast_env, sharing=sharing, threads=threads,
-                                 env_name=config.env, policy=self.policy, episode=self.episode,
-                                 transitions=self.learning is not None)
-        self.chunks, self.waiting = [None] * len(futures), len(futures)
-        if self.learning is not None and self.gradients is None:  # the iteration's last batch
-            self.learning.train()  # while it flies
-        return futures
-
-    def take(self, position: int, result: Any) -> bool:
-        """A chunk of the batch is back (or its exception); whether the batch is whole."""
-        self.chunks[position] = result
-        self.waiting -= 1
-        return self.waiting == 0
-
-    def tell_batch(self) -> dict | None:
-        """Tell the whole batch, each solution averaged over its terrains (a chunk that failed
-        raises its fault); the new row of metrics, or None where the iteration has a batch to go
-        (a DQD row's gradients are told)."""
-        chunks, self.chunks = self.chunks, []
-        if failed := next((chunk for chunk in chunks if isinstance(chunk, BaseException)), None):
-            raise failed
-        if self.learning is not None:
-            chunks = self.learning.collect(chunks)
-        objectives, measures = averaged(per_terrain(chunks, self.seeds))
-        if self.gradients is not None:
-            if ALGORITHMS[self.config.algorithm].dqd:
-                self.tell_gradients(objectives, measures)
-            else:  # ME-ES: each chain's samples, in its emitter's order
-                self.es_steps(objectives, measures)
-            self.gradients, self.sampled = None, len(objectives)
-            return None
-        return self.tell(objectives, measures)
-
-    def tell_gradients(self, objectives: np.ndarray, measures: np.ndarray) -> None:
-        """A DQD row's points and their gradients, estimated from the samples (gradients.py); a
-        learning row's objective gradient is its critic's (learning.py)."""
-        flown = np.column_stack([objectives, measures])
-        values, points_measures, jacobians = estimate(flown, self.gradients, self.config.es_sigma)
-        if self.learning is not None and self.learning.learns.objective_gradient:
-            jacobians[:, 0] = self.learning.objective_gradients(self.points)
-        self.scheduler.tell_dqd(values, points_measures, jacobians)
-        self.points = None
-
-    def tell_exact_gradients(self) -> None:
-        """A DQD row of exact gradients (a benchmark function's, scored here): its points, their
-        values and Jacobians told at once, counted as the iteration's first evaluations."""
-        config, points = self.config, self.scheduler.ask_dqd()
-        flown = evaluate_points(points, config.measures, env_name=config.env)
-        jacobians = point_gradients(points, config.measures, env_name=config.env)
-        self.scheduler.tell_dqd(flown[:, 0], flown[:, 1:], jacobians)
-        self.sampled = len(points)
-
-    def chains_networks(self, samples: np.ndarray) -> np.ndarray:
-        """ME-ES: each chain's samples (in its emitter's order) as the networks its normaliser
-        makes them."""
-        chains = np.split(samples, len(self.scheduler.emitters))
-        return np.concatenate([emitter.flown(part) for emitter, part in zip(self.scheduler.emitters, chains)])
-
-    def es_steps(self, objectives: np.ndarray, measures: np.ndarray) -> None:
-        """ME-ES: each chain's step on its samples' results, and the observations of the samples
-        it collects (me_es.py), their episodes flown again here."""
-        count = len(self.gradients)
-        parts = zip(self.scheduler.emitters, np.split(objectives, count), np.split(measures, count),
-                    self.gradients, np.split(self.flown, count), np.split(self.seeds, count))
-        for emitter, chain_objectives, chain_measures, eps, networks, seeds in parts:
-            emitter.es_step(chain_objectives, chain_measures, eps)
-            if len(chosen := emitter.collecting(len(networks))):
-                emitter.observe(self.observations(networks[chosen], seeds[chosen]))
-
-    def observations(self, networks: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-        """Every observation of the episodes of `networks` on their reset seeds, flown here."""
-        config, seen = self.config, []
-        env = make_env(config.fast_env, env_name=config.env, episode=self.episode)
-        try:
-            for network, own in zip(networks, seeds):
-                for seed in own:
-                    fly(network, int(seed), env, on_step=lambda action, obs: seen.append(np.array(obs)),
-                        env_name=config.env, policy=self.policy)
-        finally:
-            env.close()
-        return np.array(seen)
-
-    def tell(self, objectives: np.ndarray, measures: np.ndarray) -> dict:
-        """Record the evaluated batch; returns the new row of metrics, whose evaluations count
-        the iteration's every solution flown (a DQD row's gradient samples too, a learning row's
-        greedy actor, inserted first: learning.py)."""
-        if self.learning is not None:
-            self.learning.insert_greedy(self.scheduler, objectives[-1], measures[-1])
-            self.scheduler.tell(objectives[:-1], measures[:-1])
-            self.learning.commit()
-        else:
-            self.scheduler.tell(objectives, measures)
-        if not self.here:
-            self.snapshot = compact_pickle.dumps(self.scheduler)
-        self.open = False
-        last = self.metrics[-1] if self.metrics else {"evaluations": 0, "elapsed_s": 0.0}
-        spent, self.sampled = len(objectives) + self.sampled, 0
-        self.metrics.append(iteration_metrics(
-            self.scheduler.result_archive, self.iteration + 1, last["evaluations"] + spent,
-            last["elapsed_s"] + time.perf_counter() - self._asked_at))
-        return self.metrics[-1]
-
-    def due(self, row: dict) -> bool:
-        """Whether the folder is refreshed after this row (every log_every iterations; the last
-        iteration's save is the run's end)."""
-        return row["iteration"] % self.config.log_every == 0 and row["iteration"] < self.target
-
-    def checkpoint(self) -> dict:
-        """Everything needed to continue the run, as of the last completed iteration."""
-        scheduler = compact_pickle.dumps(self.scheduler) if self.here else self.snapshot  # a copy
-        return {"format": CHECKPOINT_FORMAT, "scheduler": pickle.loads(scheduler),
-                "metrics": list(self.metrics), "iteration": self.iteration,
-                "config": self.config.to_json(),
-                **({} if self.learning is None else {"learning": self.learning.checkpoint()})}
-
-    def save_checkpoint(self, force: bool = False) -> None:
-        """Write the checkpoint if iterations were completed since the last save (after the save
-        in the saver thread, whose fault, if any, is raised once the checkpoint is written)."""
-        try:
-            self.settle()
-        finally:
-            if (force or self.iteration > self.saved) and not self.open:  # (open: a fault mid-step)
-                write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(self.checkpoint()))
-                self.saved = self.iteration
-
-    def save(self, savers: Savers) -> None:
-        """Refresh every file of the run folder, the checkpoint first, in a saver thread (and
-        process), so the workers are fed meanwhile."""
-        self.settle()
-        self.pending = savers.submit(self.write, self.checkpoint(), savers)
-
-    def write(self, checkpoint: dict, savers: Savers) -> None:
-        write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(checkpoint))
-        self.saved = checkpoint["iteration"]
-        savers.write_outputs(self.dir, checkpoint["scheduler"].result_archive, checkpoint["metrics"],
-                             checkpoint["config"], checkpoint["iteration"], returns_of(self.config).heat)
-        with savers.one_at_a_time:
-            self.tracking.save(checkpoint["metrics"])
-
-    def settle(self, wait: bool = True) -> None:
-        """Wait for the save in the saver thread (without `wait`: only if it is over); raise its
-        fault, so a full disk stops the run at once."""
-        if self.pending is not None and (wait or self.pending.done()):
-            pending, self.pending = self.pending, None
-            pending.result()
+    def iteration(self) -> int: ...
+    def send(self, client, sharing: int = 1, threads: int | None = None) -> list: ...
+    def take(self, position: int, result: Any) -> bool: ...
+    def tell_batch(self) -> dict | None: ...
+    def due(self, row: dict) -> bool: ...
+    def save_checkpoint(self, force: bool = False) -> None: ...
+    def save(self, savers: Savers) -> None: ...
+    def settle(self, wait: bool = True) -> None: ...
 
 
 def count_as_done_before(bar, iterations: int) -> None:
@@ -347,7 +82,7 @@ class Driver:
     and experiment.
 
     `entries` are the runs to drive, each a dict with at least its "name"; `open` (a subclass's)
-    makes an entry's Run, `record` notes each change of its state ("running", "done", "stopped",
+    makes an entry's run, `record` notes each change of its state ("running", "done", "stopped",
     "failed"). With `isolated` runs a run's fault stops it alone; otherwise it ends the drive.
     Every `every` iterations told, `lines()` are logged. The runs' states noted by `record` are
     kept by `flush`: once the runs of a batch are opened, at most every so often while they go
@@ -366,11 +101,11 @@ class Driver:
         self.todo = collections.deque(entries)
         self.entries = {entry["name"]: entry for entry in entries}
         self.limit = limit or len(entries)
-        self.live: dict[str, Run] = {}
-        self.owner: dict[str, tuple[Run, int]] = {}  # future key -> its run, chunk position
+        self.live: dict[str, DrivenRun] = {}
+        self.owner: dict[str, tuple[DrivenRun, int]] = {}  # future key -> its run, chunk position
         self.latest: dict[str, dict] = {}  # run name -> its last metrics row
         self.told = 0  # iterations told in this drive
-        self.closing: list[Run] = []  # finished runs whose last save is being written
+        self.closing: list[DrivenRun] = []  # finished runs whose last save is being written
         # Run folders are written while the runs go on. A cluster whose workers are elsewhere
         # runs on cores of its own, and so may saver processes. On a cluster it starts itself
         # (--workers), or one joined whose workers all listen on loopback, the driver shares the
@@ -379,14 +114,14 @@ class Driver:
         # CPU here, 2026-11-28): one thread draws.
         self.savers = Savers(0 if client is None or shares_this_machine(client)
                              else min(SAVER_PROCESSES, self.limit))
-        self.ready: collections.deque[Run] = collections.deque()  # runs whose batch was scored here
+        self.ready: collections.deque[DrivenRun] = collections.deque()  # runs whose batch was scored here
         # Results come with their futures (no second round trip to fetch them); a chunk that
         # failed comes as its exception, and is its run's fault alone.
         self.finished = None if client is None else as_completed(with_results=True, raise_errors=False)
         self.share = ClusterShare(client)  # the worker threads and the runs sharing them
 
     # ---- what subclasses say ----
-    def open(self, entry: dict) -> Run:
+    def open(self, entry: dict) -> DrivenRun:
         raise NotImplementedError
 
     def record(self, entry: dict, state: str, error: BaseException | None = None) -> None:
@@ -500,7 +235,7 @@ class Driver:
             else:
                 self.send(run)
 
-    def send(self, run: Run) -> None:
+    def send(self, run: DrivenRun) -> None:
         """The run's next batch, to the cluster (a run scored here waits its turn: `ready`)."""
         if run.here:
             self.ready.append(run)
@@ -511,7 +246,7 @@ class Driver:
             self.owner[future.key] = (run, position)
             self.finished.add(future)
 
-    def step_here(self, run: Run) -> None:
+    def step_here(self, run: DrivenRun) -> None:
         """A run scored in this process: its next iteration (a DQD row's two batches) asked,
         scored and told in one step. A fault on the way is its own (`fail`): its checkpoint keeps
         the last iteration saved."""
@@ -529,7 +264,7 @@ class Driver:
         best = float("nan") if row["best_objective"] is None else row["best_objective"]
         return {"coverage": f"{row['coverage']:.3f}", "qd": f"{row['qd_score']:.4g}", "best": f"{best:.1f}"}
 
-    def advance(self, run: Run) -> None:
+    def advance(self, run: DrivenRun) -> None:
         """The run's batch is whole: tell it, save it at its log interval, send again or finish."""
         try:
             row = run.tell_batch()
@@ -541,7 +276,7 @@ class Driver:
             self.check_scheduler(error)
             self.fail(self.entries[run.name], run, error)
 
-    def after_tell(self, run: Run, row: dict) -> None:
+    def after_tell(self, run: DrivenRun, row: dict) -> None:
         """The run has told an iteration (`row`, its metrics): save it at its log interval, send
         again or finish."""
         run.settle(wait=False)  # a fault of the last save (a full disk) stops the run now
@@ -578,7 +313,7 @@ class Driver:
             raise SchedulerLost(f"lost the Dask scheduler at {self.client.scheduler.address} "
                                 f"({why})") from None
 
-    def fail(self, entry: dict, run: Run | None, error: BaseException) -> None:
+    def fail(self, entry: dict, run: DrivenRun | None, error: BaseException) -> None:
         """A run's fault: with `isolated` runs, it stops that run alone (its checkpoint kept, its
         state and cause recorded) and another takes its place; otherwise it ends the drive, as a
         fault of the machine (a RunError) unless it is one already."""
@@ -595,7 +330,7 @@ class Driver:
         self.log.info(f"run {entry['name']} failed: {fault_text(error)}")
         self.start_more()
 
-    def finish(self, run: Run) -> None:
+    def finish(self, run: DrivenRun) -> None:
         """The run is complete: its folder is written in the saver thread (reap() closes it)
         while another run takes its place."""
         run.save(self.savers)
@@ -616,7 +351,7 @@ class Driver:
                 run.log.info("Done. " + describe_progress(run.metrics[-1], run.target))
             self.close(run, "done")
 
-    def close(self, run: Run, state: str, error: BaseException | None = None) -> None:
+    def close(self, run: DrivenRun, state: str, error: BaseException | None = None) -> None:
         self.live.pop(run.name, None)
         run.tracking.close()
         run.leaving.close()
@@ -629,9 +364,9 @@ class OneRun(Driver):
     desc = "search"
 
     def __init__(self, client, log: logging.Logger, run_dir: Path, iterations: int,
-                 make: Callable[[], Run]) -> None:
+                 make: Callable[[], DrivenRun]) -> None:
         super().__init__(client, log, [{"name": run_dir.name}], total=iterations)
         self.make = make
 
-    def open(self, entry: dict) -> Run:
+    def open(self, entry: dict) -> DrivenRun:
         return self.make()

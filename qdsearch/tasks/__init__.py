@@ -1,16 +1,17 @@
 """qdsearch.tasks: the tasks a search can fly. This module is the layer's registry: every family
-module's rows gathered into the tables --env and --measures pick from, and one episode of any of
-them.
+module's rows gathered into the tables --env and --measures pick from.
 
-The layer's modules, imports going down the list only (this registry last):
-- policies: the policies a solution makes (POLICIES: linear, mlp; `Policy`);
+The layer's modules, imports going down the list only:
 - family: what a task family declares (`Family`, `Environment` with its env's spaces, `Measure`),
   `require_drawing`;
 - fast_lander: the streamlined Lunar Lander (bitwise gym.make's);
 - lander, walker, locomotion: a module per task family (locomotion: MuJoCo's robots, a family
   each): its rows, its episode, how it is drawn;
 - functions: the benchmark functions (sphere, Rastrigin, the planar arm): points, not episodes;
-- transitions: an episode's steps kept as rows, for the learning rows' replay buffer.
+- transitions: an episode's steps kept as rows, for the learning rows' replay buffer;
+- __init__: this registry;
+- policies: the policies a solution makes (POLICIES: linear, mlp; `Policy`), and one episode of
+  a solution flown as one, on any task of the registry (`fly`, `rollout`).
 
 A family lives in a module of its own (lander.py, walker.py, locomotion.py, functions.py; family.py says what
 one declares). To add one, write its module and name it in FAMILY_MODULES: its families, tasks
@@ -25,8 +26,6 @@ Map:
 - the resets: RESETS (--reset), `reset_seeds` (each solution's episodes' reset seeds);
 - the environment: `make_env` (`plain_env`: gym.make's), `check_spaces` (a policy can serve the
   env's spaces); `renderer_missing` (family.py's, for the video command);
-- an episode: `fly` (its summary, and its path if asked) and `rollout` (its objective and
-  measures), of any policy (policies.py);
 - a benchmark function's points (functions.py): `dim_of` (a run's --dim), `shape_of` (a run's
   policy shape, any task), `measure_bounds` (a run's measures' ranges, any task),
   `scored_here` (a function's run needs no cluster), `evaluate_points` (a batch scored at
@@ -48,9 +47,8 @@ import gymnasium as gym
 import numpy as np
 
 from qdsearch.base.flags import UsageError, named
-from qdsearch.tasks.family import Environment, Family, Measure, OnStep, Returns, require_drawing
+from qdsearch.tasks.family import Environment, Family, Measure, Returns
 from qdsearch.tasks.family import renderer_missing as renderer_missing  # results.py's video imports it here
-from qdsearch.tasks.policies import LINEAR, Policy
 
 # The family modules, by import name: the one place a family is registered. Each declares its
 # ENVIRONMENTS and MEASURES rows (family.py); a module outside the package must be importable
@@ -275,31 +273,3 @@ def point_gradients(solutions: np.ndarray, measures: tuple[str, ...], *, env_nam
     rows = [task.objective(summary), *(MEASURES[name].of(summary) for name in measures)]
     return np.stack([np.asarray(row, dtype=np.float64) for row in rows], axis=1)
 
-
-def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
-        on_step: OnStep | None = None, *, env_name: str, policy: Policy = LINEAR) -> Any:
-    """Fly `solution` as `policy` (default: linear) for one episode on the terrain of `env_seed`;
-    its summary.
-
-    With a `trajectory` list, each step's point of the family's path is appended to it (the
-    lander's normalised (x, y), the walker's hull in metres; a family that declares no path is
-    refused in one line); `on_step` is called with each step's action and observation (the
-    explorer records poses with it).
-    """
-    task = ENVIRONMENTS[env_name]
-    if trajectory is not None:
-        require_drawing(task.family, "trajectories")
-
-        def on_step(action: Any, obs: np.ndarray) -> None:
-            trajectory.append(task.family.position(env, obs))
-    return task.family.fly(policy.act(solution, task.shape, task.continuous), env_seed, env, task, on_step)
-
-
-def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
-            trajectory: list | None = None, *, env_name: str, policy: Policy = LINEAR) -> tuple[float, ...]:
-    """(objective, *measures) of one episode (default: the task's measures): the objective is the
-    task's (its total reward, for every task but ant_omni)."""
-    task = ENVIRONMENTS[env_name]
-    flight = fly(solution, env_seed, env, trajectory, env_name=env_name, policy=policy)
-    measures = task.measures if measures is None else measures
-    return (float(task.objective(flight)), *(float(MEASURES[name].of(flight)) for name in measures))

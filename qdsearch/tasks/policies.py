@@ -1,5 +1,5 @@
-"""The policies a search can fly (--policy): how a solution's numbers become an action, declared
-once as rows of POLICIES.
+"""The policies a search can fly (--policy), declared once as rows of POLICIES, and one episode
+of a solution flown as one: the worker's rollout, from a run's policy to the task's episode.
 
 A task gives a policy its shape, (actions, observations), from the env's spaces (family.py's
 `Environment.shape`); the policy says how many weights it has, how it acts, and where the
@@ -11,16 +11,23 @@ Map:
   hidden layers with biases, a Glorot draw at the start, as dqd-rl and QDax start theirs);
 - STARTS (--start): where the emitters start, zeros or a Glorot draw, for any row;
 - `Policy`: what a run flies (a row, its hidden sizes, its start), small and hashable: it travels
-  with every chunk of rollouts (a run's config makes it: `PolicySettings.network`); LINEAR;
-- `layer_sizes`, `mlp_act`, `glorot`: the network, its forward pass and its initial draw.
+  with every chunk of rollouts (a run's config makes it once: `PolicySettings.network`); LINEAR;
+- `layer_sizes`, `mlp_act`, `glorot`: the network, its forward pass and its initial draw;
+- an episode, on any task of the registry (the package's __init__): `fly` (its summary, and its
+  path if asked: the family's episode function flies the policy's act) and `rollout` (its
+  objective and measures).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Any, Callable
 
+import gymnasium as gym
 import numpy as np
+
+from qdsearch.tasks import ENVIRONMENTS, MEASURES
+from qdsearch.tasks.family import OnStep, require_drawing
 
 Shape = tuple[int, int]  # (actions, observations), from the task's spaces
 
@@ -149,3 +156,33 @@ class Policy:
 
 
 LINEAR = Policy()
+
+
+# One episode of a solution flown as a policy, on any task of the registry.
+def fly(solution: np.ndarray, env_seed: int, env: gym.Env, trajectory: list | None = None,
+        on_step: OnStep | None = None, *, env_name: str, policy: Policy = LINEAR) -> Any:
+    """Fly `solution` as `policy` (default: linear) for one episode on the terrain of `env_seed`;
+    its summary.
+
+    With a `trajectory` list, each step's point of the family's path is appended to it (the
+    lander's normalised (x, y), the walker's hull in metres; a family that declares no path is
+    refused in one line); `on_step` is called with each step's action and observation (the
+    explorer records poses with it).
+    """
+    task = ENVIRONMENTS[env_name]
+    if trajectory is not None:
+        require_drawing(task.family, "trajectories")
+
+        def on_step(action: Any, obs: np.ndarray) -> None:
+            trajectory.append(task.family.position(env, obs))
+    return task.family.fly(policy.act(solution, task.shape, task.continuous), env_seed, env, task, on_step)
+
+
+def rollout(solution: np.ndarray, env_seed: int, env: gym.Env, measures: tuple[str, ...] | None = None,
+            trajectory: list | None = None, *, env_name: str, policy: Policy = LINEAR) -> tuple[float, ...]:
+    """(objective, *measures) of one episode (default: the task's measures): the objective is the
+    task's (its total reward, for every task but ant_omni)."""
+    task = ENVIRONMENTS[env_name]
+    flight = fly(solution, env_seed, env, trajectory, env_name=env_name, policy=policy)
+    measures = task.measures if measures is None else measures
+    return (float(task.objective(flight)), *(float(MEASURES[name].of(flight)) for name in measures))
