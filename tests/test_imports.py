@@ -246,3 +246,60 @@ def test_no_layer_but_the_command_line_and_the_config_reads_a_flag_table():
                                  getattr(importlib.import_module(node.module), alias.name, None), dict)
                              and alias.name.endswith("_FLAGS")})
             assert not tables, (path, tables)
+
+
+def config_parameters(path: Path) -> list[tuple[str, str]]:
+    """Each (function, annotation) of the file's functions' parameters named `config`."""
+    return [(node.name, ast.unparse(arg.annotation) if arg.annotation else "")
+            for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            for arg in node.args.args + node.args.kwonlyargs if arg.arg == "config"]
+
+
+def test_below_the_config_layer_a_run_s_settings_are_typed_never_a_dict():
+    """Outside the config layer (whose constructors check raw values) and the command line, a
+    function takes a run's settings as a type that says what it reads (a RunConfig, or the
+    Protocol of its layer: tasks.TaskConfig, algorithms.RowConfig, ...), never `Any` or a dict;
+    a record as read or written (config.json's JSON) is named `recorded`."""
+    untyped = [(path.relative_to(PACKAGE).as_posix(), function, annotation)
+               for layer in LAYERS if layer not in ("config", "cli")
+               for path in sorted((PACKAGE / layer).glob("*.py"))
+               for function, annotation in config_parameters(path)
+               if annotation in ("", "Any", "dict") or annotation.startswith(("dict[", "Any |"))]
+    assert not untyped, untyped
+    assert ("episode_of", "TaskConfig") in config_parameters(PACKAGE / "tasks" / "__init__.py")
+
+
+def test_the_check_sees_a_run_s_settings_taken_as_a_dict(tmp_path):
+    path = tmp_path / "module.py"
+    path.write_text("def f(x, config: dict[str, int]):\n    pass\n\ndef g(*, config):\n    pass\n")
+    assert config_parameters(path) == [("f", "dict[str, int]"), ("g", "")]
+
+
+def protocol_members(protocol: type) -> set[str]:
+    """The attributes and methods a Protocol (and the Protocols it extends) declares."""
+    declared = [cls for cls in protocol.__mro__ if cls is not object and getattr(cls, "_is_protocol", False)]
+    methods = {key for cls in declared for key, value in vars(cls).items()
+               if callable(value) and not key.startswith("_")}
+    return methods | {name for cls in declared for name in vars(cls).get("__annotations__", {})}
+
+
+def test_a_run_config_is_what_every_layer_reads_of_a_run():
+    """RunConfig has every attribute and method each layer's Protocol reads: the layers below the
+    config layer name what they read, and the config gives it."""
+    from qdsearch.algorithms import RowConfig
+    from qdsearch.config.options import search_defaults, with_task
+    from qdsearch.config.run_config import check_run_config
+    from qdsearch.search.engine import FlownConfig
+    from qdsearch.store.saving import SavedConfig
+    from qdsearch.store.trackers import TrackedConfig
+    from qdsearch.tasks import TaskConfig
+
+    config = check_run_config(with_task({**search_defaults(), "seed": 1}))
+    for protocol in (TaskConfig, RowConfig, FlownConfig, SavedConfig, TrackedConfig):
+        members = protocol_members(protocol)
+        assert len(members) >= 5, (protocol, members)
+        assert not [name for name in members if not hasattr(config, name)], protocol
+    assert {"fast_env", "network", "env", "reset"} <= protocol_members(FlownConfig)  # its own and
+    assert {"algorithm", "network", "env"} <= protocol_members(RowConfig)  # those it extends
+    assert "to_json" in protocol_members(SavedConfig)

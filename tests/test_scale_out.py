@@ -89,7 +89,7 @@ def test_a_search_on_a_joined_cluster_draws_in_a_saver_process_what_it_would_dra
     (tmp_path / "here").mkdir()
     heat = tasks.returns_of(check_run_config(checkpoint["config"])).heat
     saving.save_outputs(tmp_path / "here", checkpoint["scheduler"].result_archive, checkpoint["metrics"],
-                        checkpoint["config"], checkpoint["iteration"], heat)
+                        check_run_config(checkpoint["config"]), checkpoint["iteration"], heat)
     names = ["archive.csv", "heatmap.png", "progress.png",
              f"heatmaps/heatmap_{checkpoint['iteration']:05d}.png"]
     assert all((tmp_path / "run" / name).read_bytes() == (tmp_path / "here" / name).read_bytes()

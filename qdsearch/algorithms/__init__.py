@@ -15,6 +15,7 @@ Map:
 - the DQD rows (`gradient_arborescence`), ME-ES, the learning rows (`Learns`: PGA-ME, CMA-MEGA (TD3,
   ES)), `evaluations_per_iteration`, and what a row's emitters, archives and replay buffer hold in
   memory (ES_BYTES, `memory_needed`, `buffer_bytes`);
+- `RowConfig`: what the layer reads of a run's settings;
 - `task_of`, `derive_seeds` (the archive's and each emitter's seed, from the run's),
   `archive_shape` and `build_scheduler` (a run's pyribs Scheduler, from its config).
 """
@@ -23,15 +24,37 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from qdsearch.algorithms.me_es import MEESEmitter
 from qdsearch.algorithms.pga_me import PGAMEEmitter
-from qdsearch.tasks import ENVIRONMENTS, measure_bounds, returns_of, shape_of
+from qdsearch.tasks import ENVIRONMENTS, TaskConfig, measure_bounds, returns_of, shape_of
 from qdsearch.tasks.family import Environment
+from qdsearch.tasks.policies import Policy
 from qdsearch.tasks.transitions import transition_width
+
+
+class RowConfig(TaskConfig, Protocol):
+    """What this layer reads of a run's settings (the config layer's RunConfig is one): the task's
+    (tasks.TaskConfig), the row and its emitters' settings, the archive's cells and the policy."""
+
+    algorithm: str
+    archive: str
+    grid: int | None
+    cells: int | None
+    n_emitters: int
+    batch_size: int
+    sigma0: float
+    learning_rate: float
+    line_sigma: float
+    novelty_threshold: float
+    bandwidth: float
+    es_samples: int
+    es_sigma: float
+    buffer_size: int
+    network: Policy  # the policy its settings make
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,7 +64,7 @@ class Emitters:
     batch size and seed come from build_scheduler)."""
 
     kind: str | type
-    kwargs: Callable[[Any], dict[str, Any]]
+    kwargs: Callable[[RowConfig], dict[str, Any]]
     es: str | None = None  # the evolution strategy each keeps over the solution's weights, if any
 
 
@@ -68,7 +91,7 @@ class Algorithm:
 
     summary: str  # what --help and docs/algorithms.md call it
     emitters: tuple[Emitters, ...]  # one group: n_emitters of it; several: a bandit's pool
-    archive: Callable[[Any], dict[str, Any]] = lambda config: {}
+    archive: Callable[[RowConfig], dict[str, Any]] = lambda config: {}
     result_archive: bool = False  # a plain copy of the run's archive keeps the best (CMA-MAE)
     search_archive: Callable[..., Any] | None = None
     emitters_on_result: bool = False  # the search archive keeps no elites to sample (DDS)
@@ -100,12 +123,12 @@ def iso_line(iso_scale: float = 1.0, line_scale: float = 1.0) -> Emitters:
                                                       "line_sigma": line_scale * config.line_sigma})
 
 
-def soft_archive(config: Any) -> dict[str, Any]:
+def soft_archive(config: RowConfig) -> dict[str, Any]:
     """CMA-MAE's archive: thresholds follow improvements at --learning_rate, from the QD offset."""
     return {"learning_rate": config.learning_rate, "threshold_min": returns_of(config).offset}
 
 
-def measure_span(config: Any) -> float:
+def measure_span(config: RowConfig) -> float:
     """The mean width of the measures' ranges: distances in measure space are fractions of it
     (pyribs' sphere.py sets its thresholds as fractions of its one width, 512)."""
     return float(np.mean([high - low for low, high in archive_shape(config)["ranges"]]))
@@ -114,7 +137,7 @@ def measure_span(config: Any) -> float:
 def proximity_archive(local_competition: bool) -> Callable[..., Any]:
     """Novelty search's archive: a solution enters if its mean distance to its 15 nearest
     neighbours in measure space is at least --novelty_threshold of the measures' span."""
-    def make(config: Any, archive: Any, seed: int) -> Any:
+    def make(config: RowConfig, archive: Any, seed: int) -> Any:
         from ribs.archives import ProximityArchive
 
         return ProximityArchive(solution_dim=archive.solution_dim, measure_dim=archive.measure_dim,
@@ -128,7 +151,7 @@ def proximity_archive(local_competition: bool) -> Callable[..., Any]:
 DNS_NEIGHBOURS = 3  # the DNS paper's k (Bahlous-Boldi et al. 2025)
 
 
-def dns_archive(config: Any, archive: Any, seed: int) -> Any:
+def dns_archive(config: RowConfig, archive: Any, seed: int) -> Any:
     """Dominated Novelty Search's population: as many solutions as the run's archive has cells,
     the survivors those farthest from their 3 nearest fitter neighbours."""
     from ribs.archives import DNSArchive
@@ -138,7 +161,7 @@ def dns_archive(config: Any, archive: Any, seed: int) -> Any:
                       qd_score_offset=archive.qd_score_offset, seed=seed)
 
 
-def density_archive(config: Any, archive: Any, seed: int) -> Any:
+def density_archive(config: RowConfig, archive: Any, seed: int) -> Any:
     """Density Descent Search's KDE over a reservoir of 10,000 measures, its bandwidth
     --bandwidth of the measures' span."""
     from ribs.archives import DensityArchive
@@ -229,7 +252,7 @@ ALGORITHMS["cma_maega"] = dataclasses.replace(
     ALGORITHMS["cma_maega_es"], summary="CMA-MAEGA (exact gradients)", flags=("learning_rate",), exact=True)
 
 
-def first_layer(config: Any) -> tuple[int, int] | None:
+def first_layer(config: RowConfig) -> tuple[int, int] | None:
     """A network's first layer, (outputs, observations), whose inputs ME-ES normalises; None for
     the linear policy (no bias to fold the mean into)."""
     policy = config.network
@@ -260,7 +283,7 @@ ALGORITHMS["cma_mega_td3_es"] = dataclasses.replace(
     flags=("es_samples", "es_sigma", "buffer_size"), learns=Learns(critic_steps=600, objective_gradient=True))
 
 
-def evaluations_per_iteration(config: Any) -> int:
+def evaluations_per_iteration(config: RowConfig) -> int:
     """The solutions an iteration flies: every emitter's batch, for a DQD row each emitter's point
     and its gradient samples too, and for ME-ES each emitter's samples and offspring (what
     metrics.json's `evaluations` counts; ME-ES's first iteration flies x0 alone), and a learning
@@ -282,7 +305,7 @@ ES_BYTES: dict[str, Callable[[int], float]] = {"cma_es": lambda n: 8 * 7.2 * n *
                                                "adam": lambda n: 8 * 6 * n}  # ME-ES: theta, m, v, x0
 
 
-def memory_needed(config: Any, solution_dim: int) -> float:
+def memory_needed(config: RowConfig, solution_dim: int) -> float:
     """Bytes the driver holds for a run: each emitter's evolution strategy (ES_BYTES; the other
     emitters keep a batch), each archive's solutions (its cells, at most, times the weights) and a
     learning row's replay buffer (twice: a checkpoint copies it)."""
@@ -293,7 +316,7 @@ def memory_needed(config: Any, solution_dim: int) -> float:
     return emitters + 8.0 * cells * solution_dim * (1 + row.result_archive) + buffer_bytes(config) * 2
 
 
-def buffer_bytes(config: Any) -> float:
+def buffer_bytes(config: RowConfig) -> float:
     """A learning row's replay buffer when full: --buffer_size float32 transition rows (its
     observation twice, the action, the reward and the end); 0 for the other rows."""
     if ALGORITHMS[config.algorithm].learns is None:
@@ -302,8 +325,8 @@ def buffer_bytes(config: Any) -> float:
     return 4.0 * config.buffer_size * transition_width(observations, actions)
 
 
-def task_of(config: Any) -> Environment:
-    """The run's row of ENVIRONMENTS (config: a RunConfig, run_config.py)."""
+def task_of(config: RowConfig) -> Environment:
+    """The run's row of ENVIRONMENTS."""
     return ENVIRONMENTS[config.env]
 
 
@@ -312,14 +335,14 @@ def derive_seeds(seed: int, count: int) -> list[int]:
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(count)]
 
 
-def archive_shape(config: Any) -> dict[str, Any]:
+def archive_shape(config: RowConfig) -> dict[str, Any]:
     """What every archive of the run shares: the solution size (its policy's weights), the
     measures' ranges, the offset."""
     return dict(solution_dim=config.network.size(shape_of(config)), ranges=measure_bounds(config),
                 qd_score_offset=returns_of(config).offset)
 
 
-def grid_archives(config: Any) -> Callable[..., Any]:
+def grid_archives(config: RowConfig) -> Callable[..., Any]:
     """Empty grid archives of the run: --grid cells along each of its measures."""
     from ribs.archives import GridArchive
 
@@ -330,7 +353,7 @@ def grid_archives(config: Any) -> Callable[..., Any]:
 CVT_SAMPLES = 100_000  # points k-means clusters into the centroids (pyribs' default)
 
 
-def cvt_archives(config: Any) -> Callable[..., Any]:
+def cvt_archives(config: RowConfig) -> Callable[..., Any]:
     """Empty CVT archives of the run: --cells centroids, made once by k-means over points drawn
     uniformly in the measures' ranges (pyribs' k_means_centroids), seeded from the run's seed
     apart from the archive's and emitters' seeds (a grid run's seeds stay as they were)."""
@@ -352,7 +375,7 @@ def k_means(cells: int, ranges: tuple, seed: int) -> np.ndarray:
     return centroids
 
 
-def cvt_making(config: Any) -> str:
+def cvt_making(config: RowConfig) -> str:
     """What a run says before its CVT's k-means, which takes seconds at QD-RL's 1,024 cells."""
     return f"Making the CVT archive's {config.cells:,} centroids (k-means over {CVT_SAMPLES:,} points)..."
 
@@ -410,7 +433,7 @@ def emitter_class(kind: str | type) -> type:
     return kind if isinstance(kind, type) else getattr(ribs_emitters, kind)
 
 
-def build_scheduler(config: Any, x0: np.ndarray | None = None):
+def build_scheduler(config: RowConfig, x0: np.ndarray | None = None):
     """The archives, emitters and scheduler of `config.algorithm`, seeded from `config.seed`.
 
     The emitters start from `x0` (default: the policy's start, zeros for the linear policy as in

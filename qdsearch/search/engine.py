@@ -8,7 +8,8 @@ Map:
   `chunk_pairs`; batches flown first come, first served: FIFO_TIMEOUT), `per_terrain` and
   `averaged` (results back in solution order, averaged over terrains; `in_pair_order`, a
   learning row's transitions so), `gather_with_progress`,
-  and `evaluate_batch` (a run's batch, end to end);
+  and `evaluate_batch` (a run's batch, end to end; `FlownConfig`, what it reads of the run's
+  settings);
 - `ClusterShare`: the cluster's worker threads (asked every few seconds), which with the
   driver's runs in flight size a batch's chunks.
 """
@@ -18,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from typing import Any
+from typing import Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -27,6 +28,7 @@ from qdsearch.base.stopping import STOP
 from qdsearch.tasks import (
     TASKS_OWN,
     Episode,
+    TaskConfig,
     episode_of,
     evaluate_points,
     make_env,
@@ -196,7 +198,16 @@ def gather_with_progress(client, futures: list) -> list:
         return client.gather(futures)
 
 
-def evaluate_batch(client, solutions: np.ndarray, config: Any) -> tuple[np.ndarray, np.ndarray]:
+class FlownConfig(TaskConfig, Protocol):
+    """What a batch's flights read of a run's settings (the config layer's RunConfig is one): the
+    task's (tasks.TaskConfig), which copy of the env, and the policy. Not the config layer itself,
+    which a worker that imports this module has no need to load."""
+
+    fast_env: bool
+    network: Policy
+
+
+def evaluate_batch(client, solutions: np.ndarray, config: FlownConfig) -> tuple[np.ndarray, np.ndarray]:
     """Objectives and measures of `solutions` in the run's setting, flown on the Dask cluster.
 
     Results come back in the order of the solutions whatever the number of workers, so a fixed

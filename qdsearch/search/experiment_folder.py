@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import re
 from pathlib import Path
+from typing import Any
 
 from qdsearch.algorithms import ALGORITHMS
 from qdsearch.base.flags import UsageError, shown
@@ -25,13 +26,14 @@ from qdsearch.search.parts import merge_part_states, part_of
 EXPERIMENT_FORMAT = "lunar_lander.experiment/1"
 
 
-def run_setting(config: dict) -> str:
-    """The algorithm with its own flags, and the other flags shaping it that differ from their
+def run_setting(recorded: dict[str, Any]) -> str:
+    """The label of a run's settings as recorded (config.json, or an experiment's plan): the
+    algorithm with its own flags, and the other flags shaping it that differ from their
     defaults: runs of one setting with different seeds are repeats of one experiment. An
     algorithm's own flags are always named (cma_mae at 0.01 and at 0.5 are different algorithms
     in effect), so a label means the same whatever the defaults become."""
     defaults, changed = checked_settings(search_defaults()), []
-    config = upgrade(config)  # a config.json from before a flag: what it ran with
+    config = upgrade(recorded)  # a config.json from before a flag: what it ran with
     with contextlib.suppress(KeyError, TypeError, UsageError):  # measures: the task's default
         defaults = with_policy(with_task({**defaults, "env": config["env"]}))
         config = with_policy(with_task(config))

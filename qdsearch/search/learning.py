@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.algorithms import ALGORITHMS, Learns, task_of
+from qdsearch.algorithms import ALGORITHMS, Learns, RowConfig, task_of
 from qdsearch.search.engine import in_pair_order
 
 
@@ -40,7 +40,7 @@ class Learning:
         self.frozen = pickle.dumps(learner.state())  # as of the last told iteration
 
     @classmethod
-    def of(cls, config: Any, scheduler: Any, saved: dict | None = None) -> Learning | None:
+    def of(cls, config: RowConfig, scheduler: Any, saved: dict | None = None) -> Learning | None:
         """A run's learning (None for a row that does not learn): new, from the emitters' start,
         or as a checkpoint `saved` it. Its learner is handed to the emitters that use one."""
         learns = ALGORITHMS[config.algorithm].learns

@@ -335,7 +335,7 @@ class Run:
         write_signed(self.dir / "checkpoint.pkl", compact_pickle.dumps(checkpoint))
         self.saved = checkpoint["iteration"]
         savers.write_outputs(self.dir, checkpoint["scheduler"].result_archive, checkpoint["metrics"],
-                             checkpoint["config"], checkpoint["iteration"], returns_of(self.config).heat)
+                             self.config, checkpoint["iteration"], returns_of(self.config).heat)
         with savers.one_at_a_time:
             self.tracking.save(checkpoint["metrics"])
 

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from qdsearch.algorithms import ARCHIVES, MAX_CELLS, archive_shape, kind_of
+from qdsearch.algorithms import ARCHIVES, MAX_CELLS, RowConfig, archive_shape, kind_of
 from qdsearch.base.flags import UsageError
 from qdsearch.base.run_files import FILE_BOUNDS, atomic_write, fault_text, open_regular, read_regular
 
@@ -45,14 +45,14 @@ ELITE_FIELDS = ("solution", "objective", "measures", "threshold", "index")  # py
 BAD_DATA = (KeyError, ValueError, TypeError, IndexError, MemoryError)
 
 
-def write_archive_data(path: Path, archive: Any, config: dict) -> None:
-    """The archive (of a kind of ARCHIVES) and its run's config as an .npz, written whole or not
-    at all."""
+def write_archive_data(path: Path, archive: Any, recorded: dict[str, Any]) -> None:
+    """The archive (of a kind of ARCHIVES) and its run's config as recorded (config.json's JSON) as
+    an .npz, written whole or not at all."""
     kind = kind_of(archive)
     fields = {"format": ARCHIVE_FORMAT, "kind": kind, "solution_dim": archive.solution_dim,
               "dims": archive.dims if kind == "grid" else [archive.cells],
               "lower_bounds": archive.lower_bounds, "upper_bounds": archive.upper_bounds,
-              "qd_score_offset": archive.qd_score_offset, "config": json.dumps(config),
+              "qd_score_offset": archive.qd_score_offset, "config": json.dumps(recorded),
               **archive.data(list(ELITE_FIELDS))}
     if kind == "cvt":
         fields["centroids"] = archive.centroids
@@ -112,8 +112,8 @@ def recorded_config(path: Path) -> Any:
         raise UsageError(f"{path}: its config is not readable JSON ({error})") from None
 
 
-def empty_archive(config: Any, centroids: Path) -> Any:
-    """An empty archive of a run's cells, from its config (a RunConfig) and, for a CVT archive,
+def empty_archive(config: RowConfig, centroids: Path) -> Any:
+    """An empty archive of a run's cells, from its settings and, for a CVT archive,
     its centroids.npy."""
     if config.archive == "grid":
         return ARCHIVES["grid"]["make"](config)()

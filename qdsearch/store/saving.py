@@ -2,6 +2,7 @@
 cluster with cores of its own, the saver processes that draw the runs' CSVs and pictures.
 
 Map:
+- `SavedConfig`: what a save reads of a run's settings;
 - `save_outputs`: a run folder's files besides the checkpoint (metrics, archive.npz for the
   results commands, archive.csv, archive.pkl for pyribs' users if asked, `save_pictures`: heatmaps,
   progress plot): what a save costs, nearly all of it;
@@ -22,7 +23,7 @@ import threading
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Protocol
 
 from qdsearch.base import compact_pickle
 from qdsearch.base.plots import save_heatmap, save_progress_plot
@@ -35,7 +36,18 @@ from qdsearch.tasks import MEASURES
 SAVER_PROCESSES = 2
 
 
-def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int,
+class SavedConfig(Protocol):
+    """What a save reads of a run's settings (the config layer's RunConfig is one)."""
+
+    algorithm: str
+    measures: list[str]
+    pictures: bool
+    archive_pkl: bool
+
+    def to_json(self) -> dict[str, Any]: ...
+
+
+def save_outputs(run_dir: Path, archive, metrics: list[dict], config: SavedConfig, iteration: int,
                  heat: tuple[float, float]) -> None:
     """The run folder's files besides the checkpoint: metrics, the archive (archive.npz for the
     results commands, which never unpickle, and with --archive_pkl a pickle for pyribs' users),
@@ -45,21 +57,21 @@ def save_outputs(run_dir: Path, archive, metrics: list[dict], config: dict, iter
     (benchmarks/bench_saves.py; archive.npz ~5 ms)."""
     write_json(run_dir / "metrics.json", metrics)
     # archive.npz before archive.pkl: a reader that finds the pickle finds the data it reads too.
-    write_archive_data(run_dir / "archive.npz", archive, config)
-    if config.get("archive_pkl"):
+    write_archive_data(run_dir / "archive.npz", archive, config.to_json())
+    if config.archive_pkl:
         write_pickle(run_dir / "archive.pkl", archive)
     write_csv(run_dir / "archive.csv", archive.data(return_type="pandas"))
-    if config["pictures"]:
+    if config.pictures:
         save_pictures(run_dir, archive, metrics, config, iteration, heat)
 
 
-def save_pictures(run_dir: Path, archive, metrics: list[dict], config: dict, iteration: int,
+def save_pictures(run_dir: Path, archive, metrics: list[dict], config: SavedConfig, iteration: int,
                   heat: tuple[float, float]) -> None:
     """The heatmap (a snapshot in heatmaps/, and heatmap.png, its colours over the `heat` range of
     objectives: tasks.Returns.heat) and the progress plot."""
-    title = f"{config['algorithm']} after {iteration} iterations"
+    title = f"{config.algorithm} after {iteration} iterations"
     snapshot = run_dir / "heatmaps" / f"heatmap_{iteration:05d}.png"
-    save_heatmap(archive, [MEASURES[m] for m in config["measures"]], snapshot, title, heat)
+    save_heatmap(archive, [MEASURES[m] for m in config.measures], snapshot, title, heat)
     atomic_write(run_dir / "heatmap.png", lambda f: f.write(snapshot.read_bytes()))
     save_progress_plot(metrics, run_dir / "progress.png")
 

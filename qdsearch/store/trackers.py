@@ -21,6 +21,7 @@ An experiment's runs are grouped by the experiment (W&B group, MLflow experiment
 folders) and named by their folders, which name their setting and seed.
 
 Map:
+- `TrackedConfig`: what the trackers read of a run's settings;
 - `TRACKERS` (the table --track picks from), `check_tracks` (the flag's check);
 - `TensorBoard`, `Wandb`, `Mlflow`: open (resuming), log rows and pictures, close;
   `check_sqlite_store`: an MLflow store that cannot be opened, failed at once;
@@ -41,7 +42,7 @@ import sqlite3
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from qdsearch.base.flags import UsageError, clipped, did_you_mean, named, shown
 from qdsearch.base.run_files import RunError, fault_text, write_json
@@ -55,9 +56,20 @@ PICTURES = ("heatmap.png", "progress.png")
 NOTES = "tracking.json"  # per tracker: how far it has tracked, and its run's id
 
 
-def group_of(config: Any) -> str | None:
+class TrackedConfig(Protocol):
+    """What the trackers read of a run's settings (the config layer's RunConfig is one)."""
+
+    algorithm: str
+    seed: int
+    track: list[str]
+    experiment: str | None  # the experiment folder it is a run of
+
+    def to_json(self) -> dict[str, Any]: ...
+
+
+def group_of(config: TrackedConfig) -> str | None:
     """The experiment a run belongs to (its folder's name), or None for a lone search."""
-    return Path(config.experiment).name if getattr(config, "experiment", None) else None
+    return Path(config.experiment).name if config.experiment else None
 
 
 def seconds_per_iteration(rows: list[dict], before: dict | None) -> list[float]:
@@ -91,7 +103,7 @@ class TensorBoard:
 
     module, package = "tensorboardX", "tensorboardX"
 
-    def __init__(self, run_dir: Path, config: Any, note: dict) -> None:
+    def __init__(self, run_dir: Path, config: TrackedConfig, note: dict) -> None:
         from tensorboardX import SummaryWriter
 
         through = note.get("through", 0)
@@ -139,7 +151,7 @@ class Wandb:
 
     module, package = "wandb", "wandb"
 
-    def __init__(self, run_dir: Path, config: Any, note: dict) -> None:
+    def __init__(self, run_dir: Path, config: TrackedConfig, note: dict) -> None:
         import wandb
 
         run_id = note.get("id") or secrets.token_hex(4)  # W&B's own ids are 8 characters too
@@ -175,7 +187,7 @@ class Mlflow:
 
     module, package = "mlflow", "mlflow"
 
-    def __init__(self, run_dir: Path, config: Any, note: dict) -> None:
+    def __init__(self, run_dir: Path, config: TrackedConfig, note: dict) -> None:
         # A tracking server that does not answer: MLflow's own retries (7, backing off from 2 s)
         # held a 2-iteration run 64 s; a few quick tries, then the one line of a failed tracker.
         for name, value in MLFLOW_PATIENCE.items():
@@ -314,7 +326,7 @@ class Tracking:
     rows its trackers lack, and the pictures as they are now; a tracker that fails is reported
     once in the run's log and switched off."""
 
-    def __init__(self, run_dir: Path, config: Any, log: logging.Logger) -> None:
+    def __init__(self, run_dir: Path, config: TrackedConfig, log: logging.Logger) -> None:
         self.dir, self.config, self.log = run_dir, config, log
         self.open: dict[str, Any] | None = None
         self.closed = False  # set in the tracker thread: a save handed over since is tracked, then closed

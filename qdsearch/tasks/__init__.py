@@ -21,6 +21,7 @@ Map:
 - the registration: FAMILY_MODULES, `register_family` (a module's rows into the tables, checked);
 - the tables: FAMILIES, ENVIRONMENTS (--env), MEASURES (--measures), DEFAULT_ENV,
   TUTORIAL_MEASURES; `family_measures`;
+- `TaskConfig`: what the layer reads of a run's settings;
 - the episode's rules: `Episode` (--episode_length, --terminate_when_unhealthy; `episode_of` a
   config's), `check_episode`; `returns_of` (a run's range of objectives: family.Returns);
 - the resets: RESETS (--reset), `reset_seeds` (each solution's episodes' reset seeds);
@@ -41,7 +42,7 @@ import importlib
 import inspect
 import struct
 import warnings
-from typing import Any
+from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -96,6 +97,21 @@ def family_measures(family: Family) -> list[str]:
     return [name for name, measure in MEASURES.items() if family in measure.families]
 
 
+class TaskConfig(Protocol):
+    """What this layer reads of a run's settings (the config layer's RunConfig is one): its task,
+    measures and size, its env seeds and resets, and its episodes' rules and offset."""
+
+    env: str
+    dim: int | None
+    measures: list[str]
+    env_seed: list[int]
+    seed: int
+    reset: str
+    episode_length: int | None
+    terminate_when_unhealthy: bool | None
+    qd_offset: float | None
+
+
 @dataclasses.dataclass(frozen=True)
 class Episode:
     """The rules of a run's episodes where they are not the task's own (None: the task's): how many
@@ -115,13 +131,13 @@ class Episode:
 TASKS_OWN = Episode()
 
 
-def episode_of(config: Any) -> Episode:
+def episode_of(config: TaskConfig) -> Episode:
     """A run's episode rules, from its config (a RunConfig); runs from before the flags flew the
     task's own (None: the task's)."""
     return Episode(config.episode_length, config.terminate_when_unhealthy)
 
 
-def returns_of(config: Any) -> Returns:
+def returns_of(config: TaskConfig) -> Returns:
     """A run's range of objectives (its QD offset as recorded, the rest for its episode's length)."""
     return ENVIRONMENTS[config.env].returns(episode_of(config).length, config.qd_offset)
 
@@ -147,14 +163,14 @@ def own_resets(solutions: np.ndarray, env_seeds: list[int], run_seed: int) -> np
 RESETS = {"fixed": fixed_resets, "each": own_resets}
 
 
-def reset_seeds(solutions: np.ndarray, config: Any, env_seeds: list[int] | None = None) -> np.ndarray:
+def reset_seeds(solutions: np.ndarray, config: TaskConfig, env_seeds: list[int] | None = None) -> np.ndarray:
     """The reset seeds of each solution's episodes in a run: a row per solution, a column per env
     seed (its --env_seed, or `env_seeds`; runs from before --reset flew fixed ones)."""
     seeds = list(config.env_seed) if env_seeds is None else env_seeds
     return RESETS[config.reset](solutions, seeds, config.seed)
 
 
-def flown_seeds(solutions: np.ndarray, env_seed: int, config: Any) -> list[int]:
+def flown_seeds(solutions: np.ndarray, env_seed: int, config: TaskConfig) -> list[int]:
     """The reset each solution of a run flies from for its env seed `env_seed` (the results
     commands' one shown seed): the seed itself, or under --reset each each solution's own."""
     return [int(seed) for seed in reset_seeds(solutions, config, [env_seed])[:, 0]]
@@ -226,19 +242,19 @@ def check_spaces(env_name: str) -> None:
                          f"can't serve {task.gym_id}'s observations {obs} and actions {act}")
 
 
-def dim_of(config: Any) -> int | None:
+def dim_of(config: TaskConfig) -> int | None:
     """A benchmark function's dimension in a run (its --dim, the task's own in a run that recorded
     none); None for a Gymnasium task."""
     task = ENVIRONMENTS[config.env]
-    return (getattr(config, "dim", None) or task.dim) if task.function else None
+    return (config.dim or task.dim) if task.function else None
 
 
-def shape_of(config: Any) -> tuple[int, int]:
+def shape_of(config: TaskConfig) -> tuple[int, int]:
     """The policy's shape in a run, (actions, observations): the env's, or a function's (dim, 1)."""
     return ENVIRONMENTS[config.env].shape_for(dim_of(config))
 
 
-def measure_bounds(config: Any) -> list[tuple[float, float]]:
+def measure_bounds(config: TaskConfig) -> list[tuple[float, float]]:
     """The ranges of a run's measures (a benchmark function's grow with its dimension)."""
     return [MEASURES[name].bounds(dim_of(config)) for name in config.measures]
 
