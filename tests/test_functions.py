@@ -16,6 +16,7 @@ import pytest
 from qdsearch.algorithms import build_scheduler
 from qdsearch.cli import commands
 from qdsearch.config import options, run_config
+from qdsearch.config.settings import unchecked
 from qdsearch.tasks import (
     ENVIRONMENTS,
     MEASURES,
@@ -129,7 +130,7 @@ def test_an_iteration_of_exact_gradients_counts_no_samples():
     from qdsearch.algorithms import evaluations_per_iteration
 
     config = {**options.search_defaults(), "algorithm": "cma_mega", "n_emitters": 1000, "batch_size": 1}
-    assert options.solutions_per_iteration(config) == (1000, "--n_emitters 1000 x --batch_size 1")
+    assert options.solutions_per_iteration(unchecked(config)) == (1000, "--n_emitters 1000 x --batch_size 1")
     row = type("Config", (), {**config, "es_samples": 100})
     assert evaluations_per_iteration(row) == 2000  # each point, and its one branched solution
 

@@ -76,6 +76,16 @@ def test_a_record_is_completed_once_what_its_flags_make_together():
     assert config.qd_offset == ENVIRONMENTS[config.env].returns(200).offset
     assert refusal(check_run_config, {**RECORD, "grid": 2000}) == (
         f"{named('grid')} 2000 with 2 measures makes 4,000,000 cells; at most 1,000,000")
+    assert check_run_config({**RECORD, "grid": 1000}).grid == 1000  # 1,000,000 cells: the most
+    most = check_run_config({**RECORD, "n_emitters": 1000, "batch_size": 100})  # 100,000 solutions
+    assert most.n_emitters * most.batch_size == 100_000
+    assert refusal(check_run_config, {**RECORD, "n_emitters": 1000, "batch_size": 101}) == (
+        f"{named('n_emitters')} 1000 x {named('batch_size')} 101 asks 101,000 solutions per iteration; "
+        "at most 100,000")
+    widest = {**RECORD, "n_emitters": 1000, "batch_size": 100, "env_seed": list(range(100))}
+    assert len(check_run_config(widest).env_seed) == 100  # 10,000,000 rollouts: the most
+    assert refusal(check_run_config, {**widest, "env_seed": list(range(101))}) == (
+        "100,000 solutions on 101 env seed(s) make 10,100,000 rollouts per iteration; at most 10,000,000")
 
 
 def test_a_search_s_flags_are_checked_once_into_a_config_with_a_seed():
@@ -91,9 +101,11 @@ def test_a_search_s_flags_are_checked_once_into_a_config_with_a_seed():
 
 
 def test_a_search_refuses_a_learning_row_on_a_task_of_choices():
-    assert refusal(search_config, flags(algorithm="pga_me")).startswith(
+    able = [name for name, task in ENVIRONMENTS.items() if task.continuous]
+    assert "Hopper-v5" in able and "LunarLander-v3" not in able
+    assert refusal(search_config, flags(algorithm="pga_me")) == (
         f"{named('algorithm')} pga_me learns a critic of continuous actions; {named('env')} LunarLander-v3 "
-        "has a choice of actions")
+        f"has a choice of actions. Tasks it can learn: {', '.join(able)}")
 
 
 def test_a_policy_s_flags_are_checked_together():
@@ -137,3 +149,44 @@ def test_a_search_checks_each_value_once(monkeypatch):
     seen.clear()
     assert check_run_config(config.to_json()) == config
     assert sorted(seen) == ["env_seed", "grid", "policy"]
+
+
+def test_a_row_beyond_the_machine_s_memory_is_refused_with_its_numbers():
+    """A 1024,1024 network on Ant-v5: CMA-ME's five full covariances hold far more than any
+    machine; the refusal's weights, its size and the machine's memory, each computed apart."""
+    import re
+
+    from qdsearch.algorithms import ALGORITHMS
+
+    actions, observations = ENVIRONMENTS["Ant-v5"].shape
+    weights = (observations + 1) * 1024 + 1025 * 1024 + 1025 * actions  # two layers with biases
+    with open("/proc/meminfo") as meminfo:
+        machine = int(meminfo.readline().split()[1]) * 1024 / 1e9  # MemTotal, in kB
+    wide = flags(env="Ant-v5", policy="mlp", hidden=[1024, 1024], algorithm="cma_me", seed=1)
+    words = refusal(search_config, wide)
+    found = re.fullmatch(rf"{named('algorithm')} cma_me would hold ~([\d,.]+) GB for ([\d,]+) weights "
+                         rf"\(5 emitters\), more than 50% of this machine's ([\d.]+) GB; rows that fit: (.+) "
+                         rf"\(or fewer emitters, a smaller {named('hidden')} or {named('buffer_size')}\)",
+                         words)
+    assert found, words
+    held, told, memory, fits = found.groups()
+    covariances = 5 * weights**2 * 8 / 1e9  # five float64 covariances, the least CMA-ES holds
+    assert int(told.replace(",", "")) == weights == 1_086_472
+    assert covariances <= float(held.replace(",", "")) <= 10 * covariances
+    assert abs(float(memory) - machine) <= 0.051
+    assert fits == "none" or set(fits.split(", ")) <= set(ALGORITHMS) - {"cma_me", "cma_mae"}
+    widest = flags(env="Ant-v5", policy="mlp", hidden=[4096] * 8, algorithm="cma_me", seed=1)
+    assert "117,616,648 weights" in (words := refusal(search_config, widest))  # 8 layers: none fits
+    assert words.split("rows that fit: ")[1].startswith("none (or fewer emitters")
+
+
+def test_a_learning_row_without_its_library_is_refused_naming_the_install(monkeypatch):
+    from qdsearch.config import options
+
+    monkeypatch.setattr(options, "LEARNING_LIBRARY", "qdsearch_absent_library")  # as if JAX were not there
+    assert refusal(search_config, flags(env="Hopper-v5", algorithm="cma_mega_td3_es", seed=2)) == (
+        f"{named('algorithm')} cma_mega_td3_es learns with JAX, which is not installed: pip install -r "
+        "requirements-learning.txt")
+    monkeypatch.undo()  # the test command installs JAX (requirements-learning.txt)
+    learning = flags(env="Hopper-v5", algorithm="cma_mega_td3_es", seed=2)
+    assert search_config(learning).algorithm == "cma_mega_td3_es"

@@ -42,7 +42,7 @@ def test_the_solutions_of_an_iteration_and_the_flags_that_make_them(algorithm, f
     """The larger of the batch and a DQD row's points with their samples (the first of equals: the
     batch); ME-ES's samples alone; no samples for a row that flies none."""
     config = {**options.search_defaults(), "algorithm": algorithm, **flags}
-    assert options.solutions_per_iteration(config) == made
+    assert options.solutions_per_iteration(settings.unchecked(config)) == made
 
 
 @pytest.mark.parametrize("args, line", [

@@ -1,14 +1,15 @@
-"""The other commands' flag tables, and the checks of what a run's flags make together.
+"""The checks of what a run's flags make together.
 
 Map:
 - (settings.py's ROW_FLAGS, POLICY_FLAGS and BUDGETS, read here:) `own_flags` and `ignores`,
   `refuse_unused_row_flags` (an algorithm's or a policy's own flag given where no row uses it);
-- `check_sizes` (`solutions_per_iteration`) and `check_rollouts` (the sizes flags make together);
-- `checked` (a value through its flag's check), `with_task` (a config's measures, checked
-  against its task, and its archive's cells), `with_offset`, `legacy_offset`,
-  `resumed_budget`, `with_budget`, `check_memory`,
-  `check_learning` (a learning row's task and library);
-  `search_defaults` and `before_the_flags` (what runs recorded before a flag existed ran with).
+- what values make together, on the values while a config is made (dicts): `checked` (a value
+  through its flag's check), `with_task` (a config's measures, checked against its task, and its
+  archive's cells), `with_dim`, `with_offset`, `legacy_offset`, `resumed_budget`, `with_budget`;
+  `search_defaults` and `before_the_flags` (what runs recorded before a flag existed ran with);
+- what a made config may not hold (a RunConfig): `check_sizes` (`solutions_per_iteration`,
+  `check_rollouts`: the sizes flags make together), `check_memory`, `check_learning` (a
+  learning row's task and library).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from qdsearch.config.settings import (
     MAX_SOLUTIONS,
     ROW_FLAGS,
     SEARCH_FLAGS,
+    RunConfig,
     unchecked,
 )
 from qdsearch.tasks import (
@@ -83,29 +85,29 @@ def refuse_unused_row_flags(algorithms: list[str], given: list[str], policies: l
                 raise UsageError(f"{named(typed)} is a flag of {', '.join(users)} only; {who} use it")
 
 
-def check_sizes(config: dict) -> None:
+def check_sizes(config: RunConfig) -> None:
     """The sizes that flags make together are bounded too: the archive's cells, the solutions
     asked per iteration (a DQD row's gradient batch too) and the rollouts they are flown in."""
     solutions, made_by = solutions_per_iteration(config)
-    if config["archive"] == "grid" and (cells := config["grid"] ** len(config["measures"])) > MAX_CELLS:
-        raise UsageError(f"{named('grid')} {config['grid']} with {len(config['measures'])} measures makes "
+    if config.archive == "grid" and (cells := config.grid ** len(config.measures)) > MAX_CELLS:
+        raise UsageError(f"{named('grid')} {config.grid} with {len(config.measures)} measures makes "
                          f"{cells:,} cells; at most {MAX_CELLS:,}")
     if solutions > MAX_SOLUTIONS:
         raise UsageError(f"{made_by} asks {solutions:,} solutions per iteration; at most {MAX_SOLUTIONS:,}")
-    check_rollouts(solutions, len(config["env_seed"]), "per iteration")
+    check_rollouts(solutions, len(config.env_seed), "per iteration")
 
 
-def solutions_per_iteration(config: dict) -> tuple[int, str]:
+def solutions_per_iteration(config: RunConfig) -> tuple[int, str]:
     """The solutions an iteration asks, and the flags that make the number: n_emitters x
     batch_size, or a DQD row's emitters each with its point and gradient samples if more (ME-ES's:
     their samples), so that a refusal names the flag to lower."""
-    n_emitters, batch, row = config["n_emitters"], config["batch_size"], ALGORITHMS[config["algorithm"]]
+    n_emitters, batch, row = config.n_emitters, config.batch_size, ALGORITHMS[config.algorithm]
     if row.es_steps:
-        samples = config["es_samples"]
+        samples = config.es_samples
         return n_emitters * samples, f"{named('n_emitters')} {n_emitters} x {named('es_samples')} {samples}"
     made = {f"{named('n_emitters')} {n_emitters} x {named('batch_size')} {batch}": n_emitters * batch}
     if row.samples:
-        samples = config["es_samples"]
+        samples = config.es_samples
         gradients = f"{named('n_emitters')} {n_emitters} x (1 + {named('es_samples')} {samples})"
         made[gradients] = n_emitters * (1 + samples)
     made_by = max(made, key=made.get)  # the first of equals: the batch
@@ -236,39 +238,39 @@ def with_budget(config: dict[str, Any]) -> dict[str, Any]:
     return {**config, "iterations": min(config["evaluations"] // per_iteration, MAX_ITERATIONS)}
 
 
-def check_memory(config: dict[str, Any]) -> None:
+def check_memory(config: RunConfig) -> None:
     """Refuse, before anything is written, a row whose emitters and archives would not fit in the
     machine's memory with this policy (a full CMA-ES covariance grows as the weights squared:
     ~3.5 GB at Ant-v5's 21,000 weights of a 128x128 network), naming the rows that fit."""
-    weights = unchecked(config).network.size(shape_of(unchecked(config)))
+    weights = config.network.size(shape_of(config))
     room = MEMORY_SHARE * physical_memory()
 
     def needs(algorithm: str) -> float:
-        return memory_needed(unchecked({**config, "algorithm": algorithm}), weights)
+        return memory_needed(config.replace(algorithm=algorithm), weights)
 
-    if (needed := needs(config["algorithm"])) <= room:
+    if (needed := needs(config.algorithm)) <= room:
         return
     fits = [name for name in ALGORITHMS if needs(name) <= room]
-    raise UsageError(f"{named('algorithm')} {config['algorithm']} would hold ~{needed / 1e9:,.1f} GB for "
-                     f"{weights:,} weights ({config['n_emitters']} emitters), more than "
+    raise UsageError(f"{named('algorithm')} {config.algorithm} would hold ~{needed / 1e9:,.1f} GB for "
+                     f"{weights:,} weights ({config.n_emitters} emitters), more than "
                      f"{MEMORY_SHARE:.0%} of this machine's {room / MEMORY_SHARE / 1e9:.1f} GB; rows "
                      f"that fit: {', '.join(fits) or 'none'} (or fewer emitters, a smaller "
                      f"{named('hidden')} or {named('buffer_size')})")
 
 
-def check_learning(config: dict[str, Any]) -> None:
+def check_learning(config: RunConfig) -> None:
     """A learning row (one with a TD3 critic: ALGORITHMS' `learns`) needs a task whose actions are
     a box (the critic takes the action as an input, the actor's gradient goes through it) and the
     optional JAX (requirements-learning.txt): refused before anything is written, naming either."""
-    if ALGORITHMS[config["algorithm"]].learns is None:
+    if ALGORITHMS[config.algorithm].learns is None:
         return
-    if not ENVIRONMENTS[config["env"]].continuous:
+    if not ENVIRONMENTS[config.env].continuous:
         able = [name for name, task in ENVIRONMENTS.items() if task.continuous]
-        raise UsageError(f"{named('algorithm')} {config['algorithm']} learns a critic of continuous actions; "
-                         f"{named('env')} {config['env']} has a choice of actions. Tasks it can learn: "
+        raise UsageError(f"{named('algorithm')} {config.algorithm} learns a critic of continuous actions; "
+                         f"{named('env')} {config.env} has a choice of actions. Tasks it can learn: "
                          f"{', '.join(able)}")
     if importlib.util.find_spec(LEARNING_LIBRARY) is None:
-        raise UsageError(f"{named('algorithm')} {config['algorithm']} learns with JAX, which is not "
+        raise UsageError(f"{named('algorithm')} {config.algorithm} learns with JAX, which is not "
                          "installed: pip install -r requirements-learning.txt")
 
 

@@ -262,9 +262,10 @@ def completed(config: dict[str, Any]) -> RunConfig:
     the task's measures and archive, the policy's layers, the offset, the budget and the sizes."""
     config = with_offset(with_policy(with_task(config)))
     seed_number("seed", config["seed"])
-    check_sizes(config)
-    return RunConfig(**{name: config[name] for name in SEARCH_FLAGS},
+    made = RunConfig(**{name: config[name] for name in SEARCH_FLAGS},
                      **{name: config[name] for name in RECORDS if config.get(name) is not None})
+    check_sizes(made)
+    return made
 
 
 def load_checkpoint(path: Path, trust: bool = False) -> dict:
@@ -307,8 +308,8 @@ def search_config(flags: dict[str, Any], given: Collection[str] = (), path: Path
         flags["seed"] = secrets.randbelow(2**31)
     config = completed(flags)
     check_spaces(config.env)
-    check_memory(config.to_json())  # after the sizes' own bounds (completed's)
-    check_learning(config.to_json())
+    check_memory(config)  # after the sizes' own bounds (completed's)
+    check_learning(config)
     return config
 
 

@@ -85,6 +85,7 @@ from qdsearch.config.settings import (
     ClusterSettings,
     checked_settings,
     for_policy,
+    unchecked,
     with_policy,
 )
 from qdsearch.search.cluster import scheduler_of
@@ -270,9 +271,10 @@ def experiment_grid(algorithms: Any, seeds: Any, search_flags: dict,
     check_spaces(common["env"])
     for setting in itertools.product(*axes.values()):  # each run's archive and memory too (swept --cells)
         config = with_policy(with_task(for_policy({**common, **dict(zip(axes, setting))})))
-        check_sizes(config)
-        check_memory(config)
-        check_learning(config)
+        each = unchecked(config)  # its flags checked, its config whole but for the per-run flags
+        check_sizes(each)
+        check_memory(each)
+        check_learning(each)
     refuse_unused_row_flags(axes["algorithm"],  # given here: flags the user set
                             list(search_flags) if own_flags is None else own_flags,
                             axes.get("policy", [common["policy"]]))

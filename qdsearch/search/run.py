@@ -373,7 +373,7 @@ def resume_run(path: Path, budget: ResumeSettings, cluster: ClusterSettings) -> 
     workers, trust = budget.workers, budget.trust
     found, _ = load_run_state(path, trust)  # refuse a bad folder, or budget, before anything is
     resumed_budget(found.to_json(), budget.iterations, budget.evaluations)  # written in it
-    check_learning(found.to_json())
+    check_learning(found)
     local = scored_here(found.env)
     scheduler_address = None if local else scheduler_of(resumed_cluster(budget, cluster))
     with folder_lock(path):
